@@ -1,0 +1,1 @@
+"""Dataparsers registered by the plugin."""

@@ -1,0 +1,160 @@
+"""`garo-eval`: score a trained run on any split of its D-NeRF scene and write JSON.
+
+`ns-eval` always scores the `test` split; D-3DGS scores lego on `val`. This command renders the
+chosen split itself (cameras and times from the transforms file, images composited on the
+model's background) and writes PSNR, SSIM, LPIPS (null without offline weights), the number of
+Gaussians and the split.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Dict, List, Literal, Optional, Tuple
+
+import numpy as np
+import torch
+from nerfstudio.cameras.cameras import Cameras, CameraType
+
+from garo_ns import compat
+from garo_ns.data.dnerf import read_split
+from garo_ns.errors import GaroInputError
+from garo_ns.metrics import make_lpips
+
+compat.install()
+
+METHODS = ("garo-deform", "deform-splatfacto")
+
+
+def load_run(config_path: Path) -> Tuple[Any, Any, Path, int]:
+    """Load a trained garo_ns run: (config, pipeline, checkpoint path, step).
+
+    Raises GaroInputError for a missing config, a run of another method, or an unreadable
+    (e.g. truncated) checkpoint. Nothing on disk is modified.
+    """
+    import yaml
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    config_path = Path(config_path)
+    if not config_path.is_file():
+        raise GaroInputError(f"run config not found: {config_path}")
+    try:
+        config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
+    except Exception as err:
+        raise GaroInputError(f"cannot read run config {config_path}: {err}") from None
+    method = getattr(config, "method_name", None)
+    if method not in METHODS:
+        raise GaroInputError(f"{config_path} is a run of '{method}', not of {' or '.join(METHODS)}")
+    try:
+        return eval_setup(config_path, test_mode="inference")
+    except (RuntimeError, EOFError, OSError, KeyError, AssertionError) as err:
+        if isinstance(err, AssertionError) and "does not exist" not in str(err):
+            raise
+        ckpt = Path(config.output_dir) / config.experiment_name / config.method_name / config.timestamp
+        raise GaroInputError(f"cannot load the checkpoint of {config_path} (under {ckpt}): {err}") from None
+
+
+def scene_dir(config: Any) -> Path:
+    """The scene directory a run was trained on."""
+    dm = config.pipeline.datamanager
+    data = dm.data if getattr(dm, "data", None) is not None else dm.dataparser.data
+    return Path(data)
+
+
+def load_split(data: Path, split: str, background: torch.Tensor) -> Tuple[Cameras, List[torch.Tensor]]:
+    """Cameras (with times) and ground-truth images [H, W, 3] in [0, 1], composited on `background`."""
+    import imageio.v2 as imageio
+
+    paths, poses, times, angle, (h, w) = read_split(data, split)
+    focal = 0.5 * w / math.tan(0.5 * angle)
+    cameras = Cameras(
+        camera_to_worlds=torch.from_numpy(poses[:, :3].astype(np.float32)),
+        fx=focal,
+        fy=focal,
+        cx=w / 2.0,
+        cy=h / 2.0,
+        camera_type=CameraType.PERSPECTIVE,
+        times=torch.tensor(times, dtype=torch.float32)[:, None],
+    )
+    images = []
+    bg = background.float().cpu()
+    for path in paths:
+        img = torch.from_numpy(np.asarray(imageio.imread(path))).float() / 255.0
+        if img.ndim == 2:
+            img = img[..., None].expand(-1, -1, 3)
+        if img.shape[-1] == 4:
+            img = img[..., :3] * img[..., 3:] + bg * (1.0 - img[..., 3:])
+        images.append(img[..., :3])
+    return cameras, images
+
+
+@torch.no_grad()
+def evaluate(pipeline: Any, data: Path, split: str) -> Dict[str, Any]:
+    """Render every frame of `split` and average PSNR, SSIM and (if available) LPIPS."""
+    model = pipeline.model
+    model.eval()
+    cameras, images = load_split(data, split, model.background_color)
+    lpips = make_lpips()
+    psnrs, ssims, lpipss = [], [], []
+    for i, gt in enumerate(images):
+        out = model.get_outputs_for_camera(cameras[i : i + 1].to(model.device))
+        pred = out["rgb"].clamp(0, 1)
+        gt = gt.to(pred.device)
+        mse = torch.mean((pred - gt) ** 2)
+        psnrs.append(float(-10.0 * torch.log10(mse.clamp_min(1e-12))))
+        p, g = pred.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None]
+        ssims.append(float(model.ssim(g, p)))
+        if lpips is not None:
+            lpipss.append(float(lpips.to(pred.device)(g, p)))
+    bg = model.background_color.tolist()
+    return {
+        "psnr": float(np.mean(psnrs)),
+        "ssim": float(np.mean(ssims)),
+        "lpips": float(np.mean(lpipss)) if lpipss else None,
+        "num_gaussians": int(model.num_points),
+        "split": split,
+        "n_images": len(images),
+        "background": "black" if bg == [0.0, 0.0, 0.0] else "white" if bg == [1.0, 1.0, 1.0] else bg,
+    }
+
+
+@dataclass
+class EvalArgs:
+    """Score a garo-deform / deform-splatfacto run on a split of its scene."""
+
+    load_config: Path
+    """config.yml of the run."""
+    split: Literal["train", "val", "test"] = "test"
+    """Split to score (lego: val)."""
+    output_path: Path = Path("eval.json")
+    """Where to write the JSON."""
+    data: Optional[Path] = None
+    """Scene directory, if it moved since training."""
+
+
+def run(args: EvalArgs) -> Dict[str, Any]:
+    """Evaluate and write JSON; returns the result."""
+    config, pipeline, ckpt, step = load_run(args.load_config)
+    result = evaluate(pipeline, args.data or scene_dir(config), args.split)
+    result.update({"method": config.method_name, "step": int(step), "checkpoint": str(ckpt)})
+    args.output_path.parent.mkdir(parents=True, exist_ok=True)
+    args.output_path.write_text(json.dumps(result, indent=2))
+    return result
+
+
+def main() -> None:
+    """Console entry point."""
+    import tyro
+
+    args = tyro.cli(EvalArgs)
+    try:
+        result = run(args)
+    except GaroInputError as err:
+        raise SystemExit(f"error: {err}") from None
+    lp = "n/a" if result["lpips"] is None else f"{result['lpips']:.4f}"
+    print(
+        f"{result['method']} step {result['step']} on {result['split']}: PSNR {result['psnr']:.2f}  "
+        f"SSIM {result['ssim']:.4f}  LPIPS {lp}  Gaussians {result['num_gaussians']}  -> {args.output_path}"
+    )

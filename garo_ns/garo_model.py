@@ -1,0 +1,430 @@
+"""Deformable Gaussian splatting model: splatfacto plus D-3DGS's deformation field.
+
+Canonical Gaussians live in `gauss_params` as in splatfacto; at render time the deformation
+field moves them to the camera's time. Rendering goes through gsplat's CUDA kernels when they
+can run and through the pure-torch reference otherwise, so everything runs on a CPU machine.
+
+Changes to splatfacto that a user may notice (each documented on its config field):
+* the densification defaults are D-3DGS's (see `config.py`), and the strategy's scene scale is
+  the 3DGS camera extent passed by the dataparser;
+* the background is the dataset's alpha colour when the dataparser reports it;
+* LPIPS is computed only when its backbone weights are available offline;
+* checkpoints keep the real step, the strategy's state, and the optimizers stay bound to the
+  loaded Gaussians.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Literal, Optional, Tuple, Type, Union
+
+import torch
+import torch.nn.functional as F
+from gsplat.strategy import DefaultStrategy
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.engine.optimizers import Optimizers
+from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
+from nerfstudio.utils.colors import get_color
+from nerfstudio.utils.rich_utils import CONSOLE
+from torch import Tensor
+from torch.nn import Parameter
+
+from garo_ns.deformation import DeformationField
+from garo_ns.errors import GaroTrainingError
+from garo_ns.garo_strategy import GaroStrategy
+from garo_ns.metrics import make_lpips
+from garo_ns.rendering import Backend, rasterize
+from garo_ns.sh import num_sh_bases
+
+GAUSSIAN_KEYS = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
+
+
+def viewmat_from_c2w(c2w: Tensor) -> Tensor:
+    """World-to-camera [C, 4, 4] in gsplat's convention (OpenCV axes) from nerfstudio's c2w [C, 3, 4]."""
+    rot = c2w[:, :3, :3] * torch.tensor([1.0, -1.0, -1.0], device=c2w.device, dtype=c2w.dtype)
+    rot_inv = rot.transpose(1, 2)
+    view = torch.zeros(c2w.shape[0], 4, 4, device=c2w.device, dtype=c2w.dtype)
+    view[:, :3, :3] = rot_inv
+    view[:, :3, 3:4] = -rot_inv @ c2w[:, :3, 3:4]
+    view[:, 3, 3] = 1.0
+    return view
+
+
+@dataclass
+class GaroModelConfig(SplatfactoModelConfig):
+    """Deformable splatfacto with D-3DGS's training recipe and optional GARO pruning.
+
+    Densification defaults follow D-3DGS (arguments/__init__.py of the official code), which in
+    turn follows 3DGS: grow on the plain view-space gradient above 2e-4, clone below 1% of the
+    scene extent and split above, cull opacity below 0.005 and world size above 10% of the extent,
+    refine every 100 steps from 500 to 15k, reset opacity every 3000 steps.
+    """
+
+    _target: Type = field(default_factory=lambda: GaroModel)
+
+    # --- D-3DGS / 3DGS schedule (splatfacto's own defaults differ) ---
+    warmup_length: int = 500
+    """Densification starts after this step (3DGS densify_from_iter)."""
+    refine_every: int = 100
+    """Densify and prune every this many steps (3DGS densification_interval)."""
+    num_downscales: int = 0
+    """Full resolution from the first step, as D-3DGS trains."""
+    background_color: Literal["random", "black", "white"] = "black"
+    """Render background; replaced by the dataset's alpha colour when the dataparser reports it."""
+    cull_alpha_thresh: float = 0.005
+    """Prune Gaussians with opacity below this (3DGS min_opacity)."""
+    cull_scale_thresh: float = 0.1
+    """Prune Gaussians larger than this fraction of the scene extent (3DGS big_points_ws)."""
+    reset_alpha_every: int = 30
+    """Reset opacities every this many refinements (30 x 100 = 3000 steps, 3DGS opacity_reset_interval)."""
+    densify_grad_thresh: float = 0.0002
+    """Grow Gaussians whose mean view-space gradient exceeds this (3DGS densify_grad_threshold)."""
+    use_absgrad: bool = False
+    """D-3DGS uses the plain gradient."""
+    densify_size_thresh: float = 0.01
+    """Clone below, split above this fraction of the scene extent (3DGS percent_dense)."""
+    stop_screen_size_at: int = 0
+    """Screen-size pruning off: in 3DGS it never triggers (max_radii2D is reset before use)."""
+    stop_split_at: int = 15000
+    """Densification ends here (3DGS densify_until_iter)."""
+    random_init: bool = True
+    """D-3DGS initialises synthetic scenes with random points."""
+    num_random: int = 100_000
+    """Number of random initial Gaussians (3DGS: 100k for synthetic scenes)."""
+    random_scale: float = 2.6
+    """Edge of the random-init cube: [-1.3, 1.3]^3 as in 3DGS's synthetic scenes."""
+    sh_degree: int = 3
+    sh_degree_interval: int = 1000
+    ssim_lambda: float = 0.2
+
+    # --- deformation field (D-3DGS) ---
+    deform_pos_freqs: int = 10
+    """Positional-encoding frequencies of the canonical position."""
+    deform_time_freqs: int = 6
+    """Positional-encoding frequencies of time: 6 for synthetic scenes, 10 for real captures."""
+    deform_depth: int = 8
+    """Hidden layers of the deformation MLP."""
+    deform_width: int = 256
+    """Width of the deformation MLP."""
+    deform_skip: int = 4
+    """The input is concatenated again after this hidden layer."""
+    deform_warmup: int = 3000
+    """Static warm-up: the deformation field is used from this step on (D-3DGS warm_up)."""
+    default_time: float = 0.0
+    """Time used for cameras that carry none (e.g. some viewer and render paths); warned once."""
+    scene_extent: Optional[float] = None
+    """Scene extent for densification thresholds; None takes the dataparser's camera extent."""
+
+    # --- rendering ---
+    rasterizer: Backend = "auto"
+    """'cuda' (gsplat kernels), 'reference' (pure torch), or 'auto': cuda when it can run."""
+
+    # --- GARO (geometry-aware redundancy optimisation) ---
+    garo_mode: Literal["off", "oaa", "gca", "full"] = "full"
+    """off: plain densification (the D-3DGS baseline); oaa: activity only; gca: curvature only on a
+    random candidate set; full: activity candidates filtered by curvature (the paper's method)."""
+    tau_activity: float = 5e-5
+    """Candidates are Gaussians whose mean view-space gradient norm is below this."""
+    n_max: int = 10_000
+    """At most this many candidates (the least active) per GARO step."""
+    tau_curvature: float = 0.5
+    """Candidates whose curvature is below this are redundant."""
+    rho_max: float = 0.02
+    """At most floor(rho_max * N) Gaussians are pruned per GARO step."""
+    k_neighbors: int = 10
+    """Neighbours for the curvature estimate."""
+    garo_start: int = 1000
+    """First step at which GARO may prune."""
+    garo_stop: int = 15000
+    """GARO prunes up to (not including) this step."""
+    garo_every: int = 500
+    """GARO prunes every this many steps (on refinement steps)."""
+    garo_seed: int = 0
+    """Seed of the random candidate set of the GCA-only ablation."""
+
+
+class GaroModel(SplatfactoModel):
+    """Splatfacto with a D-3DGS deformation field and a GARO-capable densification strategy."""
+
+    config: GaroModelConfig
+
+    # ------------------------------------------------------------------ set-up
+    def populate_modules(self) -> None:
+        cfg = self.config
+        metadata: Dict[str, Any] = dict(self.kwargs.get("metadata") or {})
+        extent = cfg.scene_extent or metadata.get("camera_extent") or 1.0
+        if not (isinstance(extent, (int, float)) and math.isfinite(extent) and extent > 0):
+            raise ValueError(f"scene extent must be a positive number, got {extent!r}")
+        self.scene_extent = float(extent)
+
+        if self.seed_points is not None and not cfg.random_init and len(self.seed_points[0]) > 0:
+            means = self.seed_points[0].float()
+            colors = self.seed_points[1].float() / 255.0 if self.seed_points[1].shape[0] > 0 else None
+        else:
+            gen = torch.Generator().manual_seed(0)
+            means = (torch.rand((cfg.num_random, 3), generator=gen) - 0.5) * cfg.random_scale
+            colors = None
+        n = means.shape[0]
+        if n < 4:
+            raise ValueError(f"need at least 4 initial Gaussians, got {n}")
+        dists, _ = self.k_nearest_sklearn(means, 3)
+        scales = torch.log(torch.from_numpy(dists).mean(-1, keepdim=True).clamp_min(1e-7)).repeat(1, 3)
+        quats = F.normalize(torch.randn(n, 4, generator=torch.Generator().manual_seed(1)), dim=-1)
+        dim_sh = num_sh_bases(cfg.sh_degree)
+        features_dc = (colors - 0.5) / 0.28209479177387814 if colors is not None else torch.rand(n, 3)
+        features_rest = torch.zeros(n, dim_sh - 1, 3)
+        opacities = torch.logit(torch.full((n, 1), 0.1))
+        self.gauss_params = torch.nn.ParameterDict(
+            {
+                "means": Parameter(means),
+                "scales": Parameter(scales),
+                "quats": Parameter(quats),
+                "features_dc": Parameter(features_dc),
+                "features_rest": Parameter(features_rest),
+                "opacities": Parameter(opacities),
+            }
+        )
+        self.deformation = DeformationField(
+            cfg.deform_pos_freqs, cfg.deform_time_freqs, cfg.deform_depth, cfg.deform_width, cfg.deform_skip
+        )
+        self.camera_optimizer = cfg.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu")
+
+        from nerfstudio.models.splatfacto import SSIM
+        from torchmetrics.image import PeakSignalNoiseRatio
+
+        self.psnr = PeakSignalNoiseRatio(data_range=1.0)
+        self.ssim = SSIM(data_range=1.0, size_average=True, channel=3)
+        # Kept out of the module tree: LPIPS may be absent, and checkpoints must not depend on it.
+        self._lpips = [make_lpips()]
+        self.step = 0
+        self.crop_box = None
+        self._warned_no_time = False
+
+        alpha = metadata.get("alpha_color")
+        if alpha is not None:
+            self.background_color = torch.as_tensor(alpha, dtype=torch.float32).reshape(3)
+        elif cfg.background_color == "random":
+            raise ValueError(
+                "background_color 'random' is not supported: set it to the dataset's alpha colour (black or white)"
+            )
+        else:
+            self.background_color = get_color(cfg.background_color)
+
+        common = dict(
+            prune_opa=cfg.cull_alpha_thresh,
+            grow_grad2d=cfg.densify_grad_thresh,
+            grow_scale3d=cfg.densify_size_thresh,
+            grow_scale2d=cfg.split_screen_size,
+            prune_scale3d=cfg.cull_scale_thresh,
+            prune_scale2d=cfg.cull_screen_size,
+            refine_scale2d_stop_iter=cfg.stop_screen_size_at,
+            refine_start_iter=cfg.warmup_length,
+            refine_stop_iter=cfg.stop_split_at,
+            reset_every=cfg.reset_alpha_every * cfg.refine_every,
+            refine_every=cfg.refine_every,
+            pause_refine_after_reset=0,
+            absgrad=cfg.use_absgrad,
+            revised_opacity=False,
+            verbose=False,
+        )
+        if cfg.garo_mode == "off":
+            self.strategy = DefaultStrategy(**common)
+        else:
+            self.strategy = GaroStrategy(
+                **common,
+                mode=cfg.garo_mode,
+                tau_activity=cfg.tau_activity,
+                n_max=cfg.n_max,
+                tau_curvature=cfg.tau_curvature,
+                rho_max=cfg.rho_max,
+                k_neighbors=cfg.k_neighbors,
+                garo_start_iter=cfg.garo_start,
+                garo_stop_iter=cfg.garo_stop,
+                garo_every=cfg.garo_every,
+                seed=cfg.garo_seed,
+            )
+        self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene_extent)
+
+    # ------------------------------------------------------------------ parameters
+    def get_param_groups(self) -> Dict[str, List[Parameter]]:
+        groups = self.get_gaussian_param_groups()
+        groups["deformation"] = list(self.deformation.parameters())
+        self.camera_optimizer.get_param_groups(param_groups=groups)
+        return groups
+
+    def get_training_callbacks(
+        self, training_callback_attributes: TrainingCallbackAttributes
+    ) -> List[TrainingCallback]:
+        return [
+            TrainingCallback(
+                [TrainingCallbackLocation.BEFORE_TRAIN_ITERATION],
+                self.step_cb,
+                args=[training_callback_attributes.optimizers],
+            ),
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.step_post_backward),
+        ]
+
+    def step_cb(self, optimizers: Optimizers, step: int) -> None:
+        self.step = step
+        self.optimizers = optimizers.optimizers
+
+    def step_post_backward(self, step: int) -> None:
+        self.strategy.step_post_backward(
+            params=self.gauss_params,
+            optimizers=self.optimizers,
+            state=self.strategy_state,
+            step=step,
+            info=self.info,
+            packed=False,
+        )
+        if isinstance(self.strategy, GaroStrategy):
+            self.strategy.log(self.strategy_state, step)
+
+    # ------------------------------------------------------------------ deformation
+    def deformation_active(self) -> bool:
+        """Whether the deformation field is applied at the current step (after the static warm-up)."""
+        return self.step >= self.config.deform_warmup
+
+    def camera_time(self, camera: Cameras) -> float:
+        """The camera's time in [0, 1], or the configured default (warned once) when it has none."""
+        if camera.times is not None:
+            return float(camera.times.reshape(-1)[0])
+        if not self._warned_no_time:
+            CONSOLE.print(
+                f"[yellow]Camera carries no time; rendering at default_time={self.config.default_time}[/yellow]"
+            )
+            self._warned_no_time = True
+        return float(self.config.default_time)
+
+    def deformed_gaussians(self, time: float) -> Tuple[Tensor, Tensor, Tensor]:
+        """Means, quaternions (unnormalised) and log-scales of all Gaussians at `time`.
+
+        Follows D-3DGS: the MLP reads detached canonical positions, offsets are added to the
+        positions and to the normalised quaternions; the scale offset is added in log space
+        (D-3DGS adds it to the activated scale), which keeps scales positive.
+        """
+        if not self.deformation_active():
+            return self.means, self.quats, self.scales
+        d_xyz, d_rot, d_scale = self.deformation(self.means.detach(), time)
+        return self.means + d_xyz, F.normalize(self.quats, dim=-1) + d_rot, self.scales + d_scale
+
+    # ------------------------------------------------------------------ rendering
+    def get_outputs(self, camera: Cameras) -> Dict[str, Union[Tensor, List]]:
+        if not isinstance(camera, Cameras):
+            raise TypeError(f"get_outputs needs a Cameras object, got {type(camera).__name__}")
+        if camera.shape[0] != 1:
+            raise ValueError(f"renders one camera at a time, got {camera.shape[0]}")
+        if self.training:
+            c2w = self.camera_optimizer.apply_to_camera(camera)
+        else:
+            c2w = camera.camera_to_worlds
+        time = self.camera_time(camera)
+        means, quats, log_scales = self.deformed_gaussians(time)
+        opacities, features_dc, features_rest = self.opacities, self.features_dc, self.features_rest
+
+        if self.crop_box is not None and not self.training:
+            keep = self.crop_box.within(means).squeeze()
+            if keep.sum() == 0:
+                return self.get_empty_outputs(
+                    int(camera.width.item()), int(camera.height.item()), self.background_color
+                )
+            means, quats, log_scales = means[keep], quats[keep], log_scales[keep]
+            opacities, features_dc, features_rest = opacities[keep], features_dc[keep], features_rest[keep]
+
+        scale = self._get_downscale_factor()
+        camera.rescale_output_resolution(1 / scale)
+        K = camera.get_intrinsics_matrices().to(self.device)
+        W, H = int(camera.width.item()), int(camera.height.item())
+        camera.rescale_output_resolution(scale)
+        self.last_size = (H, W)
+        viewmat = viewmat_from_c2w(c2w.to(self.device))
+
+        render_mode = "RGB+ED" if (self.config.output_depth_during_training or not self.training) else "RGB"
+        sh_degree = min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
+        colors = torch.cat([features_dc[:, None, :], features_rest], dim=1)
+        scales = torch.exp(log_scales)
+        render, alpha, info = rasterize(
+            means=means,
+            quats=quats,
+            scales=scales,
+            opacities=torch.sigmoid(opacities).squeeze(-1),
+            colors=colors,
+            viewmats=viewmat,
+            Ks=K,
+            width=W,
+            height=H,
+            sh_degree=sh_degree,
+            render_mode=render_mode,
+            backend=self.config.rasterizer,
+        )
+        # What the strategy may read without knowing the model (no copies: detached views).
+        info["means3d"] = means.detach()
+        info["quats3d"] = quats.detach()
+        info["scales3d"] = scales.detach()
+        info["canonical_scales3d"] = torch.exp(self.scales.detach()) if self.crop_box is None else None
+        self.info = info
+        if self.training:
+            self.strategy.step_pre_backward(self.gauss_params, self.optimizers, self.strategy_state, self.step, info)
+
+        background = self.background_color.to(self.device)
+        rgb = torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0)
+        depth = None
+        if render_mode == "RGB+ED":
+            depth = render[..., 3:4]
+            depth = torch.where(alpha > 0, depth, depth.detach().max()).squeeze(0)
+        if not self.training:
+            background = background.expand(H, W, 3)
+        return {"rgb": rgb.squeeze(0), "depth": depth, "accumulation": alpha.squeeze(0), "background": background}
+
+    # ------------------------------------------------------------------ losses and metrics
+    def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, Tensor]:
+        losses = super().get_loss_dict(outputs, batch, metrics_dict)
+        if self.training and not bool(torch.isfinite(losses["main_loss"])):
+            raise GaroTrainingError(
+                f"non-finite loss at step {self.step}; training stopped, earlier checkpoints are kept"
+            )
+        return losses
+
+    def get_image_metrics_and_images(
+        self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]
+    ) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
+        gt = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
+        pred = outputs["rgb"]
+        gt_b = torch.moveaxis(gt, -1, 0)[None]
+        pred_b = torch.moveaxis(pred, -1, 0)[None]
+        metrics = {"psnr": float(self.psnr(gt_b, pred_b).item()), "ssim": float(self.ssim(gt_b, pred_b))}
+        lpips = self._lpips[0]
+        if lpips is not None:
+            metrics["lpips"] = float(lpips.to(pred.device)(gt_b.clamp(0, 1), pred_b.clamp(0, 1)))
+        metrics["num_gaussians"] = float(self.num_points)
+        return metrics, {"img": torch.cat([gt, pred], dim=1)}
+
+    # ------------------------------------------------------------------ checkpoints
+    def update_to_step(self, step: int) -> None:
+        self.step = step
+
+    def load_state_dict(self, state_dict, strict: bool = True, **kwargs):  # type: ignore[override]
+        """Resize the Gaussians in place to the checkpoint's count, then load.
+
+        In place (same Parameter objects), so optimizers built before loading stay bound to the
+        loaded Gaussians; the step is the checkpoint's, set through `update_to_step`.
+        """
+        if "means" in state_dict:  # very old splatfacto checkpoints
+            for key in GAUSSIAN_KEYS:
+                state_dict[f"gauss_params.{key}"] = state_dict.pop(key)
+        n = state_dict["gauss_params.means"].shape[0]
+        for key, param in self.gauss_params.items():
+            param.data = param.data.new_zeros((n,) + tuple(param.shape[1:]))
+        return torch.nn.Module.load_state_dict(self, state_dict, strict=strict)
+
+    def get_extra_state(self) -> Dict[str, Any]:
+        """The densification strategy's running state travels with the checkpoint."""
+        return {"strategy_state": {k: v for k, v in self.strategy_state.items()}}
+
+    def set_extra_state(self, state: Dict[str, Any]) -> None:
+        saved = (state or {}).get("strategy_state") or {}
+        for key, value in saved.items():
+            if key in self.strategy_state:
+                self.strategy_state[key] = value.to(self.device) if isinstance(value, Tensor) else value

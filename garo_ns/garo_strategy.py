@@ -1,0 +1,221 @@
+"""GARO densification strategy: 3DGS's adaptive density control plus redundancy pruning.
+
+A Gaussian is redundant when it is both
+  * inactive: its mean view-space gradient norm over the iterations where it was visible is
+    below tau_activity (at most n_max candidates, the least active), and
+  * in a flat neighbourhood: the mean of 1 - |n_i . n_j| over its K nearest neighbours is below
+    tau_curvature, with normals from the smallest-scale axis carried through the deformation.
+At each GARO step at most floor(rho_max * N) redundant Gaussians are removed, flattest first.
+
+Activity is accumulated in the strategy's own tensors, on its own schedule, and reset after each
+GARO step, so g_i measures the window since the last one. Geometry is read at the time of the
+training camera of the GARO step: the model puts deformed positions (`means3d`), rotations
+(`quats3d`) and canonical scales (`canonical_scales3d`) into the rasterizer's `info`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Any, Dict, Literal, Union
+
+import torch
+from gsplat.strategy import DefaultStrategy
+from gsplat.strategy.ops import remove
+from torch import Tensor
+
+from garo_ns.activity import (
+    accumulate,
+    activity_candidates,
+    mean_activity,
+    random_candidates,
+    visible_gradient_norms,
+)
+from garo_ns.curvature import curvature
+from garo_ns.normals import normals
+
+Params = Union[Dict[str, torch.nn.Parameter], torch.nn.ParameterDict]
+
+
+def select_redundant(
+    activity: Tensor,
+    counts: Tensor,
+    points: Tensor,
+    unit_normals: Tensor,
+    mode: Literal["oaa", "gca", "full"],
+    tau_activity: float,
+    n_max: int,
+    tau_curvature: float,
+    rho_max: float,
+    k: int,
+    generator: torch.Generator | None = None,
+) -> Dict[str, Any]:
+    """GARO's joint measurement: which Gaussians to prune now.
+
+    Returns a dict with `prune` (indices, at most floor(rho_max * N)), and the counts
+    `candidates` and `redundant` for logging.
+    """
+    n = points.shape[0]
+    cap = int(math.floor(max(0.0, min(1.0, rho_max)) * n))
+    if mode == "gca":
+        cand = random_candidates(counts, n_max, generator)
+    else:
+        cand = activity_candidates(activity, tau_activity, n_max)
+    if mode == "oaa":
+        # Lowest activity first (activity_candidates returns them in that order).
+        return {"prune": cand[:cap], "candidates": cand.numel(), "redundant": cand.numel()}
+    curv = curvature(points, unit_normals, cand, k)
+    flat = curv < tau_curvature
+    red, red_curv = cand[flat], curv[flat]
+    order = torch.argsort(red_curv, stable=True)
+    return {"prune": red[order[:cap]], "candidates": cand.numel(), "redundant": red.numel()}
+
+
+@dataclass
+class GaroStrategy(DefaultStrategy):
+    """DefaultStrategy (clone, split, opacity and size pruning, opacity reset) plus GARO pruning.
+
+    Args (beyond DefaultStrategy's):
+        mode: "full" (activity then curvature), "oaa" (activity only), "gca" (curvature only, on
+            n_max candidates drawn uniformly at random from the visible Gaussians, seeded).
+        tau_activity, n_max, tau_curvature, rho_max, k_neighbors: see the module docstring.
+        garo_start_iter, garo_stop_iter, garo_every: GARO prunes at steps s with
+            start <= s < stop and s % every == 0; activity is accumulated until stop.
+        seed: seed of the random candidate draw (gca), combined with the step.
+    """
+
+    mode: Literal["oaa", "gca", "full"] = "full"
+    tau_activity: float = 5e-5
+    n_max: int = 10_000
+    tau_curvature: float = 0.5
+    rho_max: float = 0.02
+    k_neighbors: int = 10
+    garo_start_iter: int = 500
+    garo_stop_iter: int = 15_000
+    garo_every: int = 100
+    seed: int = 0
+
+    def initialize_state(self, scene_scale: float = 1.0) -> Dict[str, Any]:
+        state = super().initialize_state(scene_scale)
+        # N-sized tensors in the state are kept aligned by gsplat's duplicate/split/remove.
+        state.update({"garo_grad": None, "garo_count": None, "garo_last": {}})
+        return state
+
+    def is_garo_step(self, step: int) -> bool:
+        """Whether GARO prunes at this step."""
+        return self.garo_start_iter <= step < self.garo_stop_iter and step % max(self.garo_every, 1) == 0
+
+    def step_post_backward(
+        self,
+        params: Params,
+        optimizers: Dict[str, torch.optim.Optimizer],
+        state: Dict[str, Any],
+        step: int,
+        info: Dict[str, Any],
+        packed: bool = False,
+    ) -> None:
+        if step < self.garo_stop_iter:
+            self.update_activity(params, state, info, packed)
+        if self.is_garo_step(step):
+            keep = self.prune_redundant(params, optimizers, state, step, info)
+            if keep is not None:
+                info = _filter_info(info, keep)
+        super().step_post_backward(params, optimizers, state, step, info, packed)
+
+    def update_activity(self, params: Params, state: Dict[str, Any], info: Dict[str, Any], packed: bool) -> None:
+        """Add this iteration's view-space gradient norms of the visible Gaussians."""
+        n = len(params["means"])
+        dev = params["means"].device
+        if state["garo_grad"] is None or state["garo_grad"].shape[0] != n:
+            state["garo_grad"] = torch.zeros(n, device=dev)
+            state["garo_count"] = torch.zeros(n, device=dev)
+        ids, norms = visible_gradient_norms(info, packed)
+        accumulate(state["garo_grad"], state["garo_count"], ids, norms)
+
+    @torch.no_grad()
+    def prune_redundant(
+        self,
+        params: Params,
+        optimizers: Dict[str, torch.optim.Optimizer],
+        state: Dict[str, Any],
+        step: int,
+        info: Dict[str, Any],
+    ) -> Tensor | None:
+        """Remove redundant Gaussians; returns the kept mask (None when nothing was removed)."""
+        start = time.perf_counter()
+        n = len(params["means"])
+        points = info.get("means3d")
+        quats = info.get("quats3d")
+        scales = info.get("canonical_scales3d")
+        # Without the model's geometry (or after a size change) use the canonical Gaussians.
+        if points is None or points.shape[0] != n:
+            points = params["means"].detach()
+        if quats is None or quats.shape[0] != n:
+            quats = params["quats"].detach()
+        if scales is None or scales.shape[0] != n:
+            scales = torch.exp(params["scales"].detach())
+        gen = None
+        if self.mode == "gca":
+            gen = torch.Generator().manual_seed(self.seed * 1_000_003 + step)
+        result = select_redundant(
+            mean_activity(state["garo_grad"], state["garo_count"]),
+            state["garo_count"],
+            points,
+            normals(quats, scales) if self.mode != "oaa" else points,
+            self.mode,
+            self.tau_activity,
+            self.n_max,
+            self.tau_curvature,
+            self.rho_max,
+            self.k_neighbors,
+            gen,
+        )
+        prune = result["prune"]
+        keep = None
+        if prune.numel() > 0:
+            mask = torch.zeros(n, dtype=torch.bool, device=params["means"].device)
+            mask[prune] = True
+            remove(params=params, optimizers=optimizers, state=state, mask=mask)
+            keep = ~mask
+        # A fresh window for the next GARO step.
+        state["garo_grad"].zero_()
+        state["garo_count"].zero_()
+        if params["means"].is_cuda:
+            torch.cuda.synchronize()
+        state["garo_last"] = {
+            "step": step,
+            "candidates": int(result["candidates"]),
+            "redundant": int(result["redundant"]),
+            "pruned": int(prune.numel()),
+            "seconds": time.perf_counter() - start,
+            "num_gaussians": len(params["means"]),
+        }
+        return keep
+
+    def log(self, state: Dict[str, Any], step: int) -> None:
+        """Send the last GARO step's counts and wall time to nerfstudio's writer (once per GARO step)."""
+        last = state.get("garo_last") or {}
+        if last.get("step") != step:
+            return
+        from nerfstudio.utils import writer
+
+        for key in ("candidates", "redundant", "pruned", "seconds", "num_gaussians"):
+            writer.put_scalar(name=f"garo/{key}", scalar=float(last[key]), step=step)
+
+
+def _filter_info(info: Dict[str, Any], keep: Tensor) -> Dict[str, Any]:
+    """The rasterizer's per-camera, per-Gaussian info restricted to the kept Gaussians, so that
+    DefaultStrategy's bookkeeping after GARO sees consistent sizes (unpacked info only)."""
+    out = dict(info)
+    for key in ("radii", "depths", "conics", "opacities"):
+        if isinstance(info.get(key), Tensor) and info[key].dim() >= 2:
+            out[key] = info[key][:, keep]
+    m2d = info["means2d"]
+    filtered = m2d.detach()[:, keep].clone()
+    filtered.grad = None if m2d.grad is None else m2d.grad[:, keep].clone()
+    out["means2d"] = filtered
+    for key in ("means3d", "quats3d", "scales3d", "canonical_scales3d"):
+        if isinstance(info.get(key), Tensor):
+            out[key] = info[key][keep]
+    return out

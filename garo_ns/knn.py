@@ -1,0 +1,46 @@
+"""Exact K-nearest neighbours of a few query points among many, chunked (no N x N matrix)."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def knn(points: Tensor, query_ids: Tensor, k: int, query_chunk: int = 2048, point_chunk: int = 1 << 17) -> Tensor:
+    """Indices [Q, k] of the k nearest points (Euclidean) to each queried point, itself excluded.
+
+    Runs on the points' device. Memory is bounded by query_chunk x point_chunk distances.
+    Non-finite points are never neighbours. Requires 1 <= k < len(points).
+
+    Args:
+        points: [N, 3].
+        query_ids: [Q] indices into points.
+        k: neighbours per query.
+    """
+    n = points.shape[0]
+    if not 1 <= k < n:
+        raise ValueError(f"k must be in 1..{n - 1} for {n} points, got {k}")
+    finite = torch.isfinite(points).all(-1)
+    pts = torch.where(finite[:, None], points, torch.zeros_like(points))
+    out = []
+    for q0 in range(0, query_ids.numel(), query_chunk):
+        qid = query_ids[q0 : q0 + query_chunk]
+        q = pts[qid]
+        best_d = torch.full((qid.numel(), 0), float("inf"), device=points.device, dtype=points.dtype)
+        best_i = torch.zeros((qid.numel(), 0), device=points.device, dtype=torch.long)
+        for p0 in range(0, n, point_chunk):
+            block = pts[p0 : p0 + point_chunk]
+            d = torch.cdist(q, block).square()
+            cols = torch.arange(p0, p0 + block.shape[0], device=points.device)
+            d = torch.where((cols[None, :] == qid[:, None]) | ~finite[cols][None, :], float("inf"), d)
+            kk = min(k, block.shape[0])
+            d, i = torch.topk(d, kk, dim=1, largest=False)
+            best_d = torch.cat([best_d, d], 1)
+            best_i = torch.cat([best_i, cols[i]], 1)
+            if best_d.shape[1] > k:
+                best_d, sel = torch.topk(best_d, k, dim=1, largest=False)
+                best_i = torch.gather(best_i, 1, sel)
+        out.append(best_i)
+    if not out:
+        return torch.zeros((0, k), dtype=torch.long, device=points.device)
+    return torch.cat(out, 0)

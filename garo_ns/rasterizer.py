@@ -1,0 +1,396 @@
+"""Pure-torch reference rasterizer for 3D Gaussians.
+
+It follows gsplat 1.4.0's conventions closely enough that the densification strategies
+(gsplat's and ours) run unchanged on a machine without CUDA:
+
+* projection: quaternion + scale -> covariance, pinhole Jacobian with the view-frustum clamp
+  at 1.3x the field of view, near/far culling, a 0.3 px low-pass dilation, 3-sigma radius
+  (from the larger eigenvalue), and culling of Gaussians whose box misses the image;
+* tiles of 16 px; a Gaussian touches the tiles its 3-sigma box overlaps;
+* front-to-back compositing per pixel (pixel centres at +0.5), alpha = min(0.999,
+  opacity * exp(-sigma)), Gaussians with alpha < 1/255 skipped, and a pixel stops before the
+  Gaussian that would bring its transmittance to 1e-4 or below.
+
+Compositing is done per batch of tiles and per chunk of depth-sorted Gaussians, carrying the
+transmittance between chunks, so memory stays bounded (never pixels x Gaussians) and autograd
+gives exact gradients of the same function, including `means2d.grad`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Dict, Literal, Optional, Tuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from garo_ns.sh import eval_sh
+
+RenderMode = Literal["RGB", "D", "ED", "RGB+D", "RGB+ED"]
+
+ALPHA_MAX = 0.999
+ALPHA_MIN = 1.0 / 255.0
+TRANSMITTANCE_MIN = 1e-4
+
+
+def quat_to_rotmat(quats: Tensor) -> Tensor:
+    """Rotation matrices of (w, x, y, z) quaternions; normalised here, a zero quaternion gives I."""
+    q = F.normalize(quats, dim=-1)
+    w, x, y, z = q.unbind(-1)
+    zero = (q.abs().sum(-1) == 0).to(q.dtype)
+    w = w + zero  # the zero quaternion reads as the identity rotation
+    rot = torch.stack(
+        [
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    )
+    return rot.reshape(q.shape[:-1] + (3, 3))
+
+
+def covariance(quats: Tensor, scales: Tensor) -> Tensor:
+    """3D covariances R S S^T R^T, [N, 3, 3]."""
+    m = quat_to_rotmat(quats) * scales[..., None, :]
+    return m @ m.transpose(-1, -2)
+
+
+def project(
+    means: Tensor,
+    covars: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    eps2d: float = 0.3,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    radius_clip: float = 0.0,
+) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Project Gaussians into C pinhole cameras.
+
+    Returns radii [C, N] (int32, 0 = culled), means2d [C, N, 2], depths [C, N], conics [C, N, 3]
+    (upper triangle of the inverse 2D covariance). Culled entries hold finite placeholders.
+    """
+    rot = viewmats[:, :3, :3]
+    trans = viewmats[:, :3, 3]
+    means_c = torch.einsum("cij,nj->cni", rot, means) + trans[:, None, :]
+    covars_c = torch.einsum("cij,njk,clk->cnil", rot, covars, rot)
+    tx, ty, tz = means_c.unbind(-1)
+    in_depth = (tz > near_plane) & (tz < far_plane)
+    # Placeholders keep culled Gaussians finite in value and gradient.
+    tz = torch.where(in_depth, tz, torch.ones_like(tz))
+
+    fx, fy = Ks[:, 0, 0, None], Ks[:, 1, 1, None]
+    cx, cy = Ks[:, 0, 2, None], Ks[:, 1, 2, None]
+    tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
+    lim_x_pos = (width - cx) / fx + 0.3 * tan_fovx
+    lim_x_neg = cx / fx + 0.3 * tan_fovx
+    lim_y_pos = (height - cy) / fy + 0.3 * tan_fovy
+    lim_y_neg = cy / fy + 0.3 * tan_fovy
+    # The Jacobian is evaluated at a point clamped to 1.3x the frustum (the mean itself is not).
+    txc = tz * torch.clamp(tx / tz, min=-lim_x_neg, max=lim_x_pos)
+    tyc = tz * torch.clamp(ty / tz, min=-lim_y_neg, max=lim_y_pos)
+    zeros = torch.zeros_like(tz)
+    jac = torch.stack([fx / tz, zeros, -fx * txc / (tz * tz), zeros, fy / tz, -fy * tyc / (tz * tz)], dim=-1).reshape(
+        tz.shape + (2, 3)
+    )
+    cov2d = jac @ covars_c @ jac.transpose(-1, -2)
+    means2d = torch.stack([fx * tx / tz + cx, fy * ty / tz + cy], dim=-1)
+
+    a = cov2d[..., 0, 0] + eps2d
+    b = 0.5 * (cov2d[..., 0, 1] + cov2d[..., 1, 0])
+    c = cov2d[..., 1, 1] + eps2d
+    det = a * c - b * b
+    valid = in_depth & (det > 0) & torch.isfinite(det) & torch.isfinite(means2d).all(-1)
+    det_safe = torch.where(valid, det, torch.ones_like(det))
+    conics = torch.stack([c / det_safe, -b / det_safe, a / det_safe], dim=-1)
+    conics = torch.where(valid[..., None], conics, torch.ones_like(conics))
+    means2d = torch.where(valid[..., None], means2d, torch.zeros_like(means2d))
+
+    with torch.no_grad():
+        mid = 0.5 * (a + c)
+        v1 = mid + torch.sqrt(torch.clamp(mid * mid - det, min=0.01))
+        radius = torch.ceil(3.0 * torch.sqrt(torch.clamp(v1, min=0.0)))
+        radius = torch.where(valid & torch.isfinite(radius), radius, torch.zeros_like(radius))
+        radius = torch.where(radius <= radius_clip, torch.zeros_like(radius), radius)
+        mx, my = means2d[..., 0], means2d[..., 1]
+        inside = (mx + radius > 0) & (mx - radius < width) & (my + radius > 0) & (my - radius < height)
+        radius = torch.where(inside, radius, torch.zeros_like(radius))
+        # A radius beyond any image would overflow int32; the tile box is clamped to the image anyway.
+        radius = radius.clamp(max=float(4 * max(width, height) + 64))
+    depths = torch.where(valid, means_c[..., 2], torch.zeros_like(tz))
+    return radius.to(torch.int32), means2d, depths, conics
+
+
+@torch.no_grad()
+def tile_bounds(
+    means2d: Tensor, radii: Tensor, tile_size: int, tile_width: int, tile_height: int
+) -> Tuple[Tensor, Tensor]:
+    """Tile boxes [min, max) of each projected Gaussian, [C, N, 2] each (x, y)."""
+    r = radii.to(means2d.dtype)[..., None]
+    lo = torch.floor((means2d - r) / tile_size)
+    hi = torch.ceil((means2d + r) / tile_size)
+    limit = torch.tensor([tile_width, tile_height], device=means2d.device, dtype=means2d.dtype)
+    lo = torch.minimum(lo.clamp(min=0), limit).long()
+    hi = torch.minimum(hi.clamp(min=0), limit).long()
+    hi = torch.where((radii > 0)[..., None], hi, lo)
+    return lo, hi
+
+
+@torch.no_grad()
+def intersect_tiles(
+    means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, tile_width: int, tile_height: int
+) -> Tuple[Tensor, Tensor, Tensor]:
+    """All (tile, Gaussian) overlaps, sorted by tile then depth.
+
+    Returns:
+        tiles_per_gauss [C, N], tile_ids [M] (camera-major global tile index), flat_ids [M]
+        (index c * N + n into the flattened projected arrays).
+    """
+    C, N = radii.shape
+    lo, hi = tile_bounds(means2d, radii, tile_size, tile_width, tile_height)
+    span = hi - lo
+    counts = (span[..., 0] * span[..., 1]).flatten()
+    src = torch.nonzero(counts > 0).squeeze(1)
+    per = counts[src]
+    total = int(per.sum())
+    flat_ids = torch.repeat_interleave(src, per)
+    first = torch.cumsum(per, 0) - per
+    local = torch.arange(total, device=radii.device) - torch.repeat_interleave(first, per)
+    w = span.reshape(-1, 2)[flat_ids, 0]
+    tx = lo.reshape(-1, 2)[flat_ids, 0] + local % w
+    ty = lo.reshape(-1, 2)[flat_ids, 1] + local // w
+    cam = flat_ids // N
+    tile_ids = cam * (tile_width * tile_height) + ty * tile_width + tx
+    # Sort by depth, then stably by tile: each tile's list is front to back.
+    order = torch.argsort(depths.flatten()[flat_ids], stable=True)
+    tile_ids, flat_ids = tile_ids[order], flat_ids[order]
+    order = torch.argsort(tile_ids, stable=True)
+    return counts.reshape(C, N).int(), tile_ids[order], flat_ids[order]
+
+
+def composite(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    features: Tensor,
+    tile_ids: Tensor,
+    flat_ids: Tensor,
+    width: int,
+    height: int,
+    tile_size: int = 16,
+    chunk: int = 128,
+    max_elements: int = 1 << 22,
+) -> Tuple[Tensor, Tensor]:
+    """Alpha-composite depth-sorted Gaussians front to back in every tile.
+
+    Args:
+        means2d [C, N, 2], conics [C, N, 3], opacities [C, N], features [C, N, D]: projected
+            Gaussians; tile_ids/flat_ids from `intersect_tiles`.
+        chunk: Gaussians per tile handled at once; max_elements: pixels x Gaussians per batch.
+
+    Returns:
+        accumulated features [C, H, W, D] (no background) and alphas [C, H, W, 1].
+    """
+    C, N = opacities.shape
+    D = features.shape[-1]
+    dev, dt = means2d.device, means2d.dtype
+    tw, th = math.ceil(width / tile_size), math.ceil(height / tile_size)
+    n_tiles = C * tw * th
+    P = tile_size * tile_size
+    m2d, con = means2d.reshape(C * N, 2), conics.reshape(C * N, 3)
+    opa, feat = opacities.reshape(C * N), features.reshape(C * N, D)
+
+    per_tile = torch.bincount(tile_ids, minlength=n_tiles)
+    starts = torch.cumsum(per_tile, 0) - per_tile
+    local = torch.arange(tile_size, device=dev)
+    pix_off = (
+        torch.stack([local.repeat(tile_size), local.repeat_interleave(tile_size)], dim=-1).to(dt) + 0.5
+    )  # [P, 2] (x, y) within a tile
+
+    batch_tiles = max(1, max_elements // (P * chunk))
+    out_feat, out_alpha = [], []
+    for t0 in range(0, n_tiles, batch_tiles):
+        t1 = min(n_tiles, t0 + batch_tiles)
+        tiles = torch.arange(t0, t1, device=dev)
+        in_cam = tiles % (tw * th)
+        origin = torch.stack([in_cam % tw, in_cam // tw], dim=-1).to(dt) * tile_size
+        pix = origin[:, None, :] + pix_off[None]  # [T, P, 2]
+        cnt, st = per_tile[t0:t1], starts[t0:t1]
+        longest = int(cnt.max()) if cnt.numel() else 0
+        trans = torch.ones(t1 - t0, P, device=dev, dtype=dt)
+        done = torch.zeros(t1 - t0, P, device=dev, dtype=torch.bool)
+        acc = torch.zeros(t1 - t0, P, D, device=dev, dtype=dt)
+        for s in range(0, longest, chunk):
+            j = torch.arange(s, min(longest, s + chunk), device=dev)
+            present = j[None, :] < cnt[:, None]  # [T, B]
+            if not bool(present.any()):
+                break
+            pos = torch.where(present, st[:, None] + j[None, :], torch.zeros_like(present, dtype=torch.long))
+            gid = flat_ids[pos]  # [T, B]
+            delta = pix[:, :, None, :] - m2d[gid][:, None, :, :]  # [T, P, B, 2]
+            cg = con[gid][:, None]  # [T, 1, B, 3]
+            sigma = (
+                0.5 * (cg[..., 0] * delta[..., 0] ** 2 + cg[..., 2] * delta[..., 1] ** 2)
+                + cg[..., 1] * delta[..., 0] * delta[..., 1]
+            )
+            alpha = torch.clamp_max(opa[gid][:, None, :] * torch.exp(-sigma), ALPHA_MAX)
+            keep = (sigma >= 0) & (alpha >= ALPHA_MIN) & present[:, None, :]
+            alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
+            log_t = torch.log1p(-alpha)
+            csum = torch.cumsum(log_t, dim=-1)
+            with torch.no_grad():
+                t_after = trans[..., None] * torch.exp(csum)
+                stops = (t_after <= TRANSMITTANCE_MIN) & keep
+                used = ~stops & ~done[..., None]
+                done = done | stops.any(-1)
+            t_before = trans[..., None] * torch.exp(csum - log_t)
+            weight = torch.where(used, alpha * t_before, torch.zeros_like(alpha))
+            acc = acc + torch.einsum("tpb,tbd->tpd", weight, feat[gid])
+            trans = trans * torch.exp(torch.where(used, log_t, torch.zeros_like(log_t)).sum(-1))
+        out_feat.append(acc)
+        out_alpha.append(1.0 - trans)
+
+    def to_image(x: Tensor) -> Tensor:
+        x = torch.cat(x, dim=0).reshape(C, th, tw, tile_size, tile_size, -1)
+        x = x.permute(0, 1, 3, 2, 4, 5).reshape(C, th * tile_size, tw * tile_size, -1)
+        return x[:, :height, :width]
+
+    return to_image(out_feat), to_image([a[..., None] for a in out_alpha])
+
+
+def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree) -> None:
+    if not isinstance(width, int) or not isinstance(height, int) or width <= 0 or height <= 0:
+        raise ValueError(f"width and height must be positive ints, got width={width!r}, height={height!r}")
+    if means.ndim != 2 or means.shape[-1] != 3:
+        raise ValueError(f"means must be [N, 3], got {tuple(means.shape)}")
+    n = means.shape[0]
+    for name, t, shape in (("quats", quats, (n, 4)), ("scales", scales, (n, 3)), ("opacities", opacities, (n,))):
+        if tuple(t.shape) != shape:
+            raise ValueError(f"{name} must be {list(shape)} to match means, got {list(t.shape)}")
+    if viewmats.ndim != 3 or viewmats.shape[1:] != (4, 4):
+        raise ValueError(f"viewmats must be [C, 4, 4], got {list(viewmats.shape)}")
+    c = viewmats.shape[0]
+    if tuple(Ks.shape) != (c, 3, 3):
+        raise ValueError(f"Ks must be [{c}, 3, 3] to match viewmats, got {list(Ks.shape)}")
+    if not torch.isfinite(viewmats).all():
+        raise ValueError("viewmats contains non-finite values")
+    if not torch.isfinite(Ks).all():
+        raise ValueError("Ks contains non-finite values")
+    if sh_degree is None:
+        ok = (colors.ndim == 2 and colors.shape[0] == n) or (colors.ndim == 3 and colors.shape[:2] == (c, n))
+    else:
+        ok = (colors.ndim == 3 and colors.shape[0] == n and colors.shape[2] == 3) or (
+            colors.ndim == 4 and colors.shape[:2] == (c, n) and colors.shape[3] == 3
+        )
+        ok = ok and colors.shape[-2] >= (sh_degree + 1) ** 2
+    if not ok:
+        raise ValueError(
+            f"colors has shape {list(colors.shape)}, which does not fit N={n}, C={c}, sh_degree={sh_degree}"
+        )
+
+
+def rasterize(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    radius_clip: float = 0.0,
+    eps2d: float = 0.3,
+    sh_degree: Optional[int] = None,
+    tile_size: int = 16,
+    backgrounds: Optional[Tensor] = None,
+    render_mode: RenderMode = "RGB",
+    chunk: int = 128,
+) -> Tuple[Tensor, Tensor, Dict[str, Any]]:
+    """Render Gaussians into C cameras; the call mirrors `gsplat.rasterization(packed=False)`.
+
+    Returns render [C, H, W, D], alphas [C, H, W, 1] and an `info` dict with the keys gsplat's
+    strategies read: means2d [C, N, 2] (non-leaf; `.grad` after backward), radii [C, N],
+    depths, conics, opacities, gaussian_ids/camera_ids (None: not packed), width, height,
+    n_cameras, tile_size, tile_width, tile_height.
+    """
+    _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree)
+    if render_mode not in ("RGB", "D", "ED", "RGB+D", "RGB+ED"):
+        raise ValueError(f"render_mode must be one of RGB, D, ED, RGB+D, RGB+ED, got {render_mode!r}")
+    C, N = viewmats.shape[0], means.shape[0]
+    dt = means.dtype
+
+    # Non-finite Gaussians are rendered as nothing, and placeholders keep their gradients finite.
+    finite = (
+        torch.isfinite(means).all(-1)
+        & torch.isfinite(quats).all(-1)
+        & torch.isfinite(scales).all(-1)
+        & torch.isfinite(opacities)
+    )
+    covars = covariance(
+        torch.where(finite[:, None], quats, torch.ones_like(quats)),
+        torch.where(finite[:, None], scales, torch.ones_like(scales)),
+    )
+    finite = finite & torch.isfinite(covars).flatten(1).all(-1)
+    covars = torch.where(finite[:, None, None], covars, torch.zeros_like(covars))
+    safe_means = torch.where(finite[:, None], means, torch.zeros_like(means))
+    radii, means2d, depths, conics = project(
+        safe_means, covars, viewmats, Ks, width, height, eps2d, near_plane, far_plane, radius_clip
+    )
+    radii = torch.where(finite[None, :], radii, torch.zeros_like(radii))
+    opac = torch.where(finite, opacities, torch.zeros_like(opacities))[None, :].expand(C, N)
+
+    if sh_degree is None:
+        feats = colors if colors.ndim == 3 else colors[None].expand(C, N, colors.shape[-1])
+    else:
+        campos = torch.linalg.inv(viewmats)[:, :3, 3]
+        dirs = safe_means[None, :, :] - campos[:, None, :]
+        coeffs = colors if colors.ndim == 4 else colors[None].expand(C, *colors.shape)
+        feats = torch.clamp_min(eval_sh(sh_degree, dirs, coeffs) + 0.5, 0.0)
+    feats = torch.where(finite[None, :, None], feats, torch.zeros_like(feats))
+    bg = backgrounds
+    if render_mode in ("RGB+D", "RGB+ED"):
+        feats = torch.cat([feats, depths[..., None]], dim=-1)
+        if bg is not None:
+            bg = torch.cat([bg, torch.zeros_like(bg[:, :1])], dim=-1)
+    elif render_mode in ("D", "ED"):
+        feats = depths[..., None]
+        bg = None if bg is None else torch.zeros_like(bg[:, :1])
+
+    tw, th = math.ceil(width / tile_size), math.ceil(height / tile_size)
+    tiles_per_gauss, tile_ids, flat_ids = intersect_tiles(means2d, radii, depths, tile_size, tw, th)
+    render, alphas = composite(means2d, conics, opac, feats.to(dt), tile_ids, flat_ids, width, height, tile_size, chunk)
+    if bg is not None:
+        render = render + bg[:, None, None, :] * (1.0 - alphas)
+    if render_mode in ("ED", "RGB+ED"):
+        render = torch.cat([render[..., :-1], render[..., -1:] / alphas.clamp(min=1e-10)], dim=-1)
+
+    info: Dict[str, Any] = {
+        "camera_ids": None,
+        "gaussian_ids": None,
+        "radii": radii,
+        "means2d": means2d,
+        "depths": depths,
+        "conics": conics,
+        "opacities": opac,
+        "tiles_per_gauss": tiles_per_gauss,
+        "width": width,
+        "height": height,
+        "tile_size": tile_size,
+        "tile_width": tw,
+        "tile_height": th,
+        "n_cameras": C,
+    }
+    return render, alphas, info

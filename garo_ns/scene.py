@@ -1,0 +1,223 @@
+"""A procedural dynamic scene in the D-NeRF layout, rendered exactly by ray casting.
+
+The scene has known geometry, so tests can reason about it: a flat checkered ground square
+(flat: GARO should find redundancy there), a striped sphere that travels and hops across it
+(curved and moving), and a box that spins about the vertical axis (flat faces, moving).
+Nothing here uses a Gaussian renderer: images are analytic ray-primitive intersections with
+2x2 supersampling and Lambert shading, written as RGBA PNGs (transparent background).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, List, Sequence, Tuple
+
+import numpy as np
+
+GROUND_Z = -0.6
+GROUND_HALF = 1.2
+SPHERE_RADIUS = 0.35
+BOX_HALF = 0.25
+BOX_CENTER_XY = (0.35, -0.55)
+CAMERA_RADIUS = 4.0
+CAMERA_ANGLE_X = 0.6911  # the field of view of the D-NeRF synthetic scenes
+_LIGHT = np.array([0.4, 0.3, 0.85]) / np.linalg.norm([0.4, 0.3, 0.85])
+_AMBIENT = 0.35
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """What to generate: image size in pixels, frames per split and the random seed."""
+
+    resolution: int = 100
+    n_train: int = 40
+    n_val: int = 8
+    n_test: int = 8
+    seed: int = 0
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first bad field."""
+        if (
+            not isinstance(self.resolution, int)
+            or isinstance(self.resolution, bool)
+            or not 8 <= self.resolution <= 4096
+        ):
+            raise ValueError(f"resolution must be an int in 8..4096, got {self.resolution!r}")
+        for name in ("n_train", "n_val", "n_test"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise ValueError(f"{name} must be an int >= 1, got {value!r}")
+
+
+def sphere_center(t: float) -> np.ndarray:
+    """Centre of the sphere at time t in [0, 1]: it crosses the ground and hops once."""
+    x = -0.7 + 1.2 * t
+    y = 0.45 * math.sin(math.pi * t)
+    z = GROUND_Z + SPHERE_RADIUS + 0.35 * math.sin(math.pi * t)
+    return np.array([x, y, z])
+
+
+def box_angle(t: float) -> float:
+    """Yaw of the box at time t: half a turn over the sequence."""
+    return math.pi * t
+
+
+def look_at_c2w(position: np.ndarray, target: Sequence[float] = (0.0, 0.0, -0.3)) -> np.ndarray:
+    """OpenGL camera-to-world (x right, y up, looking down -z), world z up."""
+    forward = np.asarray(target, dtype=np.float64) - position
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, up, -forward, position
+    return c2w
+
+
+def _hit_ground(o: np.ndarray, d: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (GROUND_Z - o[..., 2]) / d[..., 2]
+    p = o + t[..., None] * d
+    ok = (t > 1e-6) & (np.abs(p[..., 0]) <= GROUND_HALF) & (np.abs(p[..., 1]) <= GROUND_HALF)
+    checker = (np.floor(p[..., 0] * 4) + np.floor(p[..., 1] * 4)) % 2
+    albedo = np.where(checker[..., None] > 0, [0.85, 0.82, 0.75], [0.25, 0.45, 0.65])
+    normal = np.broadcast_to([0.0, 0.0, 1.0], p.shape)
+    return np.where(ok, t, np.inf), albedo, normal
+
+
+def _hit_sphere(o: np.ndarray, d: np.ndarray, time: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    c = sphere_center(time)
+    oc = o - c
+    b = np.sum(oc * d, -1)
+    disc = b * b - (np.sum(oc * oc, -1) - SPHERE_RADIUS**2)
+    sq = np.sqrt(np.maximum(disc, 0.0))
+    t = -b - sq
+    ok = (disc >= 0) & (t > 1e-6)
+    p = o + t[..., None] * d
+    n = (p - c) / SPHERE_RADIUS
+    # Meridian stripes in a frame that rolls with the motion, so the texture moves too.
+    lon = np.arctan2(n[..., 1], n[..., 0]) + 2.5 * math.pi * time
+    stripe = (np.floor(lon / (math.pi / 4)) % 2)[..., None]
+    albedo = np.where(stripe > 0, [0.9, 0.25, 0.2], [0.95, 0.8, 0.2])
+    return np.where(ok, t, np.inf), albedo, n
+
+
+def _hit_box(o: np.ndarray, d: np.ndarray, time: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    ang = box_angle(time)
+    ca, sa = math.cos(ang), math.sin(ang)
+    rot = np.array([[ca, -sa, 0.0], [sa, ca, 0.0], [0.0, 0.0, 1.0]])  # box -> world
+    center = np.array([BOX_CENTER_XY[0], BOX_CENTER_XY[1], GROUND_Z + BOX_HALF])
+    ol = (o - center) @ rot  # world -> box frame (rot is orthonormal)
+    dl = d @ rot
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / dl
+        t0 = (-BOX_HALF - ol) * inv
+        t1 = (BOX_HALF - ol) * inv
+    tmin = np.minimum(t0, t1)
+    tmax = np.maximum(t0, t1)
+    tnear = np.max(tmin, -1)
+    tfar = np.min(tmax, -1)
+    ok = (tnear <= tfar) & (tnear > 1e-6)
+    axis = np.argmax(tmin, -1)
+    sign = -np.sign(np.take_along_axis(dl, axis[..., None], -1))[..., 0]
+    nl = np.zeros_like(dl)
+    np.put_along_axis(nl, axis[..., None], sign[..., None], -1)
+    face = axis * 2 + (sign > 0)
+    palette = np.array(
+        [[0.2, 0.7, 0.3], [0.6, 0.2, 0.7], [0.95, 0.55, 0.1], [0.1, 0.6, 0.8], [0.8, 0.8, 0.8], [0.3, 0.3, 0.3]]
+    )
+    return np.where(ok, tnear, np.inf), palette[face], nl @ rot.T
+
+
+def render_frame(c2w: np.ndarray, time: float, resolution: int, supersample: int = 2) -> np.ndarray:
+    """RGBA float image [H, W, 4] of the scene at `time` seen from OpenGL pose `c2w`."""
+    focal = 0.5 * resolution / math.tan(0.5 * CAMERA_ANGLE_X)
+    s = supersample
+    sub = (np.arange(resolution * s) + 0.5) / s  # sample positions in pixel units
+    u, v = np.meshgrid(sub, sub, indexing="xy")
+    dirs_cam = np.stack([(u - 0.5 * resolution) / focal, -(v - 0.5 * resolution) / focal, -np.ones_like(u)], -1)
+    d = dirs_cam @ c2w[:3, :3].T
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    o = np.broadcast_to(c2w[:3, 3], d.shape)
+
+    hits = [_hit_ground(o, d), _hit_sphere(o, d, time), _hit_box(o, d, time)]
+    ts = np.stack([h[0] for h in hits], 0)
+    nearest = np.argmin(ts, 0)
+    hit = np.isfinite(np.min(ts, 0))
+    albedo = np.choose(nearest[..., None], [np.broadcast_to(h[1], d.shape) for h in hits])
+    normal = np.choose(nearest[..., None], [np.broadcast_to(h[2], d.shape) for h in hits])
+    # Two-sided Lambert: the ground seen from below is lit like from above.
+    shade = _AMBIENT + (1 - _AMBIENT) * np.abs(normal @ _LIGHT)
+    rgb = np.clip(albedo * shade[..., None], 0.0, 1.0) * hit[..., None]
+
+    def pool(x: np.ndarray) -> np.ndarray:
+        return x.reshape(resolution, s, resolution, s, -1).mean(axis=(1, 3))
+
+    cover = pool(hit[..., None].astype(np.float64))
+    color = pool(rgb) / np.maximum(cover, 1e-8)  # straight (not premultiplied) colour, as in PNGs
+    return np.concatenate([np.clip(color, 0, 1), cover], -1)
+
+
+def _camera_positions(rng: np.random.Generator, n: int) -> np.ndarray:
+    azimuth = rng.uniform(0.0, 2 * math.pi, n)
+    elevation = rng.uniform(math.radians(15), math.radians(65), n)
+    return CAMERA_RADIUS * np.stack(
+        [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], -1
+    )
+
+
+def _split_times(rng: np.random.Generator, n: int, split: str) -> np.ndarray:
+    if split == "train":
+        return np.linspace(0.0, 1.0, n) if n > 1 else np.zeros(1)
+    return np.sort(rng.uniform(0.0, 1.0, n))
+
+
+def generate_scene(out_dir: Path | str, spec: SceneSpec = SceneSpec()) -> Path:
+    """Write the scene to `out_dir` in the D-NeRF layout and return the directory.
+
+    Layout: transforms_{train,val,test}.json (camera_angle_x; frames with file_path without the
+    .png extension, time in [0, 1], rotation, transform_matrix) and {split}/r_XXX.png RGBA images.
+    """
+    import imageio.v2 as imageio
+
+    spec.validate()
+    out = Path(out_dir)
+    rng = np.random.default_rng(spec.seed)
+    for split, n in (("train", spec.n_train), ("val", spec.n_val), ("test", spec.n_test)):
+        (out / split).mkdir(parents=True, exist_ok=True)
+        positions = _camera_positions(rng, n)
+        times = _split_times(rng, n, split)
+        frames: List[Dict] = []
+        for i in range(n):
+            c2w = look_at_c2w(positions[i])
+            img = render_frame(c2w, float(times[i]), spec.resolution)
+            imageio.imwrite(out / split / f"r_{i:03d}.png", (img * 255 + 0.5).astype(np.uint8))
+            frames.append(
+                {
+                    "file_path": f"./{split}/r_{i:03d}",
+                    "rotation": 0.0,
+                    "time": float(times[i]),
+                    "transform_matrix": c2w.tolist(),
+                }
+            )
+        with open(out / f"transforms_{split}.json", "w") as f:
+            json.dump({"camera_angle_x": CAMERA_ANGLE_X, "frames": frames}, f, indent=2)
+    return out
+
+
+def main() -> None:
+    """Console entry: `garo-make-scene OUT_DIR [--resolution R] [--n-train N] ...`."""
+    import tyro
+
+    def _cli(out_dir: Path, resolution: int = 100, n_train: int = 40, n_val: int = 8, n_test: int = 8, seed: int = 0):
+        """Write the built-in dynamic scene in the D-NeRF layout."""
+        path = generate_scene(out_dir, SceneSpec(resolution, n_train, n_val, n_test, seed))
+        print(f"wrote scene to {path}")
+
+    try:
+        tyro.cli(_cli)
+    except ValueError as err:
+        raise SystemExit(f"error: {err}") from None
