@@ -6,11 +6,14 @@ import torch
 from torch import Tensor
 
 
-def knn(points: Tensor, query_ids: Tensor, k: int, query_chunk: int = 2048, point_chunk: int = 1 << 17) -> Tensor:
+def knn(points: Tensor, query_ids: Tensor, k: int, query_chunk: int = 4096, point_chunk: int = 1 << 17) -> Tensor:
     """Indices [Q, k] of the k nearest points (Euclidean) to each queried point, itself excluded.
 
-    Runs on the points' device. Memory is bounded by query_chunk x point_chunk distances.
-    Non-finite points are never neighbours. Requires 1 <= k < len(points).
+    Runs on the points' device. Memory is bounded by query_chunk x point_chunk scores. Non-finite
+    points are never neighbours. Requires 1 <= k < len(points).
+
+    Ranking uses |p|^2 - 2 q.p, which orders points like |q - p|^2 for a fixed query (|q|^2 is
+    constant per row), computed as one fused matrix product per block.
 
     Args:
         points: [N, 3].
@@ -22,21 +25,22 @@ def knn(points: Tensor, query_ids: Tensor, k: int, query_chunk: int = 2048, poin
         raise ValueError(f"k must be in 1..{n - 1} for {n} points, got {k}")
     finite = torch.isfinite(points).all(-1)
     pts = torch.where(finite[:, None], points, torch.zeros_like(points))
+    sq = torch.where(finite, (pts * pts).sum(-1), torch.full_like(pts[:, 0], float("inf")))
     out = []
     for q0 in range(0, query_ids.numel(), query_chunk):
         qid = query_ids[q0 : q0 + query_chunk]
         q = pts[qid]
-        best_d = torch.full((qid.numel(), 0), float("inf"), device=points.device, dtype=points.dtype)
-        best_i = torch.zeros((qid.numel(), 0), device=points.device, dtype=torch.long)
+        rows = torch.arange(qid.numel(), device=points.device)
+        best_d = torch.empty((qid.numel(), 0), device=points.device, dtype=points.dtype)
+        best_i = torch.empty((qid.numel(), 0), device=points.device, dtype=torch.long)
         for p0 in range(0, n, point_chunk):
             block = pts[p0 : p0 + point_chunk]
-            d = torch.cdist(q, block).square()
-            cols = torch.arange(p0, p0 + block.shape[0], device=points.device)
-            d = torch.where((cols[None, :] == qid[:, None]) | ~finite[cols][None, :], float("inf"), d)
-            kk = min(k, block.shape[0])
-            d, i = torch.topk(d, kk, dim=1, largest=False)
+            score = torch.addmm(sq[p0 : p0 + point_chunk][None, :], q, block.T, alpha=-2.0)
+            inside = (qid >= p0) & (qid < p0 + block.shape[0])
+            score[rows[inside], qid[inside] - p0] = float("inf")  # a point is not its own neighbour
+            d, i = torch.topk(score, min(k, block.shape[0]), dim=1, largest=False)
             best_d = torch.cat([best_d, d], 1)
-            best_i = torch.cat([best_i, cols[i]], 1)
+            best_i = torch.cat([best_i, i + p0], 1)
             if best_d.shape[1] > k:
                 best_d, sel = torch.topk(best_d, k, dim=1, largest=False)
                 best_i = torch.gather(best_i, 1, sel)

@@ -23,6 +23,7 @@ from typing import Any, Dict, Literal, Optional, Tuple
 
 import torch
 import torch.nn.functional as F
+from torch.utils.checkpoint import checkpoint
 from torch import Tensor
 
 from garo_ns.sh import eval_sh
@@ -178,6 +179,63 @@ def intersect_tiles(
     return counts.reshape(C, N).int(), tile_ids[order], flat_ids[order]
 
 
+def _composite_tiles(
+    m2d: Tensor,
+    con: Tensor,
+    opa: Tensor,
+    feat: Tensor,
+    t0: int,
+    t1: int,
+    per_tile: Tensor,
+    starts: Tensor,
+    flat_ids: Tensor,
+    pix_off: Tensor,
+    tw: int,
+    th: int,
+    tile_size: int,
+    chunk: int,
+) -> Tuple[Tensor, Tensor]:
+    """Composite tiles [t0, t1): accumulated features [T, P, D] and transmittance [T, P]."""
+    dev, dt = m2d.device, m2d.dtype
+    P = tile_size * tile_size
+    tiles = torch.arange(t0, t1, device=dev)
+    in_cam = tiles % (tw * th)
+    origin = torch.stack([in_cam % tw, in_cam // tw], dim=-1).to(dt) * tile_size
+    pix = origin[:, None, :] + pix_off[None]  # [T, P, 2]
+    cnt, st = per_tile[t0:t1], starts[t0:t1]
+    longest = int(cnt.max()) if cnt.numel() else 0
+    trans = torch.ones(t1 - t0, P, device=dev, dtype=dt)
+    done = torch.zeros(t1 - t0, P, device=dev, dtype=torch.bool)
+    acc = torch.zeros(t1 - t0, P, feat.shape[-1], device=dev, dtype=dt)
+    for s in range(0, longest, chunk):
+        j = torch.arange(s, min(longest, s + chunk), device=dev)
+        present = j[None, :] < cnt[:, None]  # [T, B]
+        pos = torch.where(present, st[:, None] + j[None, :], torch.zeros_like(present, dtype=torch.long))
+        gid = flat_ids[pos]  # [T, B]
+        delta = pix[:, :, None, :] - m2d[gid][:, None, :, :]  # [T, P, B, 2]
+        cg = con[gid][:, None]  # [T, 1, B, 3]
+        sigma = (
+            0.5 * (cg[..., 0] * delta[..., 0] ** 2 + cg[..., 2] * delta[..., 1] ** 2)
+            + cg[..., 1] * delta[..., 0] * delta[..., 1]
+        )
+        alpha = torch.clamp_max(opa[gid][:, None, :] * torch.exp(-sigma), ALPHA_MAX)
+        keep = (sigma >= 0) & (alpha >= ALPHA_MIN) & present[:, None, :]
+        alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
+        log_t = torch.log1p(-alpha)
+        csum = torch.cumsum(log_t, dim=-1)
+        with torch.no_grad():
+            # A pixel stops before the first Gaussian that would take its transmittance to 1e-4.
+            t_after = trans[..., None] * torch.exp(csum)
+            stops = (t_after <= TRANSMITTANCE_MIN) & keep
+            used = ~stops & ~done[..., None]
+            done = done | stops.any(-1)
+        t_before = trans[..., None] * torch.exp(csum - log_t)
+        weight = torch.where(used, alpha * t_before, torch.zeros_like(alpha))
+        acc = acc + torch.einsum("tpb,tbd->tpd", weight, feat[gid])
+        trans = trans * torch.exp(torch.where(used, log_t, torch.zeros_like(log_t)).sum(-1))
+    return acc, trans
+
+
 def composite(
     means2d: Tensor,
     conics: Tensor,
@@ -218,45 +276,18 @@ def composite(
     )  # [P, 2] (x, y) within a tile
 
     batch_tiles = max(1, max_elements // (P * chunk))
+    batches = list(range(0, n_tiles, batch_tiles))
+    # With several batches, recompute each batch in backward instead of keeping its
+    # intermediates (pixels x chunk tensors): memory stays at one batch, e.g. for 800x800.
+    remat = len(batches) > 1 and torch.is_grad_enabled() and any(t.requires_grad for t in (m2d, con, opa, feat))
     out_feat, out_alpha = [], []
-    for t0 in range(0, n_tiles, batch_tiles):
+    for t0 in batches:
         t1 = min(n_tiles, t0 + batch_tiles)
-        tiles = torch.arange(t0, t1, device=dev)
-        in_cam = tiles % (tw * th)
-        origin = torch.stack([in_cam % tw, in_cam // tw], dim=-1).to(dt) * tile_size
-        pix = origin[:, None, :] + pix_off[None]  # [T, P, 2]
-        cnt, st = per_tile[t0:t1], starts[t0:t1]
-        longest = int(cnt.max()) if cnt.numel() else 0
-        trans = torch.ones(t1 - t0, P, device=dev, dtype=dt)
-        done = torch.zeros(t1 - t0, P, device=dev, dtype=torch.bool)
-        acc = torch.zeros(t1 - t0, P, D, device=dev, dtype=dt)
-        for s in range(0, longest, chunk):
-            j = torch.arange(s, min(longest, s + chunk), device=dev)
-            present = j[None, :] < cnt[:, None]  # [T, B]
-            if not bool(present.any()):
-                break
-            pos = torch.where(present, st[:, None] + j[None, :], torch.zeros_like(present, dtype=torch.long))
-            gid = flat_ids[pos]  # [T, B]
-            delta = pix[:, :, None, :] - m2d[gid][:, None, :, :]  # [T, P, B, 2]
-            cg = con[gid][:, None]  # [T, 1, B, 3]
-            sigma = (
-                0.5 * (cg[..., 0] * delta[..., 0] ** 2 + cg[..., 2] * delta[..., 1] ** 2)
-                + cg[..., 1] * delta[..., 0] * delta[..., 1]
-            )
-            alpha = torch.clamp_max(opa[gid][:, None, :] * torch.exp(-sigma), ALPHA_MAX)
-            keep = (sigma >= 0) & (alpha >= ALPHA_MIN) & present[:, None, :]
-            alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
-            log_t = torch.log1p(-alpha)
-            csum = torch.cumsum(log_t, dim=-1)
-            with torch.no_grad():
-                t_after = trans[..., None] * torch.exp(csum)
-                stops = (t_after <= TRANSMITTANCE_MIN) & keep
-                used = ~stops & ~done[..., None]
-                done = done | stops.any(-1)
-            t_before = trans[..., None] * torch.exp(csum - log_t)
-            weight = torch.where(used, alpha * t_before, torch.zeros_like(alpha))
-            acc = acc + torch.einsum("tpb,tbd->tpd", weight, feat[gid])
-            trans = trans * torch.exp(torch.where(used, log_t, torch.zeros_like(log_t)).sum(-1))
+        args = (t0, t1, per_tile, starts, flat_ids, pix_off, tw, th, tile_size, chunk)
+        if remat:
+            acc, trans = checkpoint(_composite_tiles, m2d, con, opa, feat, *args, use_reentrant=False)
+        else:
+            acc, trans = _composite_tiles(m2d, con, opa, feat, *args)
         out_feat.append(acc)
         out_alpha.append(1.0 - trans)
 
@@ -372,6 +403,11 @@ def rasterize(
     tw, th = math.ceil(width / tile_size), math.ceil(height / tile_size)
     tiles_per_gauss, tile_ids, flat_ids = intersect_tiles(means2d, radii, depths, tile_size, tw, th)
     render, alphas = composite(means2d, conics, opac, feats.to(dt), tile_ids, flat_ids, width, height, tile_size, chunk)
+    if not render.requires_grad and (means2d.requires_grad or feats.requires_grad or opac.requires_grad):
+        # Nothing visible: keep the outputs on the autograd graph (zero gradients), as gsplat does,
+        # so a training step on an empty view does not fail. Inputs here are already finite.
+        tie = 0.0 * (means2d.sum() + feats.sum() + opac.sum() + conics.sum())
+        render, alphas = render + tie, alphas + tie
     if bg is not None:
         render = render + bg[:, None, None, :] * (1.0 - alphas)
     if render_mode in ("ED", "RGB+ED"):

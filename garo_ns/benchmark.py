@@ -1,0 +1,331 @@
+"""`python -m garo_ns.benchmark`: GARO against the D-3DGS baseline, speed against error, in one run.
+
+Phase 1 trains every variant, one process per GPU (round-robin when there are more variants than
+GPUs; several processes may share a GPU). Phase 2, after all training has ended, loads each run in
+turn and evaluates it on the chosen split and times it with the FPS protocol (garo_ns.timing), so
+no timing overlaps another job. One JSON holds everything; a Markdown table and a PNG plot (FPS
+against PSNR, marker area by Gaussian count) are written next to it.
+
+Variants: deform-splatfacto (baseline), garo-deform (full GARO), and on request garo-oaa, garo-gca
+(the paper's ablations) and garo-rho<value> (rho_max sweep).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, List, Literal, Optional, Tuple
+
+from garo_ns import compat
+
+compat.install()
+
+RHO_SWEEP = (0.005, 0.01, 0.02, 0.05, 0.1)
+FULL_ITERATIONS = 40_000
+
+
+def variant_settings(name: str) -> Tuple[str, Dict[str, Any]]:
+    """(method, model-config overrides) of a variant name."""
+    if name == "deform-splatfacto":
+        return "deform-splatfacto", {}
+    if name == "garo-deform":
+        return "garo-deform", {"garo_mode": "full"}
+    if name == "garo-oaa":
+        return "garo-deform", {"garo_mode": "oaa"}
+    if name == "garo-gca":
+        return "garo-deform", {"garo_mode": "gca"}
+    if name.startswith("garo-rho"):
+        return "garo-deform", {"garo_mode": "full", "rho_max": float(name[len("garo-rho") :])}
+    raise ValueError(f"unknown variant {name!r}")
+
+
+@dataclass
+class BenchArgs:
+    """Train the baseline and GARO (and ablations) on one scene and report speed against error."""
+
+    scene: Path
+    """D-NeRF-layout scene directory."""
+    split: Literal["train", "val", "test"] = "test"
+    """Split to score (lego: val)."""
+    output: Path = Path("benchmarks/results/benchmark.json")
+    """Result JSON; the .md table and .png plot go next to it."""
+    work_dir: Path = Path("runs/benchmark")
+    """Where the runs (checkpoints, logs) go."""
+    variants: List[str] = field(default_factory=lambda: ["deform-splatfacto", "garo-deform"])
+    ablations: bool = False
+    """Also train garo-oaa and garo-gca."""
+    rho_sweep: bool = False
+    """Also train garo-rho<r> for r in 0.005, 0.01, 0.02, 0.05, 0.1."""
+    iterations: int = FULL_ITERATIONS
+    """Training steps of every variant; fewer than 40k is labelled shortened in the JSON."""
+    gpus: List[int] = field(default_factory=lambda: [0])
+    """GPUs for the training processes (variants are assigned round-robin)."""
+    device: Literal["cuda", "cpu"] = "cuda"
+    quick: bool = False
+    """CPU smoke test: the compressed schedule of garo_ns.train.QuickSchedule."""
+    background: Literal["black", "white"] = "black"
+    warmup_views: int = 5
+    timing_repeats: int = 3
+    deadline_s: Optional[float] = None
+    """Stop training this many seconds after the start even if unfinished (recorded per variant)."""
+
+    def all_variants(self) -> List[str]:
+        names = list(self.variants)
+        if self.ablations:
+            names += ["garo-oaa", "garo-gca"]
+        if self.rho_sweep:
+            names += [f"garo-rho{r}" for r in RHO_SWEEP if abs(r - 0.02) > 1e-12]
+        return list(dict.fromkeys(names))
+
+
+# ---------------------------------------------------------------------------- training (one variant)
+class _Deadline(Exception):
+    pass
+
+
+def train_variant(args: BenchArgs, name: str, deadline: Optional[float]) -> Dict[str, Any]:
+    """Train one variant in this process; returns its training record (also written to run dir)."""
+    import torch
+    from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+
+    from garo_ns.train import QuickSchedule, make_config
+
+    method, overrides = variant_settings(name)
+    config = make_config(
+        method,  # type: ignore[arg-type]
+        args.scene,
+        args.work_dir,
+        device=args.device,
+        schedule=QuickSchedule(steps=args.iterations) if args.quick else None,
+        alpha_color=args.background,
+        eval_split="val" if args.split == "val" else "test",
+        experiment_name=name,
+    )
+    config.timestamp = "bench"
+    config.max_num_iterations = args.iterations
+    config.steps_per_save = min(2000, args.iterations)
+    for key, value in overrides.items():
+        setattr(config.pipeline.model, key, value)
+    config.logging.local_writer.enable = True  # progress lines in the worker's log
+    config.save_config()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    last_step = {"step": 0}
+
+    def watch(step: int) -> None:
+        last_step["step"] = step
+        if deadline is not None and time.time() > deadline and step % 100 == 99:
+            raise _Deadline
+
+    trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], watch))
+    if args.device == "cuda":
+        torch.cuda.reset_peak_memory_stats()
+    start = time.perf_counter()
+    stopped = False
+    try:
+        trainer.train()
+    except _Deadline:
+        stopped = True
+        trainer.save_checkpoint(last_step["step"])
+    seconds = time.perf_counter() - start
+    iterations = last_step["step"] + 1
+    record = {
+        "variant": name,
+        "method": method,
+        "overrides": overrides,
+        "iterations": iterations,
+        "stopped_by_deadline": stopped,
+        "train_seconds": seconds,
+        "train_steps_per_second": iterations / seconds,
+        "train_peak_memory_mb": torch.cuda.max_memory_allocated() / 2**20 if args.device == "cuda" else None,
+        "config": str(config.get_base_dir() / "config.yml"),
+    }
+    (args.work_dir / f"{name}.record.json").write_text(json.dumps(record, indent=2))
+    return record
+
+
+# ---------------------------------------------------------------------------- evaluation and timing
+def evaluate_variant(args: BenchArgs, record: Dict[str, Any]) -> Dict[str, Any]:
+    """Score and time a trained variant (alone on its device)."""
+    from garo_ns.eval import evaluate, load_run, load_split
+    from garo_ns.timing import measure_fps, model_size_mb
+
+    _, pipeline, _, step = load_run(Path(record["config"]))
+    model = pipeline.model
+    result = evaluate(pipeline, args.scene, args.split)
+    cameras, _ = load_split(args.scene, args.split, model.background_color)
+    timing = measure_fps(model, cameras, warmup=args.warmup_views, repeats=args.timing_repeats)
+    out = {
+        "psnr": result["psnr"],
+        "ssim": result["ssim"],
+        "lpips": result["lpips"],
+        "fps": timing["fps"],
+        "ms_per_view": timing["ms_per_view"],
+        "ms_deformation": timing["ms_deformation"],
+        "ms_rasterization": timing["ms_rasterization"],
+        "num_gaussians": result["num_gaussians"],
+        "peak_memory_mb": {"training": record["train_peak_memory_mb"], "rendering": timing["render_peak_memory_mb"]},
+        "model_size_mb": model_size_mb(model),
+        "train_seconds": record["train_seconds"],
+        "train_steps_per_second": record["train_steps_per_second"],
+        "iterations": record["iterations"],
+        "shortened": record["iterations"] < FULL_ITERATIONS,
+        "stopped_by_deadline": record["stopped_by_deadline"],
+        "garo_mode": model.config.garo_mode,
+        "rho_max": model.config.rho_max,
+        "checkpoint_step": int(step),
+    }
+    del pipeline, model
+    return out
+
+
+# ---------------------------------------------------------------------------- report
+def environment(device: str) -> Dict[str, Any]:
+    """GPU, torch and commit of this run."""
+    import torch
+
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=Path(__file__).parent, check=True
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        commit = os.environ.get("GARO_GIT_COMMIT", "unknown")
+    gpu = torch.cuda.get_device_name(0) if device == "cuda" and torch.cuda.is_available() else None
+    return {
+        "gpu": gpu,
+        "cpu": platform.processor() or platform.machine(),
+        "torch": torch.__version__,
+        "git_commit": commit,
+    }
+
+
+def write_report(result: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
+    """Markdown table and FPS-vs-PSNR plot next to the JSON."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    variants = result["variants"]
+    base = variants.get("deform-splatfacto")
+    lines = [
+        f"# {result['scene']} ({result['split']}, {result['background']} background) on {result['gpu'] or 'CPU'}",
+        "",
+        "| variant | iterations | PSNR | SSIM | LPIPS | FPS | speed-up | Gaussians | model MB | train s |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, v in variants.items():
+        speed = f"{v['fps'] / base['fps']:.2f}x" if base else "-"
+        lp = "-" if v["lpips"] is None else f"{v['lpips']:.4f}"
+        lines.append(
+            f"| {name} | {v['iterations']} | {v['psnr']:.2f} | {v['ssim']:.4f} | {lp} | {v['fps']:.1f} | {speed} | "
+            f"{v['num_gaussians']} | {v['model_size_mb']:.2f} | {v['train_seconds']:.0f} |"
+        )
+    md = output.with_suffix(".md")
+    md.write_text("\n".join(lines) + "\n")
+
+    fig, ax = plt.subplots(figsize=(6, 4.5))
+    counts = [v["num_gaussians"] for v in variants.values()]
+    top = max(counts) if counts else 1
+    for name, v in variants.items():
+        ax.scatter(v["fps"], v["psnr"], s=40 + 800 * v["num_gaussians"] / top, alpha=0.6)
+        ax.annotate(name, (v["fps"], v["psnr"]), textcoords="offset points", xytext=(6, 4), fontsize=8)
+    ax.set_xlabel("FPS (deformation + rasterization)")
+    ax.set_ylabel(f"PSNR on {result['split']} (dB)")
+    ax.set_title(f"{result['scene']}: marker area ~ number of Gaussians")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    png = output.with_suffix(".png")
+    fig.savefig(png, dpi=120)
+    plt.close(fig)
+    return md, png
+
+
+# ---------------------------------------------------------------------------- driver
+def run(args: BenchArgs) -> Dict[str, Any]:
+    """Phase 1 (training, parallel) then phase 2 (evaluation and timing, sequential); write outputs."""
+    names = args.all_variants()
+    deadline = None if args.deadline_s is None else time.time() + args.deadline_s
+    args.work_dir.mkdir(parents=True, exist_ok=True)
+    procs = []
+    for i, name in enumerate(names):
+        env = dict(os.environ)
+        if args.device == "cuda":
+            env["CUDA_VISIBLE_DEVICES"] = str(args.gpus[i % len(args.gpus)])
+        log = open(args.work_dir / f"{name}.log", "w")
+        cmd = [sys.executable, "-m", "garo_ns.benchmark", "--worker", name, "--args", json.dumps(_to_json(args))]
+        if deadline is not None:
+            cmd += ["--deadline", str(deadline)]
+        proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)
+        procs.append((name, proc, log))
+        if args.device != "cuda":
+            proc.wait()  # on a CPU the runs would only compete for the same cores
+    records = {}
+    for name, proc, log in procs:
+        code = proc.wait()
+        log.close()
+        if code != 0:
+            raise RuntimeError(f"training {name} failed (exit {code}); see {args.work_dir / (name + '.log')}")
+        records[name] = json.loads((args.work_dir / f"{name}.record.json").read_text())
+    variants = {name: evaluate_variant(args, records[name]) for name in names}
+    result = {
+        **environment(args.device),
+        "scene": args.scene.name,
+        "split": args.split,
+        "background": args.background,
+        "iterations_full_schedule": FULL_ITERATIONS,
+        "fps_protocol": "mean over views of synchronised (deformation MLP + rasterization) time, "
+        f"{args.warmup_views} warm-up views dropped, {args.timing_repeats} passes, full resolution",
+        "variants": variants,
+    }
+    base = variants.get("deform-splatfacto")
+    garo = variants.get("garo-deform")
+    if base and garo:
+        result["garo_vs_baseline"] = {
+            "fps_ratio": garo["fps"] / base["fps"],
+            "psnr_drop_db": base["psnr"] - garo["psnr"],
+            "gaussian_ratio": garo["num_gaussians"] / max(base["num_gaussians"], 1),
+        }
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps(result, indent=2))
+    md, png = write_report(result, args.output)
+    print(md.read_text())
+    print(f"wrote {args.output}, {md}, {png}")
+    return result
+
+
+def _to_json(args: BenchArgs) -> Dict[str, Any]:
+    d = dict(vars(args))
+    for k, v in d.items():
+        if isinstance(v, Path):
+            d[k] = str(v)
+    return d
+
+
+def _from_json(d: Dict[str, Any]) -> BenchArgs:
+    for k in ("scene", "output", "work_dir"):
+        d[k] = Path(d[k])
+    return BenchArgs(**d)
+
+
+def main() -> None:
+    """Console entry point (also the worker entry, used internally)."""
+    if len(sys.argv) > 1 and sys.argv[1] == "--worker":
+        name = sys.argv[2]
+        args = _from_json(json.loads(sys.argv[sys.argv.index("--args") + 1]))
+        deadline = float(sys.argv[sys.argv.index("--deadline") + 1]) if "--deadline" in sys.argv else None
+        train_variant(args, name, deadline)
+        return
+    import tyro
+
+    run(tyro.cli(BenchArgs))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,93 @@
+"""Train a method of the plugin in-process (what `ns-train` does), for the demo, tests and benchmarks."""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, Literal, Optional
+
+from garo_ns import compat
+from garo_ns.config import trainer_config
+
+compat.install()
+
+Method = Literal["garo-deform", "deform-splatfacto"]
+
+
+@dataclass
+class QuickSchedule:
+    """A short schedule for small scenes on a CPU: every phase of the full recipe, compressed.
+
+    The full recipe is 40k steps (static warm-up 3k, densify 500..15k); this keeps the same
+    order of events in `steps` steps so that a few hundred steps exercise all of them.
+    """
+
+    steps: int = 600
+    num_random: int = 5000
+    deform_width: int = 128
+    deform_depth: int = 6
+    deform_skip: int = 3
+    extra: Dict[str, Any] = field(default_factory=dict)
+
+    def apply(self, config: Any) -> None:
+        """Write the schedule into a TrainerConfig."""
+        s = self.steps
+        m = config.pipeline.model
+        config.max_num_iterations = s
+        config.steps_per_save = s
+        m.num_random = self.num_random
+        m.deform_width, m.deform_depth, m.deform_skip = self.deform_width, self.deform_depth, self.deform_skip
+        m.deform_warmup = s // 4
+        m.warmup_length = max(s // 20, 10)
+        m.refine_every = max(s // 30, 5)
+        m.reset_alpha_every = 10
+        m.stop_split_at = int(s * 0.6)
+        m.sh_degree_interval = max(s // 8, 1)
+        m.garo_start = m.warmup_length
+        m.garo_stop = m.stop_split_at
+        m.garo_every = m.refine_every
+        for opt in config.optimizers.values():
+            sched = opt.get("scheduler")
+            if sched is not None and hasattr(sched, "max_steps"):
+                sched.max_steps = s
+        for key, value in self.extra.items():
+            setattr(m, key, value)
+
+
+def make_config(
+    method: Method,
+    data: Path,
+    output_dir: Path,
+    device: Literal["cpu", "cuda"] = "cpu",
+    schedule: Optional[QuickSchedule] = None,
+    alpha_color: Literal["black", "white"] = "black",
+    eval_split: Literal["val", "test"] = "test",
+    experiment_name: str = "run",
+) -> Any:
+    """A TrainerConfig for `method` on the D-NeRF-layout scene `data`."""
+    config = copy.deepcopy(trainer_config(method, "off" if method == "deform-splatfacto" else "full"))
+    config.output_dir = Path(output_dir)
+    config.experiment_name = experiment_name
+    config.timestamp = ""
+    config.vis = "tensorboard"
+    config.machine.device_type = device
+    config.logging.local_writer.enable = False
+    config.steps_per_eval_image = 10**9
+    config.steps_per_eval_all_images = 10**9
+    config.pipeline.datamanager.dataparser.data = Path(data)
+    config.pipeline.datamanager.dataparser.alpha_color = alpha_color
+    config.pipeline.datamanager.dataparser.eval_split = eval_split
+    if schedule is not None:
+        schedule.apply(config)
+    return config
+
+
+def train(config: Any) -> Any:
+    """Run training to the end; returns the Trainer (its pipeline holds the trained model)."""
+    config.set_timestamp() if not config.timestamp else None
+    config.save_config()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    trainer.train()
+    return trainer
