@@ -94,7 +94,7 @@ def train_variant(args: BenchArgs, name: str, deadline: Optional[float]) -> Dict
     import torch
     from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
-    from garo_ns.train import QuickSchedule, make_config
+    from garo_ns.train import QuickSchedule, make_config, seed_everything
 
     method, overrides = variant_settings(name)
     config = make_config(
@@ -114,6 +114,7 @@ def train_variant(args: BenchArgs, name: str, deadline: Optional[float]) -> Dict
         setattr(config.pipeline.model, key, value)
     config.logging.local_writer.enable = True  # progress lines in the worker's log
     config.save_config()
+    seed_everything(config.machine.seed)  # as ns-train does: the same initial Gaussians in every variant
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
     last_step = {"step": 0}

@@ -23,8 +23,8 @@ from typing import Any, Dict, Literal, Optional, Tuple
 
 import torch
 import torch.nn.functional as F
-from torch.utils.checkpoint import checkpoint
 from torch import Tensor
+from torch.utils.checkpoint import checkpoint
 
 from garo_ns.sh import eval_sh
 

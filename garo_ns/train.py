@@ -83,9 +83,23 @@ def make_config(
     return config
 
 
+def seed_everything(seed: int) -> None:
+    """Seed Python, numpy and torch, as `ns-train` does before building the trainer."""
+    import random
+
+    import numpy as np
+    import torch
+
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
 def train(config: Any) -> Any:
     """Run training to the end; returns the Trainer (its pipeline holds the trained model)."""
-    config.set_timestamp() if not config.timestamp else None
+    if not config.timestamp:
+        config.set_timestamp()
+    seed_everything(config.machine.seed)
     config.save_config()
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()

@@ -1,0 +1,263 @@
+"""GARO's pruning rule on known geometry, its bookkeeping inside gsplat's densification, and hard cases."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from gsplat.strategy.ops import duplicate, remove, split
+
+from garo_ns.activity import accumulate, activity_candidates, mean_activity, visible_gradient_norms
+from garo_ns.curvature import curvature
+from garo_ns.garo_strategy import GaroStrategy, select_redundant
+from garo_ns.knn import knn
+from garo_ns.normals import normals, shortest_axis
+
+# A quaternion (w, x, y, z) is the identity here, so a Gaussian's smallest axis is its normal.
+
+
+def quat_from_normal(n: torch.Tensor) -> torch.Tensor:
+    """Quaternions rotating z onto each unit vector n."""
+    z = torch.tensor([0.0, 0.0, 1.0]).expand_as(n)
+    axis = torch.cross(z, n, dim=-1)
+    s = axis.norm(dim=-1, keepdim=True)
+    c = (z * n).sum(-1, keepdim=True)
+    half = torch.atan2(s, c) / 2
+    axis = torch.where(s > 1e-8, axis / s.clamp_min(1e-12), torch.tensor([1.0, 0.0, 0.0]))
+    return torch.cat([torch.cos(half), axis * torch.sin(half)], -1)
+
+
+def plane_and_sphere(n_plane=600, n_sphere=400, seed=0):
+    """Flat Gaussians on the plane z = 0 and on a small sphere above it, normals along the surface normal."""
+    g = torch.Generator().manual_seed(seed)
+    pp = torch.rand(n_plane, 3, generator=g) * 2 - 1
+    pp[:, 2] = 0.0
+    pn = torch.tensor([0.0, 0.0, 1.0]).expand(n_plane, 3)
+    sn = torch.nn.functional.normalize(torch.randn(n_sphere, 3, generator=g), dim=-1)
+    sp = sn * 0.15 + torch.tensor([0.0, 0.0, 0.6])
+    points = torch.cat([pp, sp])
+    quats = quat_from_normal(torch.cat([pn, sn]))
+    scales = torch.tensor([0.02, 0.02, 0.001]).expand(len(points), 3).clone()
+    return points, quats, scales
+
+
+def test_normals_are_the_smallest_axis_and_follow_the_deformation():
+    points, quats, scales = plane_and_sphere(10, 10)
+    n = normals(quats, scales)
+    torch.testing.assert_close(n[:10].abs(), torch.tensor([0.0, 0.0, 1.0]).expand(10, 3), atol=1e-6, rtol=0)
+    # A deformation rotating everything by 90 degrees about x carries the plane's normal onto y.
+    rot = torch.tensor([math.cos(math.pi / 4), math.sin(math.pi / 4), 0.0, 0.0])
+    w1, v1 = rot[0], rot[1:]
+    w2, v2 = quats[:, :1], quats[:, 1:]
+    composed = torch.cat(
+        [w1 * w2 - (v2 * v1).sum(-1, keepdim=True), w1 * v2 + w2 * v1 + torch.cross(v1.expand_as(v2), v2, dim=-1)], -1
+    )
+    n2 = normals(composed, scales)  # canonical scales choose the axis, deformed rotation carries it
+    torch.testing.assert_close(n2[:10].abs(), torch.tensor([0.0, 1.0, 0.0]).expand(10, 3), atol=1e-6, rtol=0)
+
+
+def test_known_geometry_prunes_the_plane_not_the_sphere():
+    points, quats, scales = plane_and_sphere()
+    n = len(points)
+    activity = torch.full((n,), 1e-5)  # every Gaussian inactive
+    counts = torch.ones(n)
+    for rho in (0.02, 0.1, 0.3):
+        out = select_redundant(activity, counts, points, normals(quats, scales), "full", 5e-5, 10_000, 0.5, rho, 10)
+        pruned = out["prune"]
+        assert 0 < pruned.numel() <= math.floor(rho * n)
+        assert (pruned < 600).all(), "only plane Gaussians are flat"
+    # The plane's curvature is zero; every sphere Gaussian's is above it (neighbours' normals turn).
+    c = curvature(points, normals(quats, scales), torch.arange(n), 10)
+    assert c[:600].max() < 1e-5 and c[600:].min() > 1e-3 and c[600:].mean() > 0.01
+
+
+def test_activity_filters_candidates_and_oaa_mode_ranks_by_activity():
+    points, quats, scales = plane_and_sphere()
+    n = len(points)
+    activity = torch.linspace(0, 1e-4, n)  # the first half is below tau
+    counts = torch.ones(n)
+    out = select_redundant(activity, counts, points, normals(quats, scales), "full", 5e-5, 10_000, 0.5, 1.0, 10)
+    assert (activity[out["prune"]] < 5e-5).all()
+    oaa = select_redundant(activity, counts, points, points, "oaa", 5e-5, 10_000, 0.5, 0.01, 10)
+    assert torch.equal(oaa["prune"], torch.arange(math.floor(0.01 * n)))  # lowest activity first
+    few = select_redundant(activity, counts, points, normals(quats, scales), "full", 5e-5, 7, 0.5, 1.0, 10)
+    assert few["candidates"] == 7
+
+
+def test_gca_mode_draws_a_seeded_random_candidate_set():
+    points, quats, scales = plane_and_sphere()
+    n = len(points)
+    activity, counts = torch.full((n,), 1.0), torch.ones(n)  # all active: only GCA can pick them
+    counts[:100] = 0  # never seen: never candidates
+    args = (activity, counts, points, normals(quats, scales), "gca", 5e-5, 200, 0.5, 0.1, 10)
+    a = select_redundant(*args, generator=torch.Generator().manual_seed(1))
+    b = select_redundant(*args, generator=torch.Generator().manual_seed(1))
+    assert torch.equal(a["prune"], b["prune"]) and a["candidates"] == 200
+    assert (a["prune"] >= 100).all() and (a["prune"] < 600).all()
+
+
+def test_knn_matches_brute_force_and_excludes_itself():
+    g = torch.Generator().manual_seed(0)
+    pts = torch.rand(3000, 3, generator=g)
+    pts[5] = pts[6]  # duplicate positions
+    q = torch.tensor([0, 5, 6, 2999])
+    got = knn(pts, q, 8, query_chunk=3, point_chunk=700)
+    d = torch.cdist(pts[q].double(), pts.double())
+    d[torch.arange(4), q] = float("inf")
+    ref = torch.topk(d, 8, largest=False).indices
+    assert torch.equal(torch.sort(got, 1).values, torch.sort(ref, 1).values)
+    assert not (got == q[:, None]).any()
+    assert 6 in got[1] and 5 in got[2]
+
+
+def test_activity_accounting_ignores_invisible_iterations_and_nan():
+    sums, counts = torch.zeros(4), torch.zeros(4)
+    m2d = torch.zeros(1, 4, 2, requires_grad=True)
+    (m2d * torch.tensor([[[1.0, 0.0], [0.0, 2.0], [3.0, 0.0], [float("nan"), 0.0]]])).sum().backward()
+    info = {"means2d": m2d, "radii": torch.tensor([[1, 1, 0, 1]]), "width": 2, "height": 2, "n_cameras": 1}
+    for _ in range(3):
+        ids, norms = visible_gradient_norms(info)
+        accumulate(sums, counts, ids, norms)
+    info["radii"] = torch.tensor([[1, 0, 0, 0]])
+    ids, norms = visible_gradient_norms(info)
+    accumulate(sums, counts, ids, norms)
+    g = mean_activity(sums, counts)
+    assert torch.equal(counts, torch.tensor([4.0, 3.0, 0.0, 0.0]))
+    torch.testing.assert_close(g[:2], torch.tensor([1.0, 2.0]))  # invisible steps do not dilute the mean
+    assert torch.isnan(g[2:]).all()  # never seen (or only NaN): no estimate
+    assert activity_candidates(g, 10.0, 100).tolist() == [0, 1]
+
+
+def make_params(points, quats, scales):
+    n = len(points)
+    params = {
+        "means": torch.nn.Parameter(points.clone()),
+        "quats": torch.nn.Parameter(quats.clone()),
+        "scales": torch.nn.Parameter(scales.log()),
+        "opacities": torch.nn.Parameter(torch.zeros(n, 1)),
+    }
+    optimizers = {k: torch.optim.Adam([p], lr=1e-3) for k, p in params.items()}
+    for p in params.values():
+        p.grad = torch.ones_like(p)
+    for o in optimizers.values():
+        o.step()
+    return params, optimizers
+
+
+def test_state_stays_aligned_through_clone_split_and_prune():
+    points, quats, scales = plane_and_sphere(20, 10)
+    params, optimizers = make_params(points, quats, scales)
+    strategy = GaroStrategy()
+    state = strategy.initialize_state()
+    state["garo_grad"] = torch.arange(30.0)
+    state["garo_count"] = torch.arange(30.0) + 1
+    mask = torch.zeros(30, dtype=torch.bool)
+    mask[[3, 7]] = True
+    duplicate(params, optimizers, state, mask)
+    assert state["garo_grad"][-2:].tolist() == [3.0, 7.0] and len(state["garo_count"]) == 32
+    mask = torch.zeros(32, dtype=torch.bool)
+    mask[0] = True
+    split(params, optimizers, state, mask)
+    assert len(state["garo_grad"]) == 33 and state["garo_grad"][-2:].tolist() == [0.0, 0.0]
+    mask = torch.zeros(33, dtype=torch.bool)
+    mask[:5] = True
+    remove(params, optimizers, state, mask)
+    assert len(state["garo_grad"]) == len(params["means"]) == 28
+    assert torch.equal(state["garo_count"] - state["garo_grad"], torch.ones(28))  # pairs moved together
+
+
+def fake_info(n, radii=None):
+    m2d = torch.zeros(1, n, 2, requires_grad=True)
+    m2d.grad = torch.full((1, n, 2), 1e-6)
+    return {
+        "means2d": m2d,
+        "radii": torch.ones(1, n, dtype=torch.int32) if radii is None else radii,
+        "width": 2,
+        "height": 2,
+        "n_cameras": 1,
+        "gaussian_ids": None,
+    }
+
+
+def test_strategy_step_prunes_at_most_rho_and_keeps_everything_aligned():
+    points, quats, scales = plane_and_sphere()
+    params, optimizers = make_params(points, quats, scales)
+    strategy = GaroStrategy(garo_start_iter=10, garo_every=10, refine_start_iter=1000, rho_max=0.05)
+    state = strategy.initialize_state()
+    for step in range(1, 11):
+        strategy.step_post_backward(params, optimizers, state, step, fake_info(len(params["means"])))
+    last = state["garo_last"]
+    assert last["pruned"] == math.floor(0.05 * 1000) and last["candidates"] == 1000
+    n = len(params["means"])
+    assert n == 950 and all(len(p) == n for p in params.values())
+    for key, opt in optimizers.items():
+        assert opt.state[opt.param_groups[0]["params"][0]]["exp_avg"].shape[0] == n
+    assert (params["means"][:, 2].abs() > 0.1).sum() == 400  # the sphere is intact
+    assert state["garo_count"].sum() == 0  # a fresh activity window after the GARO step
+
+
+@pytest.mark.parametrize(
+    "case",
+    [
+        "fewer_than_k",
+        "duplicates",
+        "equal_scales",
+        "zero_scales",
+        "bad_quats",
+        "nan_grads",
+        "no_candidate",
+        "all_candidates",
+        "rho0",
+        "rho1",
+        "tau0",
+    ],
+)
+def test_hard_cases(case):
+    points, quats, scales = plane_and_sphere(60, 40)
+    kwargs = dict(garo_start_iter=1, garo_every=1, refine_start_iter=10_000)
+    if case == "fewer_than_k":
+        points, quats, scales = points[:5], quats[:5], scales[:5]
+    elif case == "duplicates":
+        points[:50] = points[0]
+    elif case == "equal_scales":
+        scales[:] = 0.01
+    elif case == "zero_scales":
+        scales[:10] = 0.0
+        scales[10:20] = 1e-40
+    elif case == "bad_quats":
+        quats[:10] = 0.0
+        quats[10:20] *= 1e6
+    elif case == "tau0":
+        kwargs.update(tau_activity=0.0, tau_curvature=0.0)
+    elif case == "rho0":
+        kwargs.update(rho_max=0.0)
+    elif case == "rho1":
+        kwargs.update(rho_max=1.0)
+    n = len(points)
+    params, optimizers = make_params(points, quats, scales.clamp_min(1e-45))
+    strategy = GaroStrategy(**kwargs)
+    state = strategy.initialize_state()
+    info = fake_info(n)
+    if case == "nan_grads":
+        info["means2d"].grad[0, :10] = float("nan")
+    if case == "no_candidate":
+        info["means2d"].grad[:] = 1.0
+    strategy.step_post_backward(params, optimizers, state, 1, info)
+    last = state["garo_last"]
+    kept = len(params["means"])
+    assert kept == n - last["pruned"] and 0 <= last["pruned"] <= math.floor(strategy.rho_max * n)
+    assert all(torch.isfinite(p).all() for p in params.values())
+    if case in ("no_candidate", "tau0", "rho0"):
+        assert last["pruned"] == 0
+    if case == "all_candidates" or case == "rho1":
+        assert last["candidates"] == n
+    if case == "rho1":
+        assert last["pruned"] == last["redundant"]
+    if case == "nan_grads":
+        assert last["candidates"] == n - 10  # NaN gradients give no estimate, the rest are unaffected
+    if case in ("equal_scales", "zero_scales", "bad_quats"):
+        nrm = normals(params["quats"].detach(), params["scales"].detach().exp())
+        torch.testing.assert_close(nrm.norm(dim=-1), torch.ones(kept))
+    if case == "equal_scales":
+        assert (shortest_axis(torch.full((4, 3), 0.01)) == 0).all()
