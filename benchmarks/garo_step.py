@@ -74,6 +74,42 @@ def main() -> None:
             times.append(dt)
         last = state["garo_last"]
     times.sort()
+    # Where the time goes, and the K-nearest search under other chunkings (same inputs, same answer).
+    from garo_ns.activity import activity_candidates, mean_activity
+    from garo_ns.knn import knn
+    from garo_ns.normals import normals
+
+    params, optimizers = make_gaussians(a.n, dev, seed=0)
+    act = (torch.rand(a.n, generator=torch.Generator().manual_seed(1)) * 1.5e-4).to(dev)
+    cnt = torch.ones(a.n, device=dev)
+
+    def timed(fn, reps=3):
+        fn()
+        if dev.type == "cuda":
+            torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            out = fn()
+        if dev.type == "cuda":
+            torch.cuda.synchronize()
+        return 1000 * (time.perf_counter() - t0) / reps, out
+
+    pts, q4 = params["means"].detach(), params["quats"].detach()
+    breakdown = {}
+    breakdown["activity_ranking_ms"], cand = timed(lambda: activity_candidates(mean_activity(act, cnt), 5e-5, 10_000))
+    breakdown["normals_ms"], _ = timed(lambda: normals(q4, params["scales"].detach().exp()))
+    ref = None
+    for label, kw in {
+        "knn_default_ms": {},
+        "knn_q10k_p64k_ms": {"query_chunk": 10_000, "point_chunk": 1 << 16},
+        "knn_segment256_ms": {"segment": 256},
+        "knn_q10k_segment256_ms": {"query_chunk": 10_000, "segment": 256},
+    }.items():
+        breakdown[label], nb = timed(lambda: knn(pts, cand, 10, **kw))
+        nb = torch.sort(nb, 1).values
+        breakdown[label.replace("_ms", "_same_answer")] = bool(ref is None or torch.equal(ref, nb))
+        ref = nb if ref is None else ref
+    result_breakdown = breakdown
     result = {
         "device": torch.cuda.get_device_name(0) if dev.type == "cuda" else "cpu",
         "torch": torch.__version__,
@@ -88,6 +124,7 @@ def main() -> None:
         "max_ms": 1000 * times[-1],
         "repeats": len(times),
         "target_ms": 50.0,
+        "breakdown": result_breakdown,
     }
     a.output.parent.mkdir(parents=True, exist_ok=True)
     a.output.write_text(json.dumps(result, indent=2))

@@ -53,6 +53,7 @@ def main() -> None:
     weight = torch.rand(1, h, w, 3, generator=g).to(dev)  # a generic linear loss on the image
 
     rgb_diff, alpha_diff, num, den, n_visible, t_ref, t_cuda = 0.0, 0.0, 0.0, 0.0, 0, 0.0, 0.0
+    over, pixels, sum_diff, worst = 0, 0, 0.0, []
     for v in range(views.shape[0]):
         outs = {}
         for name in ("cuda", "reference"):
@@ -76,7 +77,12 @@ def main() -> None:
                 t_ref += dt
             outs[name] = (img.detach(), alpha.detach(), info["means2d"].grad.detach(), info["radii"])
         (ic, ac, gc, rc), (ir, ar, gr, rr) = outs["cuda"], outs["reference"]
-        rgb_diff = max(rgb_diff, float((ic - ir).abs().max()))
+        diff = (ic - ir).abs().amax(-1).flatten()
+        rgb_diff = max(rgb_diff, float(diff.max()))
+        over += int((diff > 1e-3).sum())
+        pixels += diff.numel()
+        sum_diff += float(diff.sum())
+        worst.append(diff.topk(min(100, diff.numel())).values.cpu())
         alpha_diff = max(alpha_diff, float((ac - ar).abs().max()))
         both = (rc > 0) & (rr > 0)
         n_visible += int(both.sum())
@@ -95,6 +101,10 @@ def main() -> None:
         "max_abs_rgb_diff": rgb_diff,
         "max_abs_alpha_diff": alpha_diff,
         "means2d_grad_rel_err": math.sqrt(num / max(den, 1e-30)),
+        "pixels": pixels,
+        "pixels_rgb_diff_over_1e-3": over,
+        "mean_abs_rgb_diff": sum_diff / max(pixels, 1),
+        "largest_100_rgb_diffs": [round(float(x), 6) for x in torch.cat(worst).topk(100).values],
         "visible_pairs": n_visible,
         "seconds_reference_fwd_bwd_per_view": t_ref / views.shape[0],
         "seconds_cuda_fwd_bwd_per_view": t_cuda / views.shape[0],

@@ -6,7 +6,14 @@ import torch
 from torch import Tensor
 
 
-def knn(points: Tensor, query_ids: Tensor, k: int, query_chunk: int = 4096, point_chunk: int = 1 << 17) -> Tensor:
+def knn(
+    points: Tensor,
+    query_ids: Tensor,
+    k: int,
+    query_chunk: int = 4096,
+    point_chunk: int = 1 << 17,
+    segment: int = 0,
+) -> Tensor:
     """Indices [Q, k] of the k nearest points (Euclidean) to each queried point, itself excluded.
 
     Runs on the points' device. Memory is bounded by query_chunk x point_chunk scores. Non-finite
@@ -19,6 +26,8 @@ def knn(points: Tensor, query_ids: Tensor, k: int, query_chunk: int = 4096, poin
         points: [N, 3].
         query_ids: [Q] indices into points.
         k: neighbours per query.
+        segment: if > 0, select within segments of this many columns first, then among the
+            segment winners (two small selections instead of one over a long row).
     """
     n = points.shape[0]
     if not 1 <= k < n:
@@ -38,7 +47,15 @@ def knn(points: Tensor, query_ids: Tensor, k: int, query_chunk: int = 4096, poin
             score = torch.addmm(sq[p0 : p0 + point_chunk][None, :], q, block.T, alpha=-2.0)
             inside = (qid >= p0) & (qid < p0 + block.shape[0])
             score[rows[inside], qid[inside] - p0] = float("inf")  # a point is not its own neighbour
-            d, i = torch.topk(score, min(k, block.shape[0]), dim=1, largest=False)
+            kk = min(k, block.shape[0])
+            if segment and block.shape[0] % segment == 0 and segment > kk:
+                seg = score.view(score.shape[0], -1, segment)
+                d, i = torch.topk(seg, kk, dim=2, largest=False)
+                i = i + torch.arange(0, block.shape[0], segment, device=points.device)[None, :, None]
+                d, j = torch.topk(d.flatten(1), kk, dim=1, largest=False)
+                i = torch.gather(i.flatten(1), 1, j)
+            else:
+                d, i = torch.topk(score, kk, dim=1, largest=False)
             best_d = torch.cat([best_d, d], 1)
             best_i = torch.cat([best_i, i + p0], 1)
             if best_d.shape[1] > k:
