@@ -98,17 +98,15 @@ def main() -> None:
     breakdown = {}
     breakdown["activity_ranking_ms"], cand = timed(lambda: activity_candidates(mean_activity(act, cnt), 5e-5, 10_000))
     breakdown["normals_ms"], _ = timed(lambda: normals(q4, params["scales"].detach().exp()))
-    ref = None
-    for label, kw in {
-        "knn_default_ms": {},
-        "knn_q10k_p64k_ms": {"query_chunk": 10_000, "point_chunk": 1 << 16},
-        "knn_segment256_ms": {"segment": 256},
-        "knn_q10k_segment256_ms": {"query_chunk": 10_000, "segment": 256},
-    }.items():
-        breakdown[label], nb = timed(lambda: knn(pts, cand, 10, **kw))
-        nb = torch.sort(nb, 1).values
-        breakdown[label.replace("_ms", "_same_answer")] = bool(ref is None or torch.equal(ref, nb))
-        ref = nb if ref is None else ref
+    from garo_ns.knn import knn_brute, knn_grid
+
+    def kth_dists(nb):  # compare answers by distances: equal-distance neighbours may come in any order
+        return ((pts[nb] - pts[cand][:, None, :]) ** 2).sum(-1).sort(1).values
+
+    breakdown["knn_brute_ms"], nb_brute = timed(lambda: knn_brute(pts, cand, 10))
+    breakdown["knn_grid_ms"], nb_grid = timed(lambda: knn_grid(pts, cand, 10))
+    breakdown["knn_grid_same_distances_as_brute"] = bool(torch.equal(kth_dists(nb_brute), kth_dists(nb_grid)))
+    breakdown["knn_used_ms"], _ = timed(lambda: knn(pts, cand, 10))
     result_breakdown = breakdown
     result = {
         "device": torch.cuda.get_device_name(0) if dev.type == "cuda" else "cpu",

@@ -11,7 +11,7 @@ from gsplat.strategy.ops import duplicate, remove, split
 from garo_ns.activity import accumulate, activity_candidates, mean_activity, visible_gradient_norms
 from garo_ns.curvature import curvature
 from garo_ns.garo_strategy import GaroStrategy, select_redundant
-from garo_ns.knn import knn
+from garo_ns.knn import knn_brute, knn_grid
 from garo_ns.normals import normals, shortest_axis
 
 # A quaternion (w, x, y, z) is the identity here, so a Gaussian's smallest axis is its normal.
@@ -97,12 +97,33 @@ def test_gca_mode_draws_a_seeded_random_candidate_set():
     assert (a["prune"] >= 100).all() and (a["prune"] < 600).all()
 
 
+@pytest.mark.parametrize("method", [knn_brute, knn_grid])
+def test_knn_methods_are_exact_on_clustered_data_with_outliers(method):
+    g = torch.Generator().manual_seed(1)
+    sheets = torch.rand(3000, 3, generator=g) * 2 - 1
+    sheets[:, 2] = torch.randint(0, 3, (3000,), generator=g).float() * 0.5
+    ball = torch.nn.functional.normalize(torch.randn(2000, 3, generator=g), dim=-1) * 0.3
+    far = torch.rand(30, 3, generator=g) * 40 - 20  # sparse outliers take the exact fallback
+    pts = torch.cat([sheets, ball, far])
+    pts[3] = float("nan")
+    pts[10:15] = pts[9]
+    q = torch.cat([torch.randperm(len(pts), generator=g)[:400], torch.arange(len(pts) - 30, len(pts))])
+    q = q[q != 3]
+    got = method(pts, q, 10)
+    fin = torch.isfinite(pts).all(-1)
+    d = torch.cdist(pts[q].double(), torch.where(fin[:, None], pts, 0).double()) ** 2
+    d[torch.arange(len(q)), q] = float("inf")
+    d[:, ~fin] = float("inf")
+    ref = torch.topk(d, 10, largest=False).values
+    torch.testing.assert_close(torch.gather(d, 1, got).sort(1).values, ref)  # same distances (ties may swap)
+
+
 def test_knn_matches_brute_force_and_excludes_itself():
     g = torch.Generator().manual_seed(0)
     pts = torch.rand(3000, 3, generator=g)
     pts[5] = pts[6]  # duplicate positions
     q = torch.tensor([0, 5, 6, 2999])
-    got = knn(pts, q, 8, query_chunk=3, point_chunk=700)
+    got = knn_brute(pts, q, 8, query_chunk=3, point_chunk=700)
     d = torch.cdist(pts[q].double(), pts.double())
     d[torch.arange(4), q] = float("inf")
     ref = torch.topk(d, 8, largest=False).indices
