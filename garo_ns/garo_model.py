@@ -204,13 +204,16 @@ class GaroModel(SplatfactoModel):
 
         alpha = metadata.get("alpha_color")
         if alpha is not None:
-            self.background_color = torch.as_tensor(alpha, dtype=torch.float32).reshape(3)
+            background = torch.as_tensor(alpha, dtype=torch.float32).reshape(3)
         elif cfg.background_color == "random":
             raise ValueError(
                 "background_color 'random' is not supported: set it to the dataset's alpha colour (black or white)"
             )
         else:
-            self.background_color = get_color(cfg.background_color)
+            background = get_color(cfg.background_color)
+        # A buffer, so the background the model was trained on travels with its checkpoints.
+        self.register_buffer("background_rgb", background.clone().float())
+        self._extent_from_data = cfg.scene_extent is None and "camera_extent" in metadata
 
         common = dict(
             prune_opa=cfg.cull_alpha_thresh,
@@ -254,9 +257,36 @@ class GaroModel(SplatfactoModel):
         self.camera_optimizer.get_param_groups(param_groups=groups)
         return groups
 
+    @property
+    def background_color(self) -> Tensor:  # type: ignore[override]
+        """The render background (the data's alpha colour); stored in checkpoints."""
+        return self.background_rgb
+
+    @background_color.setter
+    def background_color(self, value: Tensor) -> None:
+        self.background_rgb.copy_(torch.as_tensor(value, dtype=torch.float32).reshape(3))
+
+    def adopt_training_data(self, pipeline: Any) -> None:
+        """Make the model agree with its training data whatever the dataparser: render on the
+        data's alpha colour, and (unless set) scale densification by the 3DGS camera extent."""
+        outputs = getattr(getattr(pipeline, "datamanager", None), "train_dataparser_outputs", None)
+        if outputs is None:
+            return
+        alpha = outputs.alpha_color
+        if alpha is not None and not torch.allclose(alpha.float().cpu(), self.background_rgb.cpu()):
+            CONSOLE.print(f"[yellow]Background set to the data's alpha colour {alpha.tolist()}[/yellow]")
+            self.background_color = alpha
+        if self.config.scene_extent is None and not self._extent_from_data:
+            from garo_ns.data.dnerf import camera_extent
+
+            c2w = outputs.cameras.camera_to_worlds.detach().cpu().numpy()
+            self.scene_extent = camera_extent(c2w)
+            self.strategy_state["scene_scale"] = self.scene_extent
+
     def get_training_callbacks(
         self, training_callback_attributes: TrainingCallbackAttributes
     ) -> List[TrainingCallback]:
+        self.adopt_training_data(training_callback_attributes.pipeline)
         return [
             TrainingCallback(
                 [TrainingCallbackLocation.BEFORE_TRAIN_ITERATION],

@@ -134,3 +134,44 @@ def test_non_finite_loss_stops_with_the_step_and_keeps_checkpoints(small_scene, 
     assert ckpts == ["step-000000010.ckpt", "step-000000020.ckpt"]
     state = torch.load(config.get_base_dir() / "nerfstudio_models" / ckpts[-1], map_location="cpu")
     assert all(torch.isfinite(v).all() for k, v in state["pipeline"].items() if k.startswith("_model.gauss_params"))
+
+
+def test_nerfstudio_dnerf_parser_background_extent_and_ns_eval(small_scene, tmp_path):
+    """With nerfstudio's own dnerf-data (white by default, no metadata) the model still renders on the
+    data's colour and scales densification by the camera extent; ns-eval loads the checkpoint (torch >= 2.6)."""
+    import json as _json
+
+    from nerfstudio.data.dataparsers.dnerf_dataparser import DNeRFDataParserConfig
+
+    from garo_ns.data.dnerf import camera_extent, read_split
+    from garo_ns.train import QuickSchedule, make_config, train
+
+    config = make_config(
+        "garo-deform",
+        small_scene,
+        tmp_path,
+        schedule=QuickSchedule(steps=6, num_random=300, deform_width=16, deform_depth=2, deform_skip=0),
+    )
+    config.pipeline.datamanager.dataparser = DNeRFDataParserConfig(data=small_scene)  # alpha_color white
+    trainer = train(config)
+    model = trainer.pipeline.model
+    assert model.background_color.tolist() == [1.0, 1.0, 1.0]
+    expected = camera_extent(read_split(small_scene, "train")[1])
+    assert abs(model.strategy_state["scene_scale"] - expected) < 1e-4
+    out = tmp_path / "ns_eval.json"
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "nerfstudio.scripts.eval",
+            "--load-config",
+            str(config.get_base_dir() / "config.yml"),
+            "--output-path",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "psnr" in _json.loads(out.read_text())["results"]
