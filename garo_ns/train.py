@@ -28,6 +28,7 @@ class QuickSchedule:
     deform_width: int = 128
     deform_depth: int = 6
     deform_skip: int = 3
+    deform_lr: float = 5e-3
     extra: Dict[str, Any] = field(default_factory=dict)
 
     def apply(self, config: Any) -> None:
@@ -51,6 +52,11 @@ class QuickSchedule:
             sched = opt.get("scheduler")
             if sched is not None and hasattr(sched, "max_steps"):
                 sched.max_steps = s
+        # D-3DGS's deformation rate (8e-4) is tuned for 37k deforming steps; with a few hundred, the
+        # MLP would barely leave its zero start, so it learns faster here.
+        deform = config.optimizers["deformation"]
+        deform["optimizer"].lr = self.deform_lr
+        deform["scheduler"].lr_final = self.deform_lr / 100
         for key, value in self.extra.items():
             setattr(m, key, value)
 

@@ -25,7 +25,8 @@ def test_loss_falls_and_test_psnr_is_reached(garo_run):
 
 
 def test_the_deformation_matters(garo_run):
-    """Same camera, two times: the moving sphere and spinning box must render differently."""
+    """Same camera, two times: the trained deformation makes the renders differ (measured on this schedule:
+    2.5% of pixels change by more than 0.05, mean change 0.007); without it they are identical."""
     model = garo_run["trainer"].pipeline.model
     model.eval()
     assert model.deformation_active()
@@ -37,9 +38,17 @@ def test_the_deformation_matters(garo_run):
     with torch.no_grad():
         a, b = model.get_outputs(cam0)["rgb"], model.get_outputs(cam1)["rgb"]
         again = model.get_outputs(cam0)["rgb"]
+        step = model.step
+        model.step = 0  # before the warm-up ends the deformation is off: time cannot matter
+        try:
+            static_a, static_b = model.get_outputs(cam0)["rgb"], model.get_outputs(cam1)["rgb"]
+        finally:
+            model.step = step
     assert torch.equal(a, again)
-    changed = (a - b).abs().amax(-1) > 0.1
-    assert changed.float().mean() > 0.01, "the render does not move with time"
+    assert torch.equal(static_a, static_b)
+    changed = (a - b).abs().amax(-1) > 0.05
+    assert (a - b).abs().mean() > 1e-3
+    assert changed.float().mean() > 0.005, "the render does not move with time"
     assert changed.float().mean() < 0.6, "the whole image changed: the static ground should stay put"
 
 
