@@ -23,7 +23,7 @@ class DemoArgs:
 
     output_dir: Path = Path("runs/demo")
     """Where the scene, the run and the results go."""
-    steps: int = 1500
+    steps: int = 1000
     """Training steps (the full recipe is 40k; this compresses its phases)."""
     resolution: int = 100
     """Scene resolution in pixels."""
@@ -49,6 +49,7 @@ def run(args: DemoArgs) -> dict:
     config = make_config(
         args.method, scene, out, device=device, schedule=QuickSchedule(steps=args.steps), experiment_name="demo"
     )
+    config.logging.local_writer.enable = True  # show training progress
     config.set_timestamp()
     start = time.perf_counter()
     trainer = train(config)

@@ -9,17 +9,16 @@ Gaussians and the split.
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Tuple
 
 import numpy as np
 import torch
-from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.cameras.cameras import Cameras
 
 from garo_ns import compat
-from garo_ns.data.dnerf import read_split
+from garo_ns.data.dnerf import read_split, split_cameras
 from garo_ns.errors import GaroInputError
 from garo_ns.metrics import make_lpips
 
@@ -68,16 +67,7 @@ def load_split(data: Path, split: str, background: torch.Tensor) -> Tuple[Camera
     import imageio.v2 as imageio
 
     paths, poses, times, angle, (h, w) = read_split(data, split)
-    focal = 0.5 * w / math.tan(0.5 * angle)
-    cameras = Cameras(
-        camera_to_worlds=torch.from_numpy(poses[:, :3].astype(np.float32)),
-        fx=focal,
-        fy=focal,
-        cx=w / 2.0,
-        cy=h / 2.0,
-        camera_type=CameraType.PERSPECTIVE,
-        times=torch.tensor(times, dtype=torch.float32)[:, None],
-    )
+    cameras = split_cameras(poses, times, angle, h, w)
     images = []
     bg = background.float().cpu()
     for path in paths:

@@ -122,6 +122,24 @@ def read_split(data: Path, split: str) -> Tuple[List[Path], np.ndarray, np.ndarr
     return images, np.stack(poses), np.asarray(times), float(angle), size
 
 
+def split_cameras(
+    poses: np.ndarray, times: np.ndarray, angle: float, height: int, width: int, scale: float = 1.0
+) -> Cameras:
+    """nerfstudio cameras (with times) of a split read by `read_split`; origins scaled by `scale`."""
+    focal = 0.5 * width / math.tan(0.5 * angle)
+    c2w = torch.from_numpy(poses[:, :3].astype(np.float32))
+    c2w[..., 3] *= scale
+    return Cameras(
+        camera_to_worlds=c2w,
+        fx=focal,
+        fy=focal,
+        cx=width / 2.0,
+        cy=height / 2.0,
+        camera_type=CameraType.PERSPECTIVE,
+        times=torch.tensor(times, dtype=torch.float32)[:, None],
+    )
+
+
 @dataclass
 class GaroDNeRFDataParser(DataParser):
     """Validating D-NeRF parser; see the module docstring."""
@@ -133,18 +151,7 @@ class GaroDNeRFDataParser(DataParser):
         data = Path(self.config.data)
         file_split = self.config.eval_split if split in ("test", "val") else split
         images, poses, times, angle, (height, width) = read_split(data, file_split)
-        focal = 0.5 * width / math.tan(0.5 * angle)
-        c2w = torch.from_numpy(poses[:, :3].astype(np.float32))
-        c2w[..., 3] *= self.config.scale_factor
-        cameras = Cameras(
-            camera_to_worlds=c2w,
-            fx=focal,
-            fy=focal,
-            cx=width / 2.0,
-            cy=height / 2.0,
-            camera_type=CameraType.PERSPECTIVE,
-            times=torch.tensor(times, dtype=torch.float32)[:, None],
-        )
+        cameras = split_cameras(poses, times, angle, height, width, self.config.scale_factor)
         # The extent always comes from the training cameras, whatever split is being read.
         train_poses = poses if file_split == "train" else read_split(data, "train")[1]
         alpha = get_color(self.config.alpha_color)
