@@ -393,7 +393,6 @@ class GaroModel(SplatfactoModel):
         info["means3d"] = means.detach()
         info["quats3d"] = quats.detach()
         info["scales3d"] = scales.detach()
-        info["canonical_scales3d"] = torch.exp(self.scales.detach()) if self.crop_box is None else None
         self.info = info
         if self.training:
             self.strategy.step_pre_backward(self.gauss_params, self.optimizers, self.strategy_state, self.step, info)

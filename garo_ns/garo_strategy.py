@@ -9,8 +9,9 @@ At each GARO step at most floor(rho_max * N) redundant Gaussians are removed, fl
 
 Activity is accumulated in the strategy's own tensors, on its own schedule, and reset after each
 GARO step, so g_i measures the window since the last one. Geometry is read at the time of the
-training camera of the GARO step: the model puts deformed positions (`means3d`), rotations
-(`quats3d`) and canonical scales (`canonical_scales3d`) into the rasterizer's `info`.
+training camera of the GARO step: the model puts deformed positions (`means3d`) and rotations
+(`quats3d`) into the rasterizer's `info`; the canonical scales that choose the normal's axis are the
+strategy's own `params["scales"]`.
 """
 
 from __future__ import annotations
@@ -147,14 +148,12 @@ class GaroStrategy(DefaultStrategy):
         n = len(params["means"])
         points = info.get("means3d")
         quats = info.get("quats3d")
-        scales = info.get("canonical_scales3d")
         # Without the model's geometry (or after a size change) use the canonical Gaussians.
         if points is None or points.shape[0] != n:
             points = params["means"].detach()
         if quats is None or quats.shape[0] != n:
             quats = params["quats"].detach()
-        if scales is None or scales.shape[0] != n:
-            scales = torch.exp(params["scales"].detach())
+        scales = torch.exp(params["scales"].detach())
         gen = None
         if self.mode == "gca":
             gen = torch.Generator().manual_seed(self.seed * 1_000_003 + step)
@@ -215,7 +214,7 @@ def _filter_info(info: Dict[str, Any], keep: Tensor) -> Dict[str, Any]:
     filtered = m2d.detach()[:, keep].clone()
     filtered.grad = None if m2d.grad is None else m2d.grad[:, keep].clone()
     out["means2d"] = filtered
-    for key in ("means3d", "quats3d", "scales3d", "canonical_scales3d"):
+    for key in ("means3d", "quats3d", "scales3d"):
         if isinstance(info.get(key), Tensor):
             out[key] = info[key][keep]
     return out
