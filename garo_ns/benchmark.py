@@ -7,7 +7,11 @@ no timing overlaps another job. One JSON holds everything; a Markdown table and 
 against PSNR, marker area by Gaussian count) are written next to it.
 
 Variants: deform-splatfacto (baseline), garo-deform (full GARO), and on request garo-oaa, garo-gca
-(the paper's ablations) and garo-rho<value> (rho_max sweep).
+(the paper's ablations), garo-rho<value> (rho_max sweep) and garo-prune<ratio> (GARO plus pruning
+of the least contributing Gaussians). A name may carry render-time switches after `+`: `+static`
+(static Gaussians skip the MLP), `+static4x` (the same with a 4x looser threshold), `+tf32` /
+`+bf16` (MLP precision), e.g. `garo-deform+static+bf16`;
+such variants reuse the training of the name before the first `+` and differ only at render time.
 """
 
 from __future__ import annotations
@@ -28,10 +32,32 @@ compat.install()
 
 RHO_SWEEP = (0.005, 0.01, 0.02, 0.05, 0.1)
 FULL_ITERATIONS = 40_000
+RENDER_SWITCHES: Dict[str, Dict[str, Any]] = {
+    "static": {"static_skip": True},
+    "tf32": {"render_precision": "tf32"},
+    "bf16": {"render_precision": "bf16"},
+    # A looser static threshold (4x the default): more Gaussians skip the MLP, at some error.
+    "static4x": {"static_skip": True, "static_threshold_factor": 4.0},
+}
+# Render-time rows added by --speed for every trained variant: each switch alone, then together.
+SPEED_ROWS = ("+tf32", "+bf16", "+static", "+static4x", "+static+bf16", "+static4x+bf16")
+
+
+def split_variant(name: str) -> Tuple[str, Dict[str, Any]]:
+    """(trained variant, render-time model-config overrides) of a variant name like `garo-deform+static`."""
+    base, *switches = name.split("+")
+    render: Dict[str, Any] = {"static_skip": False, "render_precision": "fp32", "static_threshold_factor": 1.0}
+    for switch in switches:
+        if switch not in RENDER_SWITCHES:
+            raise ValueError(f"unknown render switch '+{switch}' in {name!r} (known: {sorted(RENDER_SWITCHES)})")
+        render.update(RENDER_SWITCHES[switch])
+    return base, render
 
 
 def variant_settings(name: str) -> Tuple[str, Dict[str, Any]]:
-    """(method, model-config overrides) of a variant name."""
+    """(method, model-config overrides) of a trained variant name."""
+    if name.startswith("garo-prune"):
+        return "garo-deform", {"garo_mode": "full", "prune_contribution_ratio": float(name[len("garo-prune") :])}
     if name == "deform-splatfacto":
         return "deform-splatfacto", {}
     if name == "garo-deform":
@@ -62,6 +88,10 @@ class BenchArgs:
     """Also train garo-oaa and garo-gca."""
     rho_sweep: bool = False
     """Also train garo-rho<r> for r in 0.005, 0.01, 0.02, 0.05, 0.1."""
+    speed: bool = False
+    """Also report every trained variant with each render-time switch (+tf32, +bf16, +static, +static+bf16)."""
+    profile: bool = True
+    """Add a per-stage breakdown of one frame (garo_ns.frame_profile) to every variant."""
     iterations: int = FULL_ITERATIONS
     """Training steps of every variant; fewer than 40k is labelled shortened in the JSON."""
     gpus: List[int] = field(default_factory=lambda: [0])
@@ -81,7 +111,13 @@ class BenchArgs:
             names += ["garo-oaa", "garo-gca"]
         if self.rho_sweep:
             names += [f"garo-rho{r}" for r in RHO_SWEEP if abs(r - 0.02) > 1e-12]
+        if self.speed:
+            names += [split_variant(n)[0] + row for n in names for row in SPEED_ROWS]
         return list(dict.fromkeys(names))
+
+    def trained_variants(self) -> List[str]:
+        """The variants that need a training of their own."""
+        return list(dict.fromkeys(split_variant(n)[0] for n in self.all_variants()))
 
 
 # ---------------------------------------------------------------------------- training (one variant)
@@ -152,38 +188,69 @@ def train_variant(args: BenchArgs, name: str, deadline: Optional[float]) -> Dict
 
 
 # ---------------------------------------------------------------------------- evaluation and timing
-def evaluate_variant(args: BenchArgs, record: Dict[str, Any]) -> Dict[str, Any]:
-    """Score and time a trained variant (alone on its device)."""
+def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) -> Dict[str, Dict[str, Any]]:
+    """Score and time a trained variant (alone on its device) under each render setting in `names`."""
+    import torch
+
+    from garo_ns.data.dnerf import read_split
     from garo_ns.eval import evaluate, load_run, load_split
-    from garo_ns.timing import measure_fps, model_size_mb
+    from garo_ns.frame_profile import profile_frame
+    from garo_ns.timing import measure_fps, measure_same_time, model_size_mb
 
     _, pipeline, _, step = load_run(Path(record["config"]))
     model = pipeline.model
-    result = evaluate(pipeline, args.scene, args.split)
     cameras, _ = load_split(args.scene, args.split, model.background_color)
-    timing = measure_fps(model, cameras, warmup=args.warmup_views, repeats=args.timing_repeats)
-    out = {
-        "psnr": result["psnr"],
-        "ssim": result["ssim"],
-        "lpips": result["lpips"],
-        "fps": timing["fps"],
-        "ms_per_view": timing["ms_per_view"],
-        "ms_deformation": timing["ms_deformation"],
-        "ms_rasterization": timing["ms_rasterization"],
-        "num_gaussians": result["num_gaussians"],
-        "peak_memory_mb": {"training": record["train_peak_memory_mb"], "rendering": timing["render_peak_memory_mb"]},
-        "model_size_mb": model_size_mb(model),
-        "train_seconds": record["train_seconds"],
-        "train_steps_per_second": record["train_steps_per_second"],
-        "iterations": record["iterations"],
-        "shortened": record["iterations"] < FULL_ITERATIONS,
-        "stopped_by_deadline": record["stopped_by_deadline"],
-        "garo_mode": model.config.garo_mode,
-        "rho_max": model.config.rho_max,
-        "checkpoint_step": int(step),
-    }
+    train_times = torch.unique(torch.as_tensor(read_split(args.scene, "train")[2], dtype=torch.float32))
+    if len(train_times) > model.config.static_times:  # as training samples them
+        train_times = train_times[torch.linspace(0, len(train_times) - 1, model.config.static_times).round().long()]
+    trained_threshold = model.config.static_threshold
+    if model.static_fraction() is None:  # a checkpoint from before the classification existed
+        model.refresh_static(train_times)
+    classified_at = trained_threshold
+    results = {}
+    for name in names:
+        settings = dict(split_variant(name)[1])
+        threshold = trained_threshold * settings.pop("static_threshold_factor")
+        if settings["static_skip"] and threshold != classified_at:
+            model.config.static_threshold = threshold
+            model.refresh_static(train_times)
+            classified_at = threshold
+        for key, value in settings.items():
+            setattr(model.config, key, value)
+        result = evaluate(pipeline, args.scene, args.split)
+        timing = measure_fps(model, cameras, warmup=args.warmup_views, repeats=args.timing_repeats)
+        out = {
+            "psnr": result["psnr"],
+            "ssim": result["ssim"],
+            "lpips": result["lpips"],
+            "fps": timing["fps"],
+            "ms_per_view": timing["ms_per_view"],
+            "ms_deformation": timing["ms_deformation"],
+            "ms_rasterization": timing["ms_rasterization"],
+            "ms_per_view_same_time": measure_same_time(model, cameras),
+            "num_gaussians": result["num_gaussians"],
+            "static_fraction": model.static_fraction(),
+            "render_settings": {**settings, "static_threshold": model.config.static_threshold},
+            "peak_memory_mb": {
+                "training": record["train_peak_memory_mb"],
+                "rendering": timing["render_peak_memory_mb"],
+            },
+            "model_size_mb": model_size_mb(model),
+            "train_seconds": record["train_seconds"],
+            "train_steps_per_second": record["train_steps_per_second"],
+            "iterations": record["iterations"],
+            "shortened": record["iterations"] < FULL_ITERATIONS,
+            "stopped_by_deadline": record["stopped_by_deadline"],
+            "garo_mode": model.config.garo_mode,
+            "rho_max": model.config.rho_max,
+            "prune_contribution_ratio": model.config.prune_contribution_ratio,
+            "checkpoint_step": int(step),
+        }
+        if args.profile:
+            out["profile"] = profile_frame(model, cameras)
+        results[name] = out
     del pipeline, model
-    return out
+    return results
 
 
 # ---------------------------------------------------------------------------- report
@@ -218,15 +285,19 @@ def write_report(result: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
     lines = [
         f"# {result['scene']} ({result['split']}, {result['background']} background) on {result['gpu'] or 'CPU'}",
         "",
-        "| variant | iterations | PSNR | SSIM | LPIPS | FPS | speed-up | Gaussians | model MB | train s |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| variant | iterations | PSNR | SSIM | LPIPS | FPS | speed-up | MLP ms | raster ms | Gaussians | static |"
+        " model MB | train s |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, v in variants.items():
         speed = f"{v['fps'] / base['fps']:.2f}x" if base else "-"
         lp = "-" if v["lpips"] is None else f"{v['lpips']:.4f}"
+        static = v.get("static_fraction")
+        static_txt = "-" if static is None or not v.get("render_settings", {}).get("static_skip") else f"{static:.0%}"
         lines.append(
             f"| {name} | {v['iterations']} | {v['psnr']:.2f} | {v['ssim']:.4f} | {lp} | {v['fps']:.1f} | {speed} | "
-            f"{v['num_gaussians']} | {v['model_size_mb']:.2f} | {v['train_seconds']:.0f} |"
+            f"{v['ms_deformation']:.2f} | {v['ms_rasterization']:.2f} | {v['num_gaussians']} | {static_txt} | "
+            f"{v['model_size_mb']:.2f} | {v['train_seconds']:.0f} |"
         )
     md = output.with_suffix(".md")
     md.write_text("\n".join(lines) + "\n")
@@ -251,7 +322,7 @@ def write_report(result: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
 # ---------------------------------------------------------------------------- driver
 def run(args: BenchArgs) -> Dict[str, Any]:
     """Phase 1 (training, parallel) then phase 2 (evaluation and timing, sequential); write outputs."""
-    names = args.all_variants()
+    names = args.trained_variants()
     deadline = None if args.deadline_s is None else time.time() + args.deadline_s
     args.work_dir.mkdir(parents=True, exist_ok=True)
     procs = []
@@ -274,7 +345,11 @@ def run(args: BenchArgs) -> Dict[str, Any]:
         if code != 0:
             raise RuntimeError(f"training {name} failed (exit {code}); see {args.work_dir / (name + '.log')}")
         records[name] = json.loads((args.work_dir / f"{name}.record.json").read_text())
-    variants = {name: evaluate_variant(args, records[name]) for name in names}
+    variants: Dict[str, Dict[str, Any]] = {}
+    everything = args.all_variants()
+    for name in names:
+        variants.update(evaluate_variant(args, records[name], [n for n in everything if split_variant(n)[0] == name]))
+    variants = {n: variants[n] for n in everything}
     result = {
         **environment(args.device),
         "scene": args.scene.name,

@@ -6,10 +6,35 @@ of its position, rotation (quaternion) and log-scale at that time.
 
 from __future__ import annotations
 
-from typing import Tuple
+import contextlib
+from typing import Iterator, Literal, Tuple
 
 import torch
 from torch import Tensor, nn
+
+Precision = Literal["fp32", "tf32", "bf16"]
+PRECISIONS = ("fp32", "tf32", "bf16")
+
+
+@contextlib.contextmanager
+def precision(mode: Precision, device: torch.device) -> Iterator[None]:
+    """Matrix products of the MLP in `mode`: fp32 (exact), tf32 (tensor cores, fp32 storage; CUDA
+    only, a no-op elsewhere) or bf16 (autocast; encodings and heads' outputs stay fp32)."""
+    if mode not in PRECISIONS:
+        raise ValueError(f"precision must be one of {PRECISIONS}, got {mode!r}")
+    device = torch.device(device)
+    if mode == "tf32" and device.type == "cuda":
+        previous = torch.backends.cuda.matmul.allow_tf32
+        torch.backends.cuda.matmul.allow_tf32 = True
+        try:
+            yield
+        finally:
+            torch.backends.cuda.matmul.allow_tf32 = previous
+    elif mode == "bf16":
+        with torch.autocast(device_type=device.type, dtype=torch.bfloat16):
+            yield
+    else:
+        yield
 
 
 def positional_encoding(x: Tensor, n_freqs: int) -> Tensor:
@@ -64,4 +89,5 @@ class DeformationField(nn.Module):
             h = torch.relu(layer(h))
             if i == self.skip and i + 1 < len(self.layers):
                 h = torch.cat([x, h], dim=-1)
-        return self.d_xyz(h), self.d_rot(h), self.d_scale(h)
+        dt = xyz.dtype  # bf16 autocast hands back bf16; callers get their own dtype
+        return self.d_xyz(h).to(dt), self.d_rot(h).to(dt), self.d_scale(h).to(dt)

@@ -24,7 +24,7 @@ from garo_ns.metrics import make_lpips
 
 compat.install()
 
-METHODS = ("garo-deform", "deform-splatfacto")
+METHODS = ("garo-deform", "deform-splatfacto", "garo-deform-real", "deform-splatfacto-real")
 
 
 def load_run(config_path: Path) -> Tuple[Any, Any, Path, int]:

@@ -31,12 +31,14 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 from torch.nn import Parameter
 
-from garo_ns.deformation import DeformationField
+from garo_ns.deformation import DeformationField, Precision, precision
 from garo_ns.errors import GaroTrainingError
 from garo_ns.garo_strategy import GaroStrategy
+from garo_ns.importance import least_contributing, view_contribution
 from garo_ns.metrics import make_lpips
 from garo_ns.rendering import Backend, rasterize
 from garo_ns.sh import num_sh_bases
+from garo_ns.static import classify_static, motion_statistics
 
 GAUSSIAN_KEYS = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
 
@@ -112,6 +114,12 @@ class GaroModelConfig(SplatfactoModelConfig):
     """The input is concatenated again after this hidden layer."""
     deform_warmup: int = 3000
     """Static warm-up: the deformation field is used from this step on (D-3DGS warm_up)."""
+    time_noise: float = 0.0
+    """Training only: the MLP's time input gets Gaussian noise of this many frame intervals (one
+    draw per step, shared by all Gaussians), decaying linearly to 0 at `time_noise_steps`. D-3DGS
+    uses 0.1 on real captures (its `ast_noise`) to smooth motion between sparse frames; 0: off."""
+    time_noise_steps: int = 20_000
+    """Step at which the time-input noise reaches 0."""
     default_time: float = 0.0
     """Time used for cameras that carry none (e.g. some viewer and render paths); warned once."""
     scene_extent: Optional[float] = None
@@ -120,6 +128,30 @@ class GaroModelConfig(SplatfactoModelConfig):
     # --- rendering ---
     rasterizer: Backend = "auto"
     """'cuda' (gsplat kernels), 'reference' (pure torch), or 'auto': cuda when it can run."""
+
+    # --- render-time speed: each a switch, each measured by the benchmark ---
+    static_skip: bool = False
+    """When not training, Gaussians classified static skip the MLP; their offsets are frozen at
+    their time average (the classification itself always runs during training; it is cheap)."""
+    static_threshold: float = 2.5e-4
+    """Static: freezing its offsets at their time average moves no part of the Gaussian by more than
+    this fraction of the scene extent at any sampled training time (position deviation plus size
+    times rotation and scale deviations; on D-NeRF at 800 px, 2.5e-4 is about a third of a pixel)."""
+    static_every: int = 1000
+    """Re-decide which Gaussians are static every this many steps once the deformation is on, and at
+    the last step; a Gaussian that starts moving becomes dynamic again."""
+    static_times: int = 32
+    """Training times sampled for the static classification (evenly spread over the dataset's times)."""
+    render_precision: Precision = "fp32"
+    """Precision of the deformation MLP when not training: fp32, tf32 (CUDA tensor cores) or bf16."""
+    cache_deformation: bool = True
+    """When not training, reuse the deformed Gaussians if the same time is rendered again and no
+    parameter changed (the viewer re-renders one time for every camera move). Exact."""
+    prune_contribution_ratio: float = 0.0
+    """At each of `prune_contribution_steps`, prune this fraction of the Gaussians with the smallest
+    summed blending weight over the training views (0: off)."""
+    prune_contribution_steps: Tuple[int, ...] = (20000, 30000)
+    """Steps of the contribution pruning (after densification has ended, so the rest can adapt)."""
 
     # --- GARO (geometry-aware redundancy optimisation) ---
     garo_mode: Literal["off", "oaa", "gca", "full"] = "full"
@@ -249,6 +281,14 @@ class GaroModel(SplatfactoModel):
                 seed=cfg.garo_seed,
             )
         self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene_extent)
+        # Static classification lives in the strategy state: densification and pruning keep it
+        # aligned with the Gaussians, and it travels with checkpoints (get_extra_state).
+        self.strategy_state.update({"static": None, "static_offset": None, "static_step": -1})
+        self._train_times: Optional[Tensor] = None
+        self._train_cameras: Optional[Cameras] = None
+        self._last_step: Optional[int] = None
+        self._deform_cache: Optional[Tuple[Any, Tuple[Tensor, Tensor, Tensor]]] = None
+        self._static_cache: Optional[Tuple[Any, Tensor, Tuple[Tensor, Tensor, Tensor]]] = None
 
     # ------------------------------------------------------------------ parameters
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
@@ -272,6 +312,10 @@ class GaroModel(SplatfactoModel):
         outputs = getattr(getattr(pipeline, "datamanager", None), "train_dataparser_outputs", None)
         if outputs is None:
             return
+        cameras = outputs.cameras
+        self._train_cameras = cameras
+        if cameras.times is not None:
+            self._train_times = torch.unique(cameras.times.detach().reshape(-1).float().cpu())
         alpha = outputs.alpha_color
         if alpha is not None and not torch.allclose(alpha.float().cpu(), self.background_rgb.cpu()):
             CONSOLE.print(f"[yellow]Background set to the data's alpha colour {alpha.tolist()}[/yellow]")
@@ -287,6 +331,9 @@ class GaroModel(SplatfactoModel):
         self, training_callback_attributes: TrainingCallbackAttributes
     ) -> List[TrainingCallback]:
         self.adopt_training_data(training_callback_attributes.pipeline)
+        trainer = training_callback_attributes.trainer
+        if trainer is not None:
+            self._last_step = int(trainer.config.max_num_iterations) - 1
         return [
             TrainingCallback(
                 [TrainingCallbackLocation.BEFORE_TRAIN_ITERATION],
@@ -294,6 +341,8 @@ class GaroModel(SplatfactoModel):
                 args=[training_callback_attributes.optimizers],
             ),
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.step_post_backward),
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.prune_by_contribution),
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.update_static),
         ]
 
     def step_cb(self, optimizers: Optimizers, step: int) -> None:
@@ -328,17 +377,153 @@ class GaroModel(SplatfactoModel):
             self._warned_no_time = True
         return float(self.config.default_time)
 
-    def deformed_gaussians(self, time: float) -> Tuple[Tensor, Tensor, Tensor]:
+    def deformed_gaussians(self, time: float, cache: bool = False) -> Tuple[Tensor, Tensor, Tensor]:
         """Means, quaternions (unnormalised) and log-scales of all Gaussians at `time`.
 
         Follows D-3DGS: the MLP reads detached canonical positions, offsets are added to the
         positions and to the normalised quaternions; the scale offset is added in log space
-        (D-3DGS adds it to the activated scale), which keeps scales positive.
+        (D-3DGS adds it to the activated scale), which keeps scales positive. When not training,
+        the MLP runs in `render_precision` and, with `static_skip`, only on dynamic Gaussians;
+        `cache` reuses the previous result for the same time while no parameter has changed.
         """
         if not self.deformation_active():
             return self.means, self.quats, self.scales
-        d_xyz, d_rot, d_scale = self.deformation(self.means.detach(), time)
-        return self.means + d_xyz, F.normalize(self.quats, dim=-1) + d_rot, self.scales + d_scale
+        if self.training:
+            d_xyz, d_rot, d_scale = self.deformation(self.means.detach(), time + self.time_noise())
+            return self.means + d_xyz, F.normalize(self.quats, dim=-1) + d_rot, self.scales + d_scale
+        key = (float(time), self.config.render_precision, self.config.static_skip, self._param_versions())
+        if cache and self._deform_cache is not None and self._deform_cache[0] == key:
+            return self._deform_cache[1]
+        with precision(self.config.render_precision, self.means.device):
+            split = self._static_split() if self.config.static_skip else None
+            if split is None:
+                d_xyz, d_rot, d_scale = self.deformation(self.means.detach(), time)
+                out = (self.means + d_xyz, F.normalize(self.quats, dim=-1) + d_rot, self.scales + d_scale)
+            else:
+                dynamic, (means, quats, scales) = split
+                d_xyz, d_rot, d_scale = self.deformation(self.means.detach()[dynamic], time)
+                out = (
+                    means.index_copy(0, dynamic, self.means[dynamic] + d_xyz),
+                    quats.index_copy(0, dynamic, F.normalize(self.quats[dynamic], dim=-1) + d_rot),
+                    scales.index_copy(0, dynamic, self.scales[dynamic] + d_scale),
+                )
+        self._deform_cache = (key, out) if cache else None
+        return out
+
+    def time_noise(self) -> float:
+        """This step's perturbation of the MLP's time input (0 unless `time_noise` is set)."""
+        cfg = self.config
+        if cfg.time_noise <= 0 or self.step >= cfg.time_noise_steps:
+            return 0.0
+        frames = len(self._train_times) if self._train_times is not None else 1
+        std = cfg.time_noise * (1.0 - self.step / cfg.time_noise_steps) / max(frames, 1)
+        return float(torch.randn(()) * std)
+
+    def _param_versions(self) -> Tuple[Any, ...]:
+        """Identity and in-place version of every tensor the deformed Gaussians depend on."""
+        tensors = list(self.gauss_params.values()) + list(self.deformation.parameters())
+        static = self.strategy_state.get("static_offset")
+        if isinstance(static, Tensor):
+            tensors.append(static)
+        return tuple((id(t), t._version) for t in tensors)
+
+    def _static_split(self) -> Optional[Tuple[Tensor, Tuple[Tensor, Tensor, Tensor]]]:
+        """Indices of the dynamic Gaussians and every Gaussian with its frozen offsets applied, or
+        None when no valid classification exists (e.g. a checkpoint from before it was added)."""
+        static, offset = self.strategy_state.get("static"), self.strategy_state.get("static_offset")
+        if not isinstance(static, Tensor) or not isinstance(offset, Tensor) or static.shape[0] != self.num_points:
+            return None
+        key = self._param_versions()
+        if self._static_cache is None or self._static_cache[0] != key:
+            dynamic = torch.nonzero(~static.to(self.device)).squeeze(-1)
+            off = offset.to(self.device)
+            frozen = (
+                self.means + off[:, :3],
+                F.normalize(self.quats, dim=-1) + off[:, 3:7],
+                self.scales + off[:, 7:],
+            )
+            self._static_cache = (key, dynamic, frozen)
+        return self._static_cache[1], self._static_cache[2]
+
+    def static_fraction(self) -> Optional[float]:
+        """Share of Gaussians currently classified static, or None before any classification."""
+        static = self.strategy_state.get("static")
+        if not isinstance(static, Tensor) or static.shape[0] != self.num_points or static.numel() == 0:
+            return None
+        return float(static.float().mean())
+
+    @torch.no_grad()
+    def refresh_static(self, times: Optional[Tensor] = None) -> None:
+        """Re-decide which Gaussians are static from the current deformation field.
+
+        Args:
+            times: times to sample; default: up to `static_times` of the training times (evenly
+                spread), or an even grid over [0, 1] when the training times are unknown.
+        """
+        if times is None:
+            times = self._train_times
+            if times is None or times.numel() == 0:
+                times = torch.linspace(0.0, 1.0, self.config.static_times)
+            elif times.numel() > self.config.static_times:
+                pick = torch.linspace(0, times.numel() - 1, self.config.static_times).round().long()
+                times = times[pick]
+        deviation, mean = motion_statistics(self.deformation, self.means.detach(), times.reshape(-1))
+        size = torch.exp(self.scales.detach() + mean[:, 7:]).amax(dim=-1)
+        threshold = self.config.static_threshold * self.scene_extent
+        self.strategy_state["static"] = classify_static(deviation, size, threshold)
+        self.strategy_state["static_offset"] = mean
+        self.strategy_state["static_step"] = int(self.step)
+        self._static_cache = None
+
+    def update_static(self, step: int) -> None:
+        """Training callback: re-classify every `static_every` steps after the warm-up and at the last step."""
+        cfg = self.config
+        if not self.deformation_active() or cfg.static_every <= 0:
+            return
+        if (step - cfg.deform_warmup) % cfg.static_every == 0 or step == self._last_step:
+            self.refresh_static()
+            fraction = self.static_fraction()
+            if fraction is not None:
+                from nerfstudio.utils import writer
+
+                writer.put_scalar("garo/static_fraction", fraction, step)
+
+    @torch.no_grad()
+    def contribution(self, cameras: Cameras) -> Tensor:
+        """Summed blending weight of every Gaussian over `cameras`, each at its own time [N]."""
+        total = torch.zeros(self.num_points, device=self.device)
+        was_training = self.training
+        self.eval()  # the deformation as rendered, without the viewer cache
+        try:
+            for i in range(cameras.shape[0]):
+                cam = cameras[i : i + 1].to(self.device)
+                means, quats, log_scales = self.deformed_gaussians(self.camera_time(cam))
+                total += view_contribution(
+                    means,
+                    quats,
+                    torch.exp(log_scales),
+                    torch.sigmoid(self.opacities).squeeze(-1),
+                    viewmat_from_c2w(cam.camera_to_worlds),
+                    cam.get_intrinsics_matrices(),
+                    int(cam.width.item()),
+                    int(cam.height.item()),
+                    backend=self.config.rasterizer,
+                )
+        finally:
+            self.train(was_training)
+        return total
+
+    def prune_by_contribution(self, step: int) -> None:
+        """Training callback: at the configured steps, prune the least contributing Gaussians."""
+        ratio = self.config.prune_contribution_ratio
+        if ratio <= 0 or step not in self.config.prune_contribution_steps or self._train_cameras is None:
+            return
+        from gsplat.strategy.ops import remove
+
+        mask = least_contributing(self.contribution(self._train_cameras), ratio)
+        if bool(mask.any()):
+            remove(self.gauss_params, self.optimizers, self.strategy_state, mask)
+            CONSOLE.print(f"step {step}: pruned {int(mask.sum())} least contributing Gaussians, {self.num_points} left")
 
     # ------------------------------------------------------------------ rendering
     def get_outputs(self, camera: Cameras) -> Dict[str, Union[Tensor, List]]:
@@ -351,7 +536,7 @@ class GaroModel(SplatfactoModel):
         else:
             c2w = camera.camera_to_worlds
         time = self.camera_time(camera)
-        means, quats, log_scales = self.deformed_gaussians(time)
+        means, quats, log_scales = self.deformed_gaussians(time, cache=self.config.cache_deformation)
         opacities, features_dc, features_rest = self.opacities, self.features_dc, self.features_rest
 
         if self.crop_box is not None and not self.training:

@@ -13,7 +13,7 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Sequence, Tuple
+from typing import Dict, List, Literal, Sequence, Tuple
 
 import numpy as np
 
@@ -175,36 +175,119 @@ def _split_times(rng: np.random.Generator, n: int, split: str) -> np.ndarray:
     return np.sort(rng.uniform(0.0, 1.0, n))
 
 
-def generate_scene(out_dir: Path | str, spec: SceneSpec = SceneSpec()) -> Path:
-    """Write the scene to `out_dir` in the D-NeRF layout and return the directory.
+# The normalisation written to scene.json by the NeRF-DS layout (world = normalised / scale + center),
+# deliberately not the identity so that parsers must apply it.
+NERFDS_CENTER = (0.1, -0.2, 0.3)
+NERFDS_SCALE = 0.5
 
-    Layout: transforms_{train,val,test}.json (camera_angle_x; frames with file_path without the
-    .png extension, time in [0, 1], rotation, transform_matrix) and {split}/r_XXX.png RGBA images.
-    """
-    import imageio.v2 as imageio
 
-    spec.validate()
-    out = Path(out_dir)
+def _frames(spec: SceneSpec):
+    """(split, index, OpenGL c2w, time, RGBA float image) of every frame, deterministic from the seed."""
     rng = np.random.default_rng(spec.seed)
     for split, n in (("train", spec.n_train), ("val", spec.n_val), ("test", spec.n_test)):
-        (out / split).mkdir(parents=True, exist_ok=True)
         positions = _camera_positions(rng, n)
         times = _split_times(rng, n, split)
-        frames: List[Dict] = []
         for i in range(n):
             c2w = look_at_c2w(positions[i])
-            img = render_frame(c2w, float(times[i]), spec.resolution)
-            imageio.imwrite(out / split / f"r_{i:03d}.png", (img * 255 + 0.5).astype(np.uint8))
-            frames.append(
-                {
-                    "file_path": f"./{split}/r_{i:03d}",
-                    "rotation": 0.0,
-                    "time": float(times[i]),
-                    "transform_matrix": c2w.tolist(),
-                }
-            )
+            yield split, i, c2w, float(times[i]), render_frame(c2w, float(times[i]), spec.resolution)
+
+
+def surface_points(n: int = 2000, seed: int = 0) -> np.ndarray:
+    """Points on the scene's surfaces at time 0 [n, 3]: what a capture's points.npy would hold."""
+    rng = np.random.default_rng(seed)
+    n_ground, n_sphere = n // 2, n // 4
+    n_box = n - n_ground - n_sphere
+    ground = np.stack(
+        [
+            rng.uniform(-GROUND_HALF, GROUND_HALF, n_ground),
+            rng.uniform(-GROUND_HALF, GROUND_HALF, n_ground),
+            np.full(n_ground, GROUND_Z),
+        ],
+        -1,
+    )
+    d = rng.normal(size=(n_sphere, 3))
+    sphere = sphere_center(0.0) + SPHERE_RADIUS * d / np.linalg.norm(d, axis=-1, keepdims=True)
+    box = rng.uniform(-BOX_HALF, BOX_HALF, (n_box, 3))
+    axis = rng.integers(0, 3, n_box)
+    box[np.arange(n_box), axis] = np.sign(rng.uniform(-1, 1, n_box)) * BOX_HALF
+    box = box + np.array([BOX_CENTER_XY[0], BOX_CENTER_XY[1], GROUND_Z + BOX_HALF])
+    return np.concatenate([ground, sphere, box]).astype(np.float32)
+
+
+def generate_scene(out_dir: Path | str, spec: SceneSpec = SceneSpec(), layout: str = "dnerf") -> Path:
+    """Write the scene to `out_dir` and return the directory.
+
+    layout "dnerf": transforms_{train,val,test}.json (camera_angle_x; frames with file_path without
+    the .png extension, time in [0, 1], rotation, transform_matrix) and {split}/r_XXX.png RGBA images.
+    layout "nerfds" (HyperNeRF's): dataset.json (train ids from the train split, val ids from the val
+    split), metadata.json (time and warp_id), camera/<id>.json, scene.json (a non-trivial center and
+    scale), rgb/1x and rgb/2x RGB images composited on black, and points.npy on the surfaces.
+    The same seed gives the same cameras, times and pictures in both layouts.
+    """
+    spec.validate()
+    if layout not in ("dnerf", "nerfds"):
+        raise ValueError(f"layout must be 'dnerf' or 'nerfds', got {layout!r}")
+    out = Path(out_dir)
+    if layout == "nerfds":
+        return _write_nerfds(out, spec)
+    import imageio.v2 as imageio
+
+    frames: Dict[str, List[Dict]] = {"train": [], "val": [], "test": []}
+    for split, i, c2w, t, img in _frames(spec):
+        (out / split).mkdir(parents=True, exist_ok=True)
+        imageio.imwrite(out / split / f"r_{i:03d}.png", (img * 255 + 0.5).astype(np.uint8))
+        frames[split].append(
+            {"file_path": f"./{split}/r_{i:03d}", "rotation": 0.0, "time": t, "transform_matrix": c2w.tolist()}
+        )
+    for split, items in frames.items():
         with open(out / f"transforms_{split}.json", "w") as f:
-            json.dump({"camera_angle_x": CAMERA_ANGLE_X, "frames": frames}, f, indent=2)
+            json.dump({"camera_angle_x": CAMERA_ANGLE_X, "frames": items}, f, indent=2)
+    return out
+
+
+def _write_nerfds(out: Path, spec: SceneSpec) -> Path:
+    import imageio.v2 as imageio
+
+    center, scale = np.array(NERFDS_CENTER), NERFDS_SCALE
+    res = spec.resolution
+    focal = 0.5 * res / math.tan(0.5 * CAMERA_ANGLE_X)
+    for sub in ("camera", "rgb/1x", "rgb/2x"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    ids: Dict[str, List[str]] = {"train": [], "val": []}
+    metadata: Dict[str, Dict] = {}
+    for split, i, c2w, t, img in _frames(spec):
+        if split == "test":  # captures have train and val ids only
+            continue
+        cid = f"{split}_{i:03d}"
+        ids[split].append(cid)
+        rgb = img[..., :3] * img[..., 3:]  # composited on black, as a camera sees it
+        imageio.imwrite(out / "rgb/1x" / f"{cid}.png", (rgb * 255 + 0.5).astype(np.uint8))
+        half = rgb[: res // 2 * 2, : res // 2 * 2].reshape(res // 2, 2, res // 2, 2, 3).mean((1, 3))
+        imageio.imwrite(out / "rgb/2x" / f"{cid}.png", (half * 255 + 0.5).astype(np.uint8))
+        camera = {
+            "orientation": (c2w[:3, :3] @ np.diag([1.0, -1.0, -1.0])).T.tolist(),
+            "position": (c2w[:3, 3] / scale + center).tolist(),
+            "focal_length": focal,
+            "principal_point": [res / 2.0, res / 2.0],
+            "skew": 0.0,
+            "pixel_aspect_ratio": 1.0,
+            "radial_distortion": [0.0, 0.0, 0.0],
+            "tangential_distortion": [0.0, 0.0],
+            "image_size": [res, res],
+        }
+        (out / "camera" / f"{cid}.json").write_text(json.dumps(camera, indent=2))
+        metadata[cid] = {"time": t, "warp_id": len(metadata), "appearance_id": len(metadata), "camera_id": 0}
+    dataset = {
+        "count": len(metadata),
+        "num_exemplars": len(ids["train"]),
+        "ids": list(metadata),
+        **{f"{k}_ids": v for k, v in ids.items()},
+    }
+    (out / "dataset.json").write_text(json.dumps(dataset, indent=2))
+    (out / "metadata.json").write_text(json.dumps(metadata, indent=2))
+    scene = {"center": list(center), "scale": scale, "near": 0.1 / scale, "far": 10.0 / scale}
+    (out / "scene.json").write_text(json.dumps(scene, indent=2))
+    np.save(out / "points.npy", surface_points(seed=spec.seed) / scale + center)
     return out
 
 
@@ -212,9 +295,17 @@ def main() -> None:
     """Console entry: `garo-make-scene OUT_DIR [--resolution R] [--n-train N] ...`."""
     import tyro
 
-    def _cli(out_dir: Path, resolution: int = 100, n_train: int = 40, n_val: int = 8, n_test: int = 8, seed: int = 0):
-        """Write the built-in dynamic scene in the D-NeRF layout."""
-        path = generate_scene(out_dir, SceneSpec(resolution, n_train, n_val, n_test, seed))
+    def _cli(
+        out_dir: Path,
+        resolution: int = 100,
+        n_train: int = 40,
+        n_val: int = 8,
+        n_test: int = 8,
+        seed: int = 0,
+        layout: Literal["dnerf", "nerfds"] = "dnerf",
+    ):
+        """Write the built-in dynamic scene in the D-NeRF (default) or NeRF-DS / HyperNeRF layout."""
+        path = generate_scene(out_dir, SceneSpec(resolution, n_train, n_val, n_test, seed), layout)
         print(f"wrote scene to {path}")
 
     try:

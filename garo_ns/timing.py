@@ -92,6 +92,26 @@ def measure_fps(model: Any, cameras: Any, warmup: int = 5, repeats: int = 3) -> 
     }
 
 
+@torch.no_grad()
+def measure_same_time(model: Any, cameras: Any) -> float:
+    """Mean ms per view when the view's time was rendered just before (what the viewer pays while
+    the user moves the camera at a fixed time): the deformation cache, then rasterization."""
+    model.eval()
+    device = model.device
+    times = []
+    for i in range(len(cameras)):
+        cam = cameras[i : i + 1].to(device)
+        t = model.camera_time(cam)
+        model.deformed_gaussians(t, cache=model.config.cache_deformation)
+        _sync(device)
+        t0 = time.perf_counter()
+        g = model.deformed_gaussians(t, cache=model.config.cache_deformation)
+        _rasterize(model, cam, *g)
+        _sync(device)
+        times.append(time.perf_counter() - t0)
+    return 1000.0 * sum(times) / len(times)
+
+
 def model_size_mb(model: Any) -> float:
     """Bytes of what a trained model must store to render (Gaussians + deformation MLP), in MiB."""
     tensors = list(model.gauss_params.values()) + list(model.deformation.parameters())

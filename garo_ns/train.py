@@ -48,6 +48,8 @@ class QuickSchedule:
         m.garo_start = m.warmup_length
         m.garo_stop = m.stop_split_at
         m.garo_every = m.refine_every
+        m.static_every = max(s // 10, 1)
+        m.prune_contribution_steps = (int(s * 0.7),)
         for opt in config.optimizers.values():
             sched = opt.get("scheduler")
             if sched is not None and hasattr(sched, "max_steps"):

@@ -16,6 +16,8 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
         split="val",
         output=out,
         work_dir=tmp_path / "runs",
+        variants=["deform-splatfacto", "garo-deform", "garo-prune0.3"],
+        speed=True,
         iterations=40,
         device="cpu",
         quick=True,
@@ -24,7 +26,13 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
     )
     run(args)
     result = json.loads(out.read_text())
-    assert set(result["variants"]) == {"deform-splatfacto", "garo-deform"}
+    trained = ["deform-splatfacto", "garo-deform", "garo-prune0.3"]
+    rows = ["", "+tf32", "+bf16", "+static", "+static4x", "+static+bf16", "+static4x+bf16"]
+    assert list(result["variants"]) == [t + r for t in trained for r in rows]
+    # Render-time rows reuse their variant's training: one run per trained variant.
+    assert sorted(p.name for p in (tmp_path / "runs").glob("*.record.json")) == sorted(
+        f"{t}.record.json" for t in trained
+    )
     for v in result["variants"].values():
         for key in (
             "psnr",
@@ -39,6 +47,28 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
         ):
             assert key in v
         assert v["iterations"] == 40 and v["shortened"] is True and v["fps"] > 0 and v["psnr"] > 5
+        assert v["static_fraction"] is not None and v["ms_per_view_same_time"] > 0
+        profile = v["profile"]
+        for stage in ("deformation", "projection", "color", "sorting", "compositing", "frame", "python_overhead"):
+            assert profile[f"ms_{stage}"] >= 0
+        assert profile["backend"] == "reference"
+    variants = result["variants"]
+    settings = {n: v["render_settings"] for n, v in variants.items()}
+    default = settings["garo-deform"]["static_threshold"]
+    assert settings["garo-deform+static+bf16"] == {
+        "static_skip": True,
+        "render_precision": "bf16",
+        "static_threshold": default,
+    }
+    assert settings["garo-deform"] == {"static_skip": False, "render_precision": "fp32", "static_threshold": default}
+    assert settings["garo-deform+static4x"]["static_threshold"] == 4 * default
+    for t in trained:  # a looser threshold never finds fewer static Gaussians
+        assert variants[t + "+static4x"]["static_fraction"] >= variants[t + "+static"]["static_fraction"]
+    # Pruning the least contributing 30% at step 28 leaves fewer Gaussians than GARO alone.
+    assert variants["garo-prune0.3"]["num_gaussians"] < variants["garo-deform"]["num_gaussians"]
+    # bf16 changes the render a little, never a lot (tf32 is exact on a CPU).
+    assert abs(variants["garo-deform+bf16"]["psnr"] - variants["garo-deform"]["psnr"]) < 0.5
+    assert variants["garo-deform+tf32"]["psnr"] == variants["garo-deform"]["psnr"]
     for key in ("gpu", "torch", "git_commit", "scene", "split", "background"):
         assert key in result
     assert result["split"] == "val" and "fps_ratio" in result["garo_vs_baseline"]

@@ -1,0 +1,284 @@
+"""NeRF-DS / HyperNeRF-layout dataparser (`nerfds-data`): real monocular captures.
+
+Layout (read only; nothing is ever written into the data folder):
+  dataset.json      {"ids": [...], "train_ids": [...], "val_ids": [...]}
+  metadata.json     {id: {"time": t in [0, 1]} or {"warp_id": k}}; warp ids are normalised by
+                    the largest one, as D-3DGS does
+  camera/<id>.json  orientation (world-to-camera rotation, OpenCV axes), position (camera centre),
+                    focal_length, principal_point, image_size [w, h], pixel_aspect_ratio, skew,
+                    radial_distortion [k1, k2, k3], tangential_distortion [p1, p2]
+  scene.json        center, scale, near, far: world points map to (p - center) * scale
+  rgb/<s>x/<id>.png images downscaled by s (1, 2, 4, ...)
+  points.npy        optional [N, 3] world points that seed the Gaussians
+
+Cameras become nerfstudio's (OpenGL axes, camera-to-world) in the normalised frame, with the
+intrinsics of the chosen downscale; lens distortion is passed as nerfstudio's distortion
+parameters, and nerfstudio's full-image datamanager undistorts the images when it caches them.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, List, Literal, Optional, Tuple, Type
+
+import numpy as np
+import torch
+from nerfstudio.cameras import camera_utils
+from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserConfig, DataparserOutputs
+from nerfstudio.data.scene_box import SceneBox
+
+from garo_ns.data.dnerf import camera_extent
+from garo_ns.errors import GaroInputError
+
+# OpenCV camera axes (x right, y down, z forward) to OpenGL's (x right, y up, z back).
+_CV_TO_GL = np.diag([1.0, -1.0, -1.0])
+
+
+@dataclass
+class NerfDSDataParserConfig(DataParserConfig):
+    """NeRF-DS / HyperNeRF layout; see the module docstring."""
+
+    _target: Type = field(default_factory=lambda: NerfDSDataParser)
+    data: Path = Path("data/nerfds/as")
+    """Directory of the capture."""
+    downscale_factor: int = 2
+    """Read images from rgb/<factor>x/ (D-3DGS uses 2x for NeRF-DS); intrinsics are scaled to match."""
+    eval_split: Literal["val", "train"] = "val"
+    """Which ids the `val`/`test` roles read (captures have train and val ids only)."""
+    use_points: bool = True
+    """Seed the Gaussians with points.npy when the capture has it."""
+
+
+def _read_json(path: Path, what: str) -> Any:
+    if not path.is_file():
+        raise GaroInputError(f"missing {what}: {path}")
+    try:
+        with open(path, encoding="utf-8") as f:
+            return json.load(f)
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise GaroInputError(f"{what} is not valid JSON: {path} ({err})") from None
+
+
+def _finite(value: Any, shape: Tuple[int, ...], where: str, name: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise GaroInputError(f"{where}: {name} must be numeric, got {value!r}") from None
+    if arr.shape != shape or not np.isfinite(arr).all():
+        raise GaroInputError(f"{where}: {name} must be finite with shape {shape}, got {value!r}")
+    return arr
+
+
+@dataclass
+class Capture:
+    """A NeRF-DS capture read and checked: ids per split, times, cameras and image paths."""
+
+    ids: List[str]
+    times: Dict[str, float]
+    c2w: Dict[str, np.ndarray]  # OpenGL camera-to-world [3, 4], normalised frame
+    intrinsics: Dict[str, np.ndarray]  # fx, fy, cx, cy at the chosen downscale
+    distortion: Dict[str, np.ndarray]  # k1, k2, k3, p1, p2
+    images: Dict[str, Path]
+    size: Tuple[int, int]  # (height, width) at the chosen downscale
+    splits: Dict[str, List[str]]
+    scale: float
+    center: np.ndarray
+    near: Optional[float]
+    far: Optional[float]
+
+
+def read_capture(data: Path, downscale: int = 2) -> Capture:
+    """Read and validate a NeRF-DS / HyperNeRF capture; GaroInputError names the file and id."""
+    data = Path(data)
+    if not data.is_dir():
+        raise GaroInputError(f"data directory does not exist: {data}")
+    if not isinstance(downscale, int) or downscale < 1:
+        raise GaroInputError(f"downscale factor must be an int >= 1, got {downscale!r}")
+    dataset = _read_json(data / "dataset.json", "dataset file")
+    if not isinstance(dataset, dict):
+        raise GaroInputError(f"dataset file must hold a JSON object: {data / 'dataset.json'}")
+    splits: Dict[str, List[str]] = {}
+    for key in ("train_ids", "val_ids"):
+        ids = dataset.get(key, [] if key == "val_ids" else None)
+        if not isinstance(ids, list) or not all(isinstance(i, str) for i in ids):
+            raise GaroInputError(f"{data / 'dataset.json'}: {key} must be a list of id strings")
+        splits[key[: -len("_ids")]] = ids
+    if not splits["train"]:
+        raise GaroInputError(f"{data / 'dataset.json'}: no train_ids")
+    all_ids = list(dict.fromkeys(splits["train"] + splits["val"]))
+
+    scene = _read_json(data / "scene.json", "scene file")
+    where = str(data / "scene.json")
+    scale = float(_finite(scene.get("scale", 1.0), (), where, "scale"))
+    if scale <= 0:
+        raise GaroInputError(f"{where}: scale must be positive, got {scale}")
+    center = _finite(scene.get("center", [0.0, 0.0, 0.0]), (3,), where, "center")
+    near = float(_finite(scene["near"], (), where, "near")) * scale if "near" in scene else None
+    far = float(_finite(scene["far"], (), where, "far")) * scale if "far" in scene else None
+
+    times = _read_times(data / "metadata.json", all_ids)
+    c2w, intrinsics, distortion, images = {}, {}, {}, {}
+    size: Optional[Tuple[int, int]] = None
+    for cid in all_ids:
+        cam_path = data / "camera" / f"{cid}.json"
+        cam = _read_json(cam_path, f"camera file of id {cid}")
+        where = f"{cam_path} (id {cid})"
+        rot = _finite(cam.get("orientation"), (3, 3), where, "orientation")
+        if abs(np.linalg.det(rot) - 1.0) > 1e-3:
+            raise GaroInputError(f"{where}: orientation is not a rotation (det {np.linalg.det(rot):.4f})")
+        pos = _finite(cam.get("position"), (3,), where, "position")
+        focal = float(_finite(cam.get("focal_length"), (), where, "focal_length"))
+        pp = _finite(cam.get("principal_point"), (2,), where, "principal_point")
+        wh = _finite(cam.get("image_size"), (2,), where, "image_size")
+        aspect = float(_finite(cam.get("pixel_aspect_ratio", 1.0), (), where, "pixel_aspect_ratio"))
+        skew = float(_finite(cam.get("skew", 0.0), (), where, "skew"))
+        radial = _finite(cam.get("radial_distortion", [0.0, 0.0, 0.0]), (3,), where, "radial_distortion")
+        tangential = _finite(cam.get("tangential_distortion", [0.0, 0.0]), (2,), where, "tangential_distortion")
+        if focal <= 0 or aspect <= 0 or (wh <= 0).any():
+            raise GaroInputError(f"{where}: focal_length, pixel_aspect_ratio and image_size must be positive")
+        if abs(skew) > 1e-6:
+            raise GaroInputError(f"{where}: skewed pixels are not supported (skew {skew})")
+        image = data / "rgb" / f"{downscale}x" / f"{cid}.png"
+        if not image.is_file():
+            raise GaroInputError(f"image of id {cid} missing: {image}")
+        hw = _image_size(image)
+        expected = (round(wh[1] / downscale), round(wh[0] / downscale))
+        if abs(hw[0] - expected[0]) > 1 or abs(hw[1] - expected[1]) > 1:
+            raise GaroInputError(
+                f"{image}: image is {hw[1]}x{hw[0]}, camera {cam_path} says {expected[1]}x{expected[0]} at {downscale}x"
+            )
+        if size is None:
+            size = hw
+        elif hw != size:
+            raise GaroInputError(f"{image}: image is {hw[1]}x{hw[0]}, other images are {size[1]}x{size[0]}")
+        pose = np.zeros((3, 4))
+        pose[:, :3] = rot.T @ _CV_TO_GL
+        pose[:, 3] = (pos - center) * scale
+        c2w[cid] = pose
+        fx = focal / downscale
+        intrinsics[cid] = np.array([fx, fx * aspect, pp[0] / downscale, pp[1] / downscale])
+        distortion[cid] = np.concatenate([radial, tangential])
+        images[cid] = image
+    assert size is not None
+    return Capture(all_ids, times, c2w, intrinsics, distortion, images, size, splits, scale, center, near, far)
+
+
+def _read_times(path: Path, ids: List[str]) -> Dict[str, float]:
+    meta = _read_json(path, "metadata file")
+    if not isinstance(meta, dict):
+        raise GaroInputError(f"metadata file must hold a JSON object: {path}")
+    entries = {}
+    for cid in ids:
+        entry = meta.get(cid)
+        if not isinstance(entry, dict):
+            raise GaroInputError(f"{path}: no metadata for id {cid}")
+        entries[cid] = entry
+    if all("time" in e for e in entries.values()):
+        times = {}
+        for cid, e in entries.items():
+            t = e["time"]
+            if not isinstance(t, (int, float)) or not math.isfinite(t) or not 0.0 <= t <= 1.0:
+                raise GaroInputError(f"{path}: time of id {cid} must be a number in [0, 1], got {t!r}")
+            times[cid] = float(t)
+        return times
+    warps = {}
+    for cid, e in entries.items():
+        w = e.get("warp_id", e.get("time_id"))
+        if not isinstance(w, int) or isinstance(w, bool) or w < 0:
+            raise GaroInputError(f"{path}: id {cid} needs a time in [0, 1] or a warp_id >= 0, got {e!r}")
+        warps[cid] = w
+    top = max(warps.values())
+    return {cid: (w / top if top > 0 else 0.0) for cid, w in warps.items()}
+
+
+def _image_size(path: Path) -> Tuple[int, int]:
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return im.size[1], im.size[0]
+    except Exception as err:  # unreadable or truncated image
+        raise GaroInputError(f"cannot read image {path}: {err}") from None
+
+
+def capture_cameras(capture: Capture, ids: List[str]) -> Cameras:
+    """nerfstudio cameras (with times and distortion parameters) of `ids`."""
+    k = np.stack([capture.intrinsics[i] for i in ids])
+    dist = np.stack([capture.distortion[i] for i in ids])
+    distortion = camera_utils.get_distortion_params(
+        k1=torch.from_numpy(dist[:, 0]).float(),
+        k2=torch.from_numpy(dist[:, 1]).float(),
+        k3=torch.from_numpy(dist[:, 2]).float(),
+        p1=torch.from_numpy(dist[:, 3]).float(),
+        p2=torch.from_numpy(dist[:, 4]).float(),
+    )
+    h, w = capture.size
+    return Cameras(
+        camera_to_worlds=torch.from_numpy(np.stack([capture.c2w[i] for i in ids])).float(),
+        fx=torch.from_numpy(k[:, 0:1]).float(),
+        fy=torch.from_numpy(k[:, 1:2]).float(),
+        cx=torch.from_numpy(k[:, 2:3]).float(),
+        cy=torch.from_numpy(k[:, 3:4]).float(),
+        width=w,
+        height=h,
+        distortion_params=distortion if bool((dist != 0).any()) else None,
+        camera_type=CameraType.PERSPECTIVE,
+        times=torch.tensor([capture.times[i] for i in ids], dtype=torch.float32)[:, None],
+    )
+
+
+def read_points(data: Path, capture: Capture) -> Optional[np.ndarray]:
+    """points.npy in the normalised frame [N, 3], or None when absent."""
+    path = Path(data) / "points.npy"
+    if not path.exists():
+        return None
+    try:
+        pts = np.load(path, allow_pickle=False)
+    except Exception as err:
+        raise GaroInputError(f"cannot read {path}: {err}") from None
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise GaroInputError(f"{path}: points must be an [N, 3] array, got shape {pts.shape}")
+    pts = pts[np.isfinite(pts).all(-1)]
+    return ((pts - capture.center) * capture.scale).astype(np.float32)
+
+
+@dataclass
+class NerfDSDataParser(DataParser):
+    """NeRF-DS / HyperNeRF-layout parser; see the module docstring."""
+
+    config: NerfDSDataParserConfig
+    includes_time: bool = True
+
+    def _generate_dataparser_outputs(self, split: str = "train", **kwargs: Any) -> DataparserOutputs:
+        data = Path(self.config.data)
+        capture = read_capture(data, self.config.downscale_factor)
+        role = "train" if split == "train" else self.config.eval_split
+        ids = capture.splits[role]
+        if not ids:
+            raise GaroInputError(f"{data / 'dataset.json'}: no {role}_ids to read for the {split} split")
+        cameras = capture_cameras(capture, ids)
+        train_c2w = np.stack([capture.c2w[i] for i in capture.splits["train"]])
+        metadata: Dict[str, Any] = {
+            "camera_extent": camera_extent(train_c2w),
+            "split": role,
+            "ids": ids,
+        }
+        points = read_points(data, capture) if self.config.use_points else None
+        if points is not None and len(points) > 0:
+            metadata["points3D_xyz"] = torch.from_numpy(points)
+            metadata["points3D_rgb"] = torch.zeros((0, 3), dtype=torch.uint8)  # no colours: random ones
+            lo, hi = points.min(0), points.max(0)
+            aabb = torch.from_numpy(np.stack([lo, hi])).float()
+        else:
+            r = float(np.abs(train_c2w[:, :, 3]).max()) or 1.0
+            aabb = torch.tensor([[-r, -r, -r], [r, r, r]], dtype=torch.float32)
+        return DataparserOutputs(
+            image_filenames=[capture.images[i] for i in ids],
+            cameras=cameras,
+            scene_box=SceneBox(aabb=aabb),
+            metadata=metadata,
+        )

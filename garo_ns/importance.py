@@ -1,0 +1,70 @@
+"""Contribution of each Gaussian to the training views, for pruning those that barely show.
+
+A Gaussian's contribution to a view is the sum over pixels of its blending weight T * alpha, the
+share of those pixels' colour it provides. It is read off the rasterizer's backward pass: rendering
+a one-channel colour m_i = 1 gives d(sum of pixels) / d m_i = sum of its weights, so one render
+and one backward per view give every Gaussian's contribution, on either backend.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from garo_ns.rendering import Backend, rasterize
+
+
+def view_contribution(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    viewmat: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    backend: Backend = "auto",
+) -> Tensor:
+    """Sum over the pixels of one view of each Gaussian's blending weight [N] (no gradient kept).
+
+    Args: Gaussians as `rendering.rasterize` takes them (activated scales and opacities), one
+    world-to-camera matrix [1, 4, 4] and intrinsics [1, 3, 3].
+    """
+    ones = torch.ones(means.shape[0], 1, device=means.device, dtype=means.dtype, requires_grad=True)
+    with torch.enable_grad():
+        render, _, _ = rasterize(
+            means=means.detach(),
+            quats=quats.detach(),
+            scales=scales.detach(),
+            opacities=opacities.detach(),
+            colors=ones,
+            viewmats=viewmat,
+            Ks=K,
+            width=width,
+            height=height,
+            sh_degree=None,
+            backend=backend,
+        )
+        if not render.requires_grad:  # nothing visible in this view
+            return torch.zeros(means.shape[0], device=means.device)
+        render.sum().backward()
+    grad = ones.grad
+    if grad is None:
+        return torch.zeros(means.shape[0], device=means.device)
+    return torch.nan_to_num(grad[:, 0].detach().float(), nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def least_contributing(contribution: Tensor, ratio: float) -> Tensor:
+    """Boolean mask of the floor(ratio * N) Gaussians with the smallest contribution (ties: lower index)."""
+    if not 0.0 <= ratio < 1.0:
+        raise ValueError(f"prune ratio must be in [0, 1), got {ratio}")
+    n = contribution.shape[0]
+    k = math.floor(ratio * n)
+    mask = torch.zeros(n, dtype=torch.bool, device=contribution.device)
+    if k == 0:
+        return mask
+    order = torch.sort(contribution, stable=True).indices
+    mask[order[:k]] = True
+    return mask

@@ -1,0 +1,66 @@
+"""Static Gaussians: those the deformation field barely moves over the training times.
+
+A Gaussian whose offsets (position, rotation, log-scale) stay within a threshold of their time
+average at every training time renders the same with its offsets frozen at that average, so at
+render time it needs no MLP evaluation. What matters is the variation over time, not the size of
+the offset: a constant offset is static. Which Gaussians are static is decided from the current
+field and re-decided during training (the field keeps learning on every Gaussian), so a Gaussian
+that starts to move becomes dynamic again at the next decision.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Tuple
+
+import torch
+from torch import Tensor
+
+OFFSET_DIM = 10  # xyz 3, quaternion 4, log-scale 3
+
+OffsetFn = Callable[[Tensor, float], Tuple[Tensor, Tensor, Tensor]]
+
+
+@torch.no_grad()
+def motion_statistics(offsets: OffsetFn, means: Tensor, times: Tensor, chunk: int = 65_536) -> Tuple[Tensor, Tensor]:
+    """How far each Gaussian's offsets stray from their time average, and that average.
+
+    Args:
+        offsets: the deformation field, (canonical means [n, 3], time) -> (d_xyz, d_rot, d_scale).
+        means: canonical positions [N, 3].
+        times: the times to sample [T] (the training times).
+        chunk: Gaussians per MLP call, to bound memory (T x chunk x 10 floats at once).
+
+    Returns:
+        deviation [N, 3]: per Gaussian, the largest norm over times of offset minus mean offset,
+        for position, rotation and log-scale (non-finite offsets count as infinite);
+        mean_offset [N, 10]: offsets averaged over times (xyz, quaternion, log-scale).
+    """
+    if times.numel() == 0:
+        raise ValueError("motion statistics need at least one time")
+    n = means.shape[0]
+    deviation = torch.zeros(n, 3, device=means.device)
+    mean = torch.zeros(n, OFFSET_DIM, device=means.device)
+    for start in range(0, n, chunk):
+        xyz = means[start : start + chunk]
+        d = torch.stack([torch.cat(offsets(xyz, t), dim=-1).float() for t in times.tolist()])  # [T, n, 10]
+        avg = d.mean(dim=0)
+        dev = d - avg
+        norms = torch.stack([dev[..., :3].norm(dim=-1), dev[..., 3:7].norm(dim=-1), dev[..., 7:].norm(dim=-1)], -1)
+        deviation[start : start + chunk] = torch.nan_to_num(norms.amax(dim=0), nan=float("inf"))
+        mean[start : start + chunk] = torch.nan_to_num(avg)
+    return deviation, mean
+
+
+def displacement(deviation: Tensor, size: Tensor) -> Tensor:
+    """Worst-case movement of a Gaussian's surface [N] if its offsets are frozen: the position
+    deviation plus its largest axis `size` times the rotation (a quaternion deviation d turns it by
+    about 2d radians) and relative-scale deviations."""
+    return deviation[:, 0] + size * (2.0 * deviation[:, 1] + deviation[:, 2])
+
+
+def classify_static(deviation: Tensor, size: Tensor, threshold: float) -> Tensor:
+    """Boolean [N]: Gaussians whose frozen offsets would move them less than `threshold` (scene units)."""
+    if not threshold >= 0:
+        raise ValueError(f"static threshold must be >= 0, got {threshold}")
+    move = displacement(deviation, torch.nan_to_num(size.float(), nan=float("inf")))
+    return move < threshold
