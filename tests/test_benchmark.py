@@ -27,7 +27,7 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
     run(args)
     result = json.loads(out.read_text())
     trained = ["deform-splatfacto", "garo-deform", "garo-prune0.3"]
-    rows = ["", "+tf32", "+bf16", "+static", "+static4x", "+static+bf16", "+static4x+bf16"]
+    rows = ["", "+tf32", "+bf16", "+static", "+static+bf16", "+static4x+bf16"]
     assert list(result["variants"]) == [t + r for t in trained for r in rows]
     # Render-time rows reuse their variant's training: one run per trained variant.
     assert sorted(p.name for p in (tmp_path / "runs").glob("*.record.json")) == sorted(
@@ -61,9 +61,9 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
         "static_threshold": default,
     }
     assert settings["garo-deform"] == {"static_skip": False, "render_precision": "fp32", "static_threshold": default}
-    assert settings["garo-deform+static4x"]["static_threshold"] == 4 * default
+    assert settings["garo-deform+static4x+bf16"]["static_threshold"] == 4 * default
     for t in trained:  # a looser threshold never finds fewer static Gaussians
-        assert variants[t + "+static4x"]["static_fraction"] >= variants[t + "+static"]["static_fraction"]
+        assert variants[t + "+static4x+bf16"]["static_fraction"] >= variants[t + "+static"]["static_fraction"]
     # Pruning the least contributing 30% at step 28 leaves fewer Gaussians than GARO alone.
     assert variants["garo-prune0.3"]["num_gaussians"] < variants["garo-deform"]["num_gaussians"]
     # bf16 changes the render a little, never a lot (tf32 is exact on a CPU).
