@@ -16,7 +16,8 @@ shift
 W=/tmp/garo-work
 if [ -e .device/prelude.sh ]; then source .device/prelude.sh; else source /tmp/kit/prelude.sh; fi
 export NERFSTUDIO_METHOD_CONFIGS="garo-deform=garo_ns.config:garo_deform,deform-splatfacto=garo_ns.config:deform_splatfacto"
-export TORCHDYNAMO_DISABLE=1 GARO_GIT_COMMIT=$(cat .git-commit 2>/dev/null || echo unknown)
+export TORCHDYNAMO_DISABLE=1
+[ -e .git-commit ] && export GARO_GIT_COMMIT=$(cat .git-commit)
 mkdir -p $W/results $W/jobs
 [ -d $W/src ] || cp -r . $W/src
 export PYTHONPATH=$W/src:${PYTHONPATH:-}

@@ -258,12 +258,16 @@ def environment(device: str) -> Dict[str, Any]:
     """GPU, torch and commit of this run."""
     import torch
 
-    try:
-        commit = subprocess.run(
-            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=Path(__file__).parent, check=True
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        commit = os.environ.get("GARO_GIT_COMMIT", "unknown")
+    # GARO_GIT_COMMIT wins: on the GPU machine the project arrives as a copy whose git metadata
+    # need not match the files.
+    commit = os.environ.get("GARO_GIT_COMMIT")
+    if not commit:
+        try:
+            commit = subprocess.run(
+                ["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=Path(__file__).parent, check=True
+            ).stdout.strip()
+        except (OSError, subprocess.CalledProcessError):
+            commit = "unknown"
     gpu = torch.cuda.get_device_name(0) if device == "cuda" and torch.cuda.is_available() else None
     return {
         "gpu": gpu,

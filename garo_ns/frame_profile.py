@@ -73,7 +73,7 @@ def _staged_frame(model: Any, cam: Any, backend: str, stage: Any) -> None:
     opacities = torch.sigmoid(model.opacities).squeeze(-1)
     shs = torch.cat([model.features_dc[:, None, :], model.features_rest], dim=1)
     viewmats = viewmat_from_c2w(cam.camera_to_worlds)
-    Ks = cam.get_intrinsics_matrices()
+    Ks = cam.get_intrinsics_matrices().to(means.device)
     W, H = int(cam.width.item()), int(cam.height.item())
     tw, th = math.ceil(W / TILE), math.ceil(H / TILE)
     campos = torch.linalg.inv(viewmats)[:, :3, 3]

@@ -504,7 +504,7 @@ class GaroModel(SplatfactoModel):
                     torch.exp(log_scales),
                     torch.sigmoid(self.opacities).squeeze(-1),
                     viewmat_from_c2w(cam.camera_to_worlds),
-                    cam.get_intrinsics_matrices(),
+                    cam.get_intrinsics_matrices().to(self.device),
                     int(cam.width.item()),
                     int(cam.height.item()),
                     backend=self.config.rasterizer,
