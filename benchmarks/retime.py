@@ -4,7 +4,8 @@ Used on the GPU machine right after a benchmark, while its checkpoints exist:
     python benchmarks/retime.py --work-dir /tmp/garo-work/lego_speed --scene /tmp/lego --split val \
         --trained garo-prune0.7 garo-prune0.5 garo-deform deform-splatfacto --rows "" +tf32 +static+tf32 \
         --repeats 5 --output lego_speed_retime.json
-(`benchmarks/results/lego_speed_retime_H200.json` came from this with those arguments.)
+(`benchmarks/results/lego_speed_retime_H200.json` was produced by the same calls, typed inline in the
+hold of `lego_speed_H200.json` before this script was committed, so it lacks the environment fields.)
 """
 
 from __future__ import annotations
