@@ -8,11 +8,11 @@ from pathlib import Path
 from typing import Any, Dict, Literal, Optional
 
 from garo_ns import compat
-from garo_ns.config import trainer_config
+from garo_ns.config import real_trainer_config, trainer_config
 
 compat.install()
 
-Method = Literal["garo-deform", "deform-splatfacto"]
+Method = Literal["garo-deform", "deform-splatfacto", "garo-deform-real", "deform-splatfacto-real"]
 
 
 @dataclass
@@ -49,6 +49,7 @@ class QuickSchedule:
         m.garo_stop = m.stop_split_at
         m.garo_every = m.refine_every
         m.static_every = max(s // 10, 1)
+        m.time_noise_steps = s
         m.prune_contribution_steps = (int(s * 0.7),)
         for opt in config.optimizers.values():
             sched = opt.get("scheduler")
@@ -73,8 +74,10 @@ def make_config(
     eval_split: Literal["val", "test"] = "test",
     experiment_name: str = "run",
 ) -> Any:
-    """A TrainerConfig for `method` on the D-NeRF-layout scene `data`."""
-    config = copy.deepcopy(trainer_config(method, "off" if method == "deform-splatfacto" else "full"))
+    """A TrainerConfig for `method` on the scene `data` (D-NeRF layout; NeRF-DS layout for the -real methods)."""
+    garo_mode = "off" if method.startswith("deform-splatfacto") else "full"
+    real = method.endswith("-real")
+    config = copy.deepcopy((real_trainer_config if real else trainer_config)(method, garo_mode))
     config.output_dir = Path(output_dir)
     config.experiment_name = experiment_name
     config.timestamp = ""
@@ -84,8 +87,9 @@ def make_config(
     config.steps_per_eval_image = 10**9
     config.steps_per_eval_all_images = 10**9
     config.pipeline.datamanager.dataparser.data = Path(data)
-    config.pipeline.datamanager.dataparser.alpha_color = alpha_color
-    config.pipeline.datamanager.dataparser.eval_split = eval_split
+    if not real:  # NeRF-DS captures are opaque and have train and val ids only
+        config.pipeline.datamanager.dataparser.alpha_color = alpha_color
+        config.pipeline.datamanager.dataparser.eval_split = eval_split
     if schedule is not None:
         schedule.apply(config)
     return config

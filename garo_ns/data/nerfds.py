@@ -26,7 +26,6 @@ from typing import Any, Dict, List, Literal, Optional, Tuple, Type
 
 import numpy as np
 import torch
-from nerfstudio.cameras import camera_utils
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserConfig, DataparserOutputs
 from nerfstudio.data.scene_box import SceneBox
@@ -209,13 +208,8 @@ def capture_cameras(capture: Capture, ids: List[str]) -> Cameras:
     """nerfstudio cameras (with times and distortion parameters) of `ids`."""
     k = np.stack([capture.intrinsics[i] for i in ids])
     dist = np.stack([capture.distortion[i] for i in ids])
-    distortion = camera_utils.get_distortion_params(
-        k1=torch.from_numpy(dist[:, 0]).float(),
-        k2=torch.from_numpy(dist[:, 1]).float(),
-        k3=torch.from_numpy(dist[:, 2]).float(),
-        p1=torch.from_numpy(dist[:, 3]).float(),
-        p2=torch.from_numpy(dist[:, 4]).float(),
-    )
+    # nerfstudio's order: k1, k2, k3, k4, p1, p2 (OpenCV's model has no k4 here).
+    distortion = torch.from_numpy(np.concatenate([dist[:, :3], np.zeros((len(ids), 1)), dist[:, 3:]], -1)).float()
     h, w = capture.size
     return Cameras(
         camera_to_worlds=torch.from_numpy(np.stack([capture.c2w[i] for i in ids])).float(),
