@@ -55,13 +55,23 @@ def run(args: DemoArgs) -> dict:
     trainer = train(config)
     seconds = time.perf_counter() - start
     result = evaluate(trainer.pipeline, scene, "test")
-    result.update({"method": args.method, "iterations": args.steps, "train_seconds": seconds, "device": device})
+    static = trainer.pipeline.model.static_fraction()
+    result.update(
+        {
+            "method": args.method,
+            "iterations": args.steps,
+            "train_seconds": seconds,
+            "device": device,
+            "static_fraction": static,
+        }
+    )
     run_dir = config.get_base_dir()
     (run_dir / "eval_test.json").write_text(json.dumps(result, indent=2))
     print(
         f"\n{args.method} on the built-in scene ({args.resolution}px, {args.steps} steps, {device}, "
         f"{seconds:.0f} s): test PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.4f}, "
         f"{result['num_gaussians']} Gaussians"
+        + ("" if static is None else f", {static:.0%} of them static (skip the MLP with --pipeline.model.static-skip)")
     )
     print(f"run:      {run_dir}")
     print(f"config:   {run_dir / 'config.yml'}  (ns-viewer --load-config ... --viewer.websocket-host 127.0.0.1)")
