@@ -49,6 +49,7 @@ def test_export_round_trip_matches_the_model_at_each_time(garo_run, tmp_path):
             means, quats, log_scales = (
                 (model.means, model.quats, model.scales) if t is None else model.deformed_gaussians(t)
             )
+            means, quats, log_scales = means.detach(), quats.detach(), log_scales.detach()
         n = int(keep.sum())
         assert written[name] == n and len(ply["x"]) == n
         xyz = np.stack([ply["x"], ply["y"], ply["z"]], -1)
@@ -56,9 +57,11 @@ def test_export_round_trip_matches_the_model_at_each_time(garo_run, tmp_path):
         assert np.allclose(np.stack([ply[f"scale_{i}"] for i in range(3)], -1), log_scales[keep].cpu().numpy())
         assert np.allclose(np.stack([ply[f"rot_{i}"] for i in range(4)], -1), quats[keep].cpu().numpy(), atol=1e-6)
         assert np.allclose(ply["opacity"], opac[keep].cpu().numpy())
-        assert np.allclose(np.stack([ply[f"f_dc_{i}"] for i in range(3)], -1), model.features_dc[keep].cpu().numpy())
+        assert np.allclose(
+            np.stack([ply[f"f_dc_{i}"] for i in range(3)], -1), model.features_dc[keep].detach().cpu().numpy()
+        )
         rest_ply = np.stack([ply[f"f_rest_{i}"] for i in range(rest)], -1).reshape(n, 3, -1)
-        assert np.allclose(rest_ply, model.features_rest[keep].transpose(1, 2).cpu().numpy())
+        assert np.allclose(rest_ply, model.features_rest[keep].transpose(1, 2).detach().cpu().numpy())
         positions[name] = xyz
     # The deformation moves things: the exported scene differs over time and from the canonical one.
     assert np.abs(positions["time_0.5000.ply"] - positions["time_1.0000.ply"]).max() > 1e-3
@@ -242,3 +245,25 @@ def test_resume_continues_step_optimizers_and_strategy_state(scene_dir, tmp_path
     a = evaluate(resumed.pipeline, scene_dir, "test")["psnr"]
     b = evaluate(whole.pipeline, scene_dir, "test")["psnr"]
     assert abs(a - b) < 1.5, (a, b)
+
+
+def test_truncated_checkpoint_is_one_line_and_left_alone(garo_run, tmp_path):
+    import yaml
+
+    config = yaml.load(garo_run["config_path"].read_text(), Loader=yaml.Loader)
+    source = config.get_checkpoint_dir()
+    config.output_dir = tmp_path / "copy"
+    target = config.get_checkpoint_dir()
+    target.mkdir(parents=True)
+    ckpt = sorted(source.glob("*.ckpt"))[-1]
+    data = ckpt.read_bytes()
+    (target / ckpt.name).write_bytes(data[: len(data) // 2])  # a copy cut short, as by a full disk
+    cfg = config.get_base_dir() / "config.yml"
+    cfg.write_text(yaml.dump(config), encoding="utf-8")
+    before = (target / ckpt.name).read_bytes()
+    out = _cli(BIN / "garo-eval", "--load-config", cfg, "--split", "test", "--output-path", tmp_path / "e.json")
+    assert out.returncode != 0
+    assert "Traceback" not in out.stderr and "cannot load the checkpoint" in out.stderr, out.stderr[-2000:]
+    assert len([line for line in out.stderr.splitlines() if "cannot load" in line]) == 1
+    assert (target / ckpt.name).read_bytes() == before and not (tmp_path / "e.json").exists()
+    assert ckpt.read_bytes() == data  # the original is untouched
