@@ -109,13 +109,18 @@ def read_ply(path: Path) -> "OrderedDict[str, np.ndarray]":
     return OrderedDict((n, np.array(data[n])) for n in names)
 
 
+def check_times(times: List[float]) -> None:
+    """GaroInputError unless every time is a finite number in [0, 1]."""
+    for t in times:
+        if not (isinstance(t, (int, float)) and math.isfinite(t) and 0.0 <= t <= 1.0):
+            raise GaroInputError(f"export times must be in [0, 1], got {t!r}")
+
+
 def export_times(
     model: Any, output_dir: Path, times: List[float], canonical: bool = True, overwrite: bool = False
 ) -> Dict[str, Any]:
     """Write canonical.ply (optional) and time_<t>.ply per time; returns {file name: vertex count}."""
-    for t in times:
-        if not (isinstance(t, (int, float)) and math.isfinite(t) and 0.0 <= t <= 1.0):
-            raise GaroInputError(f"export times must be in [0, 1], got {t!r}")
+    check_times(times)
     jobs = [("canonical.ply", None)] if canonical else []
     jobs += [(f"time_{t:.4f}.ply", float(t)) for t in times]
     if not jobs:
@@ -169,9 +174,7 @@ def main() -> None:
     elif args.num_times > 1:
         times += [i / (args.num_times - 1) for i in range(args.num_times)]
     times = sorted(set(times))
-    for t in times:  # checked before the (slow) model load
-        if not (math.isfinite(t) and 0.0 <= t <= 1.0):
-            raise GaroInputError(f"export times must be in [0, 1], got {t!r}")
+    check_times(times)  # before the (slow) model load
     _, pipeline, _, _ = load_run(args.load_config)
     export_times(pipeline.model, args.output_dir, times, args.canonical, args.overwrite)
 

@@ -389,16 +389,15 @@ class GaroModel(SplatfactoModel):
         if not self.deformation_active():
             return self.means, self.quats, self.scales
         if self.training:
-            d_xyz, d_rot, d_scale = self.deformation(self.means.detach(), time + self.time_noise())
-            return self.means + d_xyz, F.normalize(self.quats, dim=-1) + d_rot, self.scales + d_scale
-        key = (float(time), self.config.render_precision, self.config.static_skip, self._param_versions())
+            return self._apply_field(time + self.time_noise())
+        versions = self._param_versions()
+        key = (float(time), self.config.render_precision, self.config.static_skip, versions)
         if cache and self._deform_cache is not None and self._deform_cache[0] == key:
             return self._deform_cache[1]
         with precision(self.config.render_precision, self.means.device):
-            split = self._static_split() if self.config.static_skip else None
+            split = self._static_split(versions) if self.config.static_skip else None
             if split is None:
-                d_xyz, d_rot, d_scale = self.deformation(self.means.detach(), time)
-                out = (self.means + d_xyz, F.normalize(self.quats, dim=-1) + d_rot, self.scales + d_scale)
+                out = self._apply_field(time)
             else:
                 dynamic, (means, quats, scales) = split
                 d_xyz, d_rot, d_scale = self.deformation(self.means.detach()[dynamic], time)
@@ -409,6 +408,11 @@ class GaroModel(SplatfactoModel):
                 )
         self._deform_cache = (key, out) if cache else None
         return out
+
+    def _apply_field(self, time: float) -> Tuple[Tensor, Tensor, Tensor]:
+        """Every Gaussian moved by the deformation field at `time` (D-3DGS's composition)."""
+        d_xyz, d_rot, d_scale = self.deformation(self.means.detach(), time)
+        return self.means + d_xyz, F.normalize(self.quats, dim=-1) + d_rot, self.scales + d_scale
 
     def time_noise(self) -> float:
         """This step's perturbation of the MLP's time input (0 unless `time_noise` is set)."""
@@ -427,13 +431,13 @@ class GaroModel(SplatfactoModel):
             tensors.append(static)
         return tuple((id(t), t._version) for t in tensors)
 
-    def _static_split(self) -> Optional[Tuple[Tensor, Tuple[Tensor, Tensor, Tensor]]]:
+    def _static_split(self, key: Tuple[Any, ...]) -> Optional[Tuple[Tensor, Tuple[Tensor, Tensor, Tensor]]]:
         """Indices of the dynamic Gaussians and every Gaussian with its frozen offsets applied, or
-        None when no valid classification exists (e.g. a checkpoint from before it was added)."""
+        None when no valid classification exists (e.g. a checkpoint from before it was added).
+        Recomputed only when `key` (the parameters' versions) changes."""
         static, offset = self.strategy_state.get("static"), self.strategy_state.get("static_offset")
         if not isinstance(static, Tensor) or not isinstance(offset, Tensor) or static.shape[0] != self.num_points:
             return None
-        key = self._param_versions()
         if self._static_cache is None or self._static_cache[0] != key:
             dynamic = torch.nonzero(~static.to(self.device)).squeeze(-1)
             off = offset.to(self.device)
@@ -492,25 +496,29 @@ class GaroModel(SplatfactoModel):
     def contribution(self, cameras: Cameras) -> Tensor:
         """Summed blending weight of every Gaussian over `cameras`, each at its own time [N]."""
         total = torch.zeros(self.num_points, device=self.device)
-        was_training = self.training
-        self.eval()  # the deformation as rendered, without the viewer cache
-        try:
-            for i in range(cameras.shape[0]):
-                cam = cameras[i : i + 1].to(self.device)
-                means, quats, log_scales = self.deformed_gaussians(self.camera_time(cam))
-                total += view_contribution(
-                    means,
-                    quats,
-                    torch.exp(log_scales),
-                    torch.sigmoid(self.opacities).squeeze(-1),
-                    viewmat_from_c2w(cam.camera_to_worlds),
-                    cam.get_intrinsics_matrices().to(self.device),
-                    int(cam.width.item()),
-                    int(cam.height.item()),
-                    backend=self.config.rasterizer,
+        for i in range(cameras.shape[0]):
+            cam = cameras[i : i + 1].to(self.device)
+            # The field as trained (fp32, every Gaussian, no time noise), whatever the render switches.
+            means, quats, log_scales = (
+                self._apply_field(self.camera_time(cam))
+                if self.deformation_active()
+                else (
+                    self.means,
+                    self.quats,
+                    self.scales,
                 )
-        finally:
-            self.train(was_training)
+            )
+            total += view_contribution(
+                means,
+                quats,
+                torch.exp(log_scales),
+                torch.sigmoid(self.opacities).squeeze(-1),
+                viewmat_from_c2w(cam.camera_to_worlds),
+                cam.get_intrinsics_matrices().to(self.device),
+                int(cam.width.item()),
+                int(cam.height.item()),
+                backend=self.config.rasterizer,
+            )
         return total
 
     def prune_by_contribution(self, step: int) -> None:

@@ -193,7 +193,7 @@ def test_viewer_cache_is_exact_and_invalidated(garo_run):
 
 
 def test_contribution_pruning_during_training(scene_dir, tmp_path):
-    from garo_ns.train import QuickSchedule, make_config, train
+    from garo_ns.train import QuickSchedule, make_config
 
     steps = 60
     config = make_config(
@@ -227,4 +227,3 @@ def test_contribution_pruning_during_training(scene_dir, tmp_path):
     # The recording callback runs before the model's own callbacks of the same step.
     assert counts[prune_step + 1] == counts[prune_step] - math.floor(0.5 * counts[prune_step])
     assert torch.isfinite(trainer.pipeline.model.means).all()
-    del train

@@ -47,20 +47,22 @@ def camera_extent(c2w: np.ndarray) -> float:
     return float(1.1 * np.linalg.norm(centres - centres.mean(0), axis=-1).max()) if len(centres) else 1.0
 
 
-def _read_json(path: Path) -> Dict[str, Any]:
-    if not path.exists():
-        raise GaroInputError(f"missing transforms file: {path}")
+def read_json_object(path: Path, what: str = "transforms file") -> Dict[str, Any]:
+    """A JSON object from `path`; GaroInputError naming `what` and the path when missing or malformed."""
+    if not path.is_file():
+        raise GaroInputError(f"missing {what}: {path}")
     try:
         with open(path, encoding="utf-8") as f:
             meta = json.load(f)
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise GaroInputError(f"transforms file is not valid JSON: {path} ({err})") from None
+        raise GaroInputError(f"{what} is not valid JSON: {path} ({err})") from None
     if not isinstance(meta, dict):
-        raise GaroInputError(f"transforms file must hold a JSON object: {path}")
+        raise GaroInputError(f"{what} must hold a JSON object: {path}")
     return meta
 
 
-def _image_size(path: Path) -> Tuple[int, int]:
+def image_size(path: Path) -> Tuple[int, int]:
+    """(height, width) of an image file; GaroInputError when it cannot be read."""
     from PIL import Image
 
     try:
@@ -79,7 +81,7 @@ def read_split(data: Path, split: str) -> Tuple[List[Path], np.ndarray, np.ndarr
     if not data.is_dir():
         raise GaroInputError(f"data directory does not exist: {data}")
     path = data / f"transforms_{split}.json"
-    meta = _read_json(path)
+    meta = read_json_object(path)
     angle = meta.get("camera_angle_x")
     if not isinstance(angle, (int, float)) or not math.isfinite(angle) or not 0 < angle < math.pi:
         raise GaroInputError(f"{path}: camera_angle_x must be a finite angle in (0, pi), got {angle!r}")
@@ -110,7 +112,7 @@ def read_split(data: Path, split: str) -> Tuple[List[Path], np.ndarray, np.ndarr
             image = image.with_name(image.name + ".png")
         if not image.exists():
             raise GaroInputError(f"{where}: image listed but missing: {image}")
-        hw = _image_size(image)
+        hw = image_size(image)
         if size is None:
             size = hw
         elif hw != size:

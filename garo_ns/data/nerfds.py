@@ -18,7 +18,6 @@ parameters, and nerfstudio's full-image datamanager undistorts the images when i
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,7 +29,7 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserConfig, DataparserOutputs
 from nerfstudio.data.scene_box import SceneBox
 
-from garo_ns.data.dnerf import camera_extent
+from garo_ns.data.dnerf import camera_extent, image_size, read_json_object
 from garo_ns.errors import GaroInputError
 
 # OpenCV camera axes (x right, y down, z forward) to OpenGL's (x right, y up, z back).
@@ -50,16 +49,6 @@ class NerfDSDataParserConfig(DataParserConfig):
     """Which ids the `val`/`test` roles read (captures have train and val ids only)."""
     use_points: bool = True
     """Seed the Gaussians with points.npy when the capture has it."""
-
-
-def _read_json(path: Path, what: str) -> Any:
-    if not path.is_file():
-        raise GaroInputError(f"missing {what}: {path}")
-    try:
-        with open(path, encoding="utf-8") as f:
-            return json.load(f)
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise GaroInputError(f"{what} is not valid JSON: {path} ({err})") from None
 
 
 def _finite(value: Any, shape: Tuple[int, ...], where: str, name: str) -> np.ndarray:
@@ -97,9 +86,7 @@ def read_capture(data: Path, downscale: int = 2) -> Capture:
         raise GaroInputError(f"data directory does not exist: {data}")
     if not isinstance(downscale, int) or downscale < 1:
         raise GaroInputError(f"downscale factor must be an int >= 1, got {downscale!r}")
-    dataset = _read_json(data / "dataset.json", "dataset file")
-    if not isinstance(dataset, dict):
-        raise GaroInputError(f"dataset file must hold a JSON object: {data / 'dataset.json'}")
+    dataset = read_json_object(data / "dataset.json", "dataset file")
     splits: Dict[str, List[str]] = {}
     for key in ("train_ids", "val_ids"):
         ids = dataset.get(key, [] if key == "val_ids" else None)
@@ -110,7 +97,7 @@ def read_capture(data: Path, downscale: int = 2) -> Capture:
         raise GaroInputError(f"{data / 'dataset.json'}: no train_ids")
     all_ids = list(dict.fromkeys(splits["train"] + splits["val"]))
 
-    scene = _read_json(data / "scene.json", "scene file")
+    scene = read_json_object(data / "scene.json", "scene file")
     where = str(data / "scene.json")
     scale = float(_finite(scene.get("scale", 1.0), (), where, "scale"))
     if scale <= 0:
@@ -124,7 +111,7 @@ def read_capture(data: Path, downscale: int = 2) -> Capture:
     size: Optional[Tuple[int, int]] = None
     for cid in all_ids:
         cam_path = data / "camera" / f"{cid}.json"
-        cam = _read_json(cam_path, f"camera file of id {cid}")
+        cam = read_json_object(cam_path, f"camera file of id {cid}")
         where = f"{cam_path} (id {cid})"
         rot = _finite(cam.get("orientation"), (3, 3), where, "orientation")
         if abs(np.linalg.det(rot) - 1.0) > 1e-3:
@@ -144,7 +131,7 @@ def read_capture(data: Path, downscale: int = 2) -> Capture:
         image = data / "rgb" / f"{downscale}x" / f"{cid}.png"
         if not image.is_file():
             raise GaroInputError(f"image of id {cid} missing: {image}")
-        hw = _image_size(image)
+        hw = image_size(image)
         expected = (round(wh[1] / downscale), round(wh[0] / downscale))
         if abs(hw[0] - expected[0]) > 1 or abs(hw[1] - expected[1]) > 1:
             raise GaroInputError(
@@ -167,9 +154,7 @@ def read_capture(data: Path, downscale: int = 2) -> Capture:
 
 
 def _read_times(path: Path, ids: List[str]) -> Dict[str, float]:
-    meta = _read_json(path, "metadata file")
-    if not isinstance(meta, dict):
-        raise GaroInputError(f"metadata file must hold a JSON object: {path}")
+    meta = read_json_object(path, "metadata file")
     entries = {}
     for cid in ids:
         entry = meta.get(cid)
@@ -192,16 +177,6 @@ def _read_times(path: Path, ids: List[str]) -> Dict[str, float]:
         warps[cid] = w
     top = max(warps.values())
     return {cid: (w / top if top > 0 else 0.0) for cid, w in warps.items()}
-
-
-def _image_size(path: Path) -> Tuple[int, int]:
-    from PIL import Image
-
-    try:
-        with Image.open(path) as im:
-            return im.size[1], im.size[0]
-    except Exception as err:  # unreadable or truncated image
-        raise GaroInputError(f"cannot read image {path}: {err}") from None
 
 
 def capture_cameras(capture: Capture, ids: List[str]) -> Cameras:
