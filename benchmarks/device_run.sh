@@ -1,10 +1,13 @@
 #!/usr/bin/env bash
 # GPU-machine driver for one hold of a multi-GPU machine (the `device` tool), in phases that fit
 # into back-to-back calls (each call is at most 10 minutes; the machine is kept while calls follow):
-#   bash benchmarks/device_run.sh setup SCENE          copy .scenes/SCENE to /tmp, compile gsplat,
-#                                                      and a 200-step smoke run of both arms on GPU 0
-#   bash benchmarks/device_run.sh launch NAME SCENE SPLIT [benchmark args...]
-#                                                      python -m garo_ns.benchmark in the background,
+#   bash benchmarks/device_run.sh setup SCENE          copy .scenes/SCENE to /tmp, compile gsplat
+#   bash benchmarks/device_run.sh smoke SCENE GPU      tests/test_graphs.py and a 200-step run of both
+#                                                      arms with every speed row on one GPU; checks that
+#                                                      graph rows score like the rows without graphs
+#   bash benchmarks/device_run.sh launch NAME SCENE SPLIT GPUS [benchmark args...]
+#                                                      python -m garo_ns.benchmark in the background on the
+#                                                      GPUs GPUS (e.g. 2,3; pass --gpus 0 1 to use both),
 #                                                      result $W/results/NAME.json, log $W/NAME.log
 #   bash benchmarks/device_run.sh extra NAME CMD...    any other command in the background (parity, ...)
 #   bash benchmarks/device_run.sh wait SECONDS         poll until every launched job ended or SECONDS passed
@@ -31,20 +34,36 @@ setup)
   python3 -c "import torch; print('torch', torch.__version__, 'gpus', torch.cuda.device_count())"
   t0=$(date +%s)
   python3 -c "from gsplat.cuda._backend import _C; assert _C is not None; print('gsplat CUDA ready')" || exit 1
-  echo "gsplat compile: $(( $(date +%s) - t0 )) s"
-  # Smoke: a few steps of both arms through the CUDA path, so a bug surfaces before the long runs.
+  echo "gsplat compile: $(( $(date +%s) - t0 )) s" ;;
+smoke)
+  scene=$1; export CUDA_VISIBLE_DEVICES=$2
+  cd $W/src
+  python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py 2>&1 | tail -4
+  # A few steps of both arms through the CUDA path with every speed row, so a bug shows early.
   python3 -m garo_ns.benchmark --scene /tmp/$scene --split val --iterations 200 --quick --gpus 0 --speed \
       --variants deform-splatfacto garo-prune0.5 --output $W/smoke/smoke.json --work-dir $W/smoke/runs \
       > $W/smoke.log 2>&1 || { tail -40 $W/smoke.log; exit 1; }
-  tail -18 $W/smoke.log ;;
+  tail -22 $W/smoke.log
+  python3 - $W/smoke/smoke.json <<'PY'
+import json, sys
+v = json.load(open(sys.argv[1]))["variants"]
+for name, row in v.items():
+    if "+graph" in name and "error" not in row:
+        plain = v.get(name.replace("+graph", ""), {})
+        if "psnr" in plain:
+            print(f"{name}: psnr {row['psnr']:.4f} vs {plain['psnr']:.4f} without graph, fps {row['fps']:.0f} vs {plain['fps']:.0f}")
+    if "error" in row:
+        print(f"{name}: ERROR {row['error']}")
+PY
+  ;;
 launch)
-  name=$1; scene=$2; split=$3; shift 3
+  name=$1; scene=$2; split=$3; gpus=$4; shift 4
   [ -d /tmp/$scene ] || cp -r .scenes/$scene /tmp/$scene
   cd $W/src
-  setsid nohup bash -c "python3 -m garo_ns.benchmark --scene /tmp/$scene --split $split $* \
+  CUDA_VISIBLE_DEVICES=$gpus setsid nohup bash -c "python3 -m garo_ns.benchmark --scene /tmp/$scene --split $split $* \
       --output $W/results/$name.json --work-dir $W/$name > $W/$name.log 2>&1; echo \$? > $W/jobs/$name.done" \
       > /dev/null 2>&1 &
-  touch $W/jobs/$name.job; sleep 2; echo "launched $name" ;;
+  touch $W/jobs/$name.job; sleep 2; echo "launched $name on GPUs $gpus" ;;
 extra)
   name=$1; shift
   cd $W/src

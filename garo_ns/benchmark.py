@@ -10,7 +10,9 @@ Variants: deform-splatfacto (baseline), garo-deform (full GARO), and on request 
 (the paper's ablations), garo-rho<value> (rho_max sweep) and garo-prune<ratio> (GARO plus pruning
 of the least contributing Gaussians). A name may carry render-time switches after `+`: `+static`
 (static Gaussians skip the MLP), `+static4x` (the same with a 4x looser threshold), `+tf32` /
-`+bf16` (MLP precision), e.g. `garo-deform+static+bf16`;
+`+bf16` (MLP precision), `+graph` (everything before the rasterizer as one CUDA graph), `+fp16`
+(parameters rounded to the compact half-precision file of garo_ns.storage; its size is the
+model size), e.g. `garo-deform+static+graph+tf32`;
 such variants reuse the training of the name before the first `+` and differ only at render time.
 """
 
@@ -38,15 +40,23 @@ RENDER_SWITCHES: Dict[str, Dict[str, Any]] = {
     "bf16": {"render_precision": "bf16"},
     # A looser static threshold (4x the default): more Gaussians skip the MLP, at some error.
     "static4x": {"static_skip": True, "static_threshold_factor": 4.0},
+    "graph": {"cuda_graph": True},
+    "fp16": {"storage": "fp16"},
 }
 # Render-time rows added by --speed for every trained variant: each switch alone, then together.
-SPEED_ROWS = ("+tf32", "+bf16", "+static", "+static+bf16", "+static4x+bf16")
+SPEED_ROWS = ("+tf32", "+bf16", "+static", "+graph", "+graph+tf32", "+static+graph+tf32", "+static+graph+tf32+fp16")
 
 
 def split_variant(name: str) -> Tuple[str, Dict[str, Any]]:
     """(trained variant, render-time model-config overrides) of a variant name like `garo-deform+static`."""
     base, *switches = name.split("+")
-    render: Dict[str, Any] = {"static_skip": False, "render_precision": "fp32", "static_threshold_factor": 1.0}
+    render: Dict[str, Any] = {
+        "static_skip": False,
+        "render_precision": "fp32",
+        "static_threshold_factor": 1.0,
+        "cuda_graph": False,
+        "storage": "fp32",
+    }
     for switch in switches:
         if switch not in RENDER_SWITCHES:
             raise ValueError(f"unknown render switch '+{switch}' in {name!r} (known: {sorted(RENDER_SWITCHES)})")
@@ -192,6 +202,7 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
     """Score and time a trained variant (alone on its device) under each render setting in `names`."""
     import torch
 
+    from garo_ns import storage
     from garo_ns.data.dnerf import read_split
     from garo_ns.eval import evaluate, load_run, load_split
     from garo_ns.frame_profile import profile_frame
@@ -206,15 +217,25 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
     trained_threshold = model.config.static_threshold
     if model.static_fraction() is None:  # a checkpoint from before the classification existed
         model.refresh_static(train_times)
-    classified_at = trained_threshold
     results = {}
-    for name in names:
+    original = storage.snapshot(model)
+    state = {"classified_at": trained_threshold, "rounded": False}
+
+    def score(name: str) -> Dict[str, Any]:
         settings = dict(split_variant(name)[1])
         threshold = trained_threshold * settings.pop("static_threshold_factor")
-        if settings["static_skip"] and threshold != classified_at:
+        half = settings.pop("storage") == "fp16"
+        if half != state["rounded"]:  # parameters as the compact file holds them, or back to the trained ones
+            if half:
+                storage.round_to_storage(model)
+            else:
+                storage.restore(model, original)
+            state["rounded"] = half
+            state["classified_at"] = None  # the field changed: classify again from it
+        if settings["static_skip"] and threshold != state["classified_at"]:
             model.config.static_threshold = threshold
             model.refresh_static(train_times)
-            classified_at = threshold
+            state["classified_at"] = threshold
         for key, value in settings.items():
             setattr(model.config, key, value)
         result = evaluate(pipeline, args.scene, args.split)
@@ -230,12 +251,13 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
             "ms_per_view_same_time": measure_same_time(model, cameras),
             "num_gaussians": result["num_gaussians"],
             "static_fraction": model.static_fraction(),
-            "render_settings": {**settings, "static_threshold": model.config.static_threshold},
+            "render_settings": {**settings, "static_threshold": model.config.static_threshold, "storage_fp16": half},
             "peak_memory_mb": {
                 "training": record["train_peak_memory_mb"],
                 "rendering": timing["render_peak_memory_mb"],
             },
-            "model_size_mb": model_size_mb(model),
+            "model_size_mb": len(storage.compact_bytes(model)) / 2**20 if half else model_size_mb(model),
+            "storage": "fp16 (positions fp32)" if half else "fp32",
             "train_seconds": record["train_seconds"],
             "train_steps_per_second": record["train_steps_per_second"],
             "iterations": record["iterations"],
@@ -248,8 +270,16 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
         }
         if args.profile:
             out["profile"] = profile_frame(model, cameras)
-        results[name] = out
-    del pipeline, model
+        return out
+
+    for name in names:
+        try:
+            results[name] = score(name)
+        except Exception as err:  # a failing render switch must not cost the rows already measured
+            if "+" not in name:
+                raise
+            results[name] = {"error": f"{type(err).__name__}: {err}"}
+            print(f"row {name} failed: {results[name]['error']}", flush=True)
     return results
 
 
@@ -293,6 +323,8 @@ def write_report(result: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
         " model MB | train s |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
+    failed = {n: v["error"] for n, v in variants.items() if "error" in v}
+    variants = {n: v for n, v in variants.items() if "error" not in v}
     for name, v in variants.items():
         speed = f"{v['fps'] / base['fps']:.2f}x" if base else "-"
         lp = "-" if v["lpips"] is None else f"{v['lpips']:.4f}"
@@ -303,6 +335,7 @@ def write_report(result: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
             f"{v['ms_deformation']:.2f} | {v['ms_rasterization']:.2f} | {v['num_gaussians']} | {static_txt} | "
             f"{v['model_size_mb']:.2f} | {v['train_seconds']:.0f} |"
         )
+    lines += [f"\nRow {n} failed: {e}" for n, e in failed.items()]
     md = output.with_suffix(".md")
     md.write_text("\n".join(lines) + "\n")
 
@@ -324,6 +357,18 @@ def write_report(result: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
 
 
 # ---------------------------------------------------------------------------- driver
+def physical_gpu(index: int) -> str:
+    """The device a worker sees for our GPU `index`: indices count within this process's own
+    CUDA_VISIBLE_DEVICES when it is set, so two benchmarks given disjoint sets never share a GPU,
+    and each evaluates on the first GPU of its own set."""
+    visible = [d.strip() for d in os.environ.get("CUDA_VISIBLE_DEVICES", "").split(",") if d.strip()]
+    if not visible:
+        return str(index)
+    if not 0 <= index < len(visible):
+        raise ValueError(f"--gpus {index} is not among the {len(visible)} visible devices {visible}")
+    return visible[index]
+
+
 def run(args: BenchArgs) -> Dict[str, Any]:
     """Phase 1 (training, parallel) then phase 2 (evaluation and timing, sequential); write outputs."""
     names = args.trained_variants()
@@ -333,7 +378,7 @@ def run(args: BenchArgs) -> Dict[str, Any]:
     for i, name in enumerate(names):
         env = dict(os.environ)
         if args.device == "cuda":
-            env["CUDA_VISIBLE_DEVICES"] = str(args.gpus[i % len(args.gpus)])
+            env["CUDA_VISIBLE_DEVICES"] = physical_gpu(args.gpus[i % len(args.gpus)])
         log = open(args.work_dir / f"{name}.log", "w")
         cmd = [sys.executable, "-m", "garo_ns.benchmark", "--worker", name, "--args", json.dumps(_to_json(args))]
         if deadline is not None:

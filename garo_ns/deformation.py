@@ -31,7 +31,9 @@ def precision(mode: Precision, device: torch.device) -> Iterator[None]:
         finally:
             torch.backends.cuda.matmul.allow_tf32 = previous
     elif mode == "bf16":
-        with torch.autocast(device_type=device.type, dtype=torch.bfloat16):
+        # No cast cache: a cached bf16 weight would outlive nothing here (one forward per context)
+        # and must not be captured into a CUDA graph (garo_ns.graphs).
+        with torch.autocast(device_type=device.type, dtype=torch.bfloat16, cache_enabled=False):
             yield
     else:
         yield

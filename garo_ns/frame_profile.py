@@ -67,11 +67,8 @@ def profile_frame(model: Any, cameras: Any, warmup: int = 3, repeats: int = 2) -
 
 def _staged_frame(model: Any, cam: Any, backend: str, stage: Any) -> None:
     """One frame through the stages of `rendering.rasterize` (classic mode, unpacked, RGB)."""
-    with stage("deformation"):
-        means, quats, log_scales = model.deformed_gaussians(model.camera_time(cam))
-    scales = torch.exp(log_scales)
-    opacities = torch.sigmoid(model.opacities).squeeze(-1)
-    shs = torch.cat([model.features_dc[:, None, :], model.features_rest], dim=1)
+    with stage("deformation"):  # MLP, composition and activations (one graph replay with cuda_graph)
+        means, quats, scales, opacities, shs = model.splat_inputs(model.camera_time(cam))
     viewmats = viewmat_from_c2w(cam.camera_to_worlds)
     Ks = cam.get_intrinsics_matrices().to(means.device)
     W, H = int(cam.width.item()), int(cam.height.item())

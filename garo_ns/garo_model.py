@@ -34,6 +34,7 @@ from torch.nn import Parameter
 from garo_ns.deformation import DeformationField, Precision, precision
 from garo_ns.errors import GaroTrainingError
 from garo_ns.garo_strategy import GaroStrategy
+from garo_ns.graphs import TimeGraph, graphs_available
 from garo_ns.importance import least_contributing, view_contribution
 from garo_ns.metrics import make_lpips
 from garo_ns.rendering import Backend, rasterize
@@ -147,6 +148,10 @@ class GaroModelConfig(SplatfactoModelConfig):
     cache_deformation: bool = True
     """When not training, reuse the deformed Gaussians if the same time is rendered again and no
     parameter changed (the viewer re-renders one time for every camera move). Exact."""
+    cuda_graph: bool = False
+    """When not training on CUDA, run everything between the time and the rasterizer (MLP,
+    composition, activations) as one captured CUDA graph instead of dozens of kernel launches;
+    captured again when the Gaussians or the render switches change. Same arithmetic as without."""
     prune_contribution_ratio: float = 0.0
     """At each of `prune_contribution_steps`, prune this fraction of the Gaussians with the smallest
     summed blending weight over the training views (0: off)."""
@@ -289,6 +294,7 @@ class GaroModel(SplatfactoModel):
         self._last_step: Optional[int] = None
         self._deform_cache: Optional[Tuple[Any, Tuple[Tensor, Tensor, Tensor]]] = None
         self._static_cache: Optional[Tuple[Any, Tensor, Tuple[Tensor, Tensor, Tensor]]] = None
+        self._graph = TimeGraph()
 
     # ------------------------------------------------------------------ parameters
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
@@ -394,20 +400,49 @@ class GaroModel(SplatfactoModel):
         key = (float(time), self.config.render_precision, self.config.static_skip, versions)
         if cache and self._deform_cache is not None and self._deform_cache[0] == key:
             return self._deform_cache[1]
+        out = self._render_field(time, versions)
+        self._deform_cache = (key, out) if cache else None
+        return out
+
+    def _render_field(self, time: Union[float, Tensor], versions: Tuple[Any, ...]) -> Tuple[Tensor, Tensor, Tensor]:
+        """The deformed Gaussians as rendered outside training: `render_precision`, and with
+        `static_skip` the MLP only on dynamic Gaussians. `time` may be a device scalar (graphs)."""
         with precision(self.config.render_precision, self.means.device):
             split = self._static_split(versions) if self.config.static_skip else None
             if split is None:
-                out = self._apply_field(time)
-            else:
-                dynamic, (means, quats, scales) = split
-                d_xyz, d_rot, d_scale = self.deformation(self.means.detach()[dynamic], time)
-                out = (
-                    means.index_copy(0, dynamic, self.means[dynamic] + d_xyz),
-                    quats.index_copy(0, dynamic, F.normalize(self.quats[dynamic], dim=-1) + d_rot),
-                    scales.index_copy(0, dynamic, self.scales[dynamic] + d_scale),
-                )
-        self._deform_cache = (key, out) if cache else None
-        return out
+                return self._apply_field(time)
+            dynamic, (means, quats, scales) = split
+            d_xyz, d_rot, d_scale = self.deformation(self.means.detach()[dynamic], time)
+            return (
+                means.index_copy(0, dynamic, self.means[dynamic] + d_xyz),
+                quats.index_copy(0, dynamic, F.normalize(self.quats[dynamic], dim=-1) + d_rot),
+                scales.index_copy(0, dynamic, self.scales[dynamic] + d_scale),
+            )
+
+    def splat_inputs(self, time: float, cache: bool = False) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """What the rasterizer takes at `time`: means, quaternions, scales, opacities [N] and SH
+        coefficients [N, K, 3], activated. Outside training with `cuda_graph` on a CUDA device (and
+        no autograd), all of it is one graph replay; its outputs are overwritten by the next call."""
+        if (
+            not self.training
+            and self.config.cuda_graph
+            and graphs_available(self.device)
+            and not torch.is_grad_enabled()
+        ):
+            versions = self._param_versions()
+            active = self.deformation_active()
+            key = (self.config.render_precision, self.config.static_skip, active, versions)
+
+            def step(t: Tensor) -> Tuple[Tensor, ...]:
+                field = self._render_field(t, versions) if active else (self.means, self.quats, self.scales)
+                return self._activated(*field)
+
+            return self._graph(key, step, time, self.device, reuse=cache)  # type: ignore[return-value]
+        return self._activated(*self.deformed_gaussians(time, cache=cache))
+
+    def _activated(self, means: Tensor, quats: Tensor, log_scales: Tensor) -> Tuple[Tensor, ...]:
+        colors = torch.cat([self.features_dc[:, None, :], self.features_rest], dim=1)
+        return means, quats, torch.exp(log_scales), torch.sigmoid(self.opacities).squeeze(-1), colors
 
     def _apply_field(self, time: float) -> Tuple[Tensor, Tensor, Tensor]:
         """Every Gaussian moved by the deformation field at `time` (D-3DGS's composition)."""
@@ -429,7 +464,8 @@ class GaroModel(SplatfactoModel):
         static = self.strategy_state.get("static_offset")
         if isinstance(static, Tensor):
             tensors.append(static)
-        return tuple((id(t), t._version) for t in tensors)
+        # Storage pointer too: assigning `.data` (checkpoint loading) keeps identity and version.
+        return tuple((id(t), t._version, t.data_ptr()) for t in tensors)
 
     def _static_split(self, key: Tuple[Any, ...]) -> Optional[Tuple[Tensor, Tuple[Tensor, Tensor, Tensor]]]:
         """Indices of the dynamic Gaussians and every Gaussian with its frozen offsets applied, or
@@ -544,8 +580,7 @@ class GaroModel(SplatfactoModel):
         else:
             c2w = camera.camera_to_worlds
         time = self.camera_time(camera)
-        means, quats, log_scales = self.deformed_gaussians(time, cache=self.config.cache_deformation)
-        opacities, features_dc, features_rest = self.opacities, self.features_dc, self.features_rest
+        means, quats, scales, opacities, colors = self.splat_inputs(time, cache=self.config.cache_deformation)
 
         if self.crop_box is not None and not self.training:
             keep = self.crop_box.within(means).squeeze()
@@ -553,8 +588,7 @@ class GaroModel(SplatfactoModel):
                 return self.get_empty_outputs(
                     int(camera.width.item()), int(camera.height.item()), self.background_color
                 )
-            means, quats, log_scales = means[keep], quats[keep], log_scales[keep]
-            opacities, features_dc, features_rest = opacities[keep], features_dc[keep], features_rest[keep]
+            means, quats, scales, opacities, colors = (x[keep] for x in (means, quats, scales, opacities, colors))
 
         scale = self._get_downscale_factor()
         camera.rescale_output_resolution(1 / scale)
@@ -566,13 +600,11 @@ class GaroModel(SplatfactoModel):
 
         render_mode = "RGB+ED" if (self.config.output_depth_during_training or not self.training) else "RGB"
         sh_degree = min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
-        colors = torch.cat([features_dc[:, None, :], features_rest], dim=1)
-        scales = torch.exp(log_scales)
         render, alpha, info = rasterize(
             means=means,
             quats=quats,
             scales=scales,
-            opacities=torch.sigmoid(opacities).squeeze(-1),
+            opacities=opacities,
             colors=colors,
             viewmats=viewmat,
             Ks=K,

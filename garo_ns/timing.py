@@ -10,7 +10,7 @@ apart (separate synchronised runs) to show where the time goes.
 from __future__ import annotations
 
 import time
-from typing import Any, Dict
+from typing import Any, Dict, Tuple
 
 import torch
 
@@ -26,21 +26,20 @@ def _sync(device: torch.device) -> None:
 @torch.no_grad()
 def render_view(model: Any, camera: Any) -> torch.Tensor:
     """Deform and rasterize one view, nothing else; returns the RGB render."""
-    means, quats, log_scales = model.deformed_gaussians(model.camera_time(camera))
-    return _rasterize(model, camera, means, quats, log_scales)
+    return _rasterize(model, camera, model.splat_inputs(model.camera_time(camera)))
 
 
-def _rasterize(model: Any, camera: Any, means, quats, log_scales) -> torch.Tensor:
-    K = camera.get_intrinsics_matrices().to(model.device)
-    colors = torch.cat([model.features_dc[:, None, :], model.features_rest], dim=1)
+def _rasterize(model: Any, camera: Any, inputs: Tuple[torch.Tensor, ...]) -> torch.Tensor:
+    """Rasterize the output of `model.splat_inputs` for one camera."""
+    means, quats, scales, opacities, colors = inputs
     render, _, _ = rasterize(
         means=means,
         quats=quats,
-        scales=torch.exp(log_scales),
-        opacities=torch.sigmoid(model.opacities).squeeze(-1),
+        scales=scales,
+        opacities=opacities,
         colors=colors,
         viewmats=viewmat_from_c2w(camera.camera_to_worlds.to(model.device)),
-        Ks=K,
+        Ks=camera.get_intrinsics_matrices().to(model.device),
         width=int(camera.width.item()),
         height=int(camera.height.item()),
         sh_degree=model.config.sh_degree,
@@ -72,10 +71,10 @@ def measure_fps(model: Any, cameras: Any, warmup: int = 5, repeats: int = 3) -> 
     for cam in cams:
         _sync(device)
         t0 = time.perf_counter()
-        g = model.deformed_gaussians(model.camera_time(cam))
+        g = model.splat_inputs(model.camera_time(cam))
         _sync(device)
         t1 = time.perf_counter()
-        _rasterize(model, cam, *g)
+        _rasterize(model, cam, g)
         _sync(device)
         mlps.append(t1 - t0)
         rasters.append(time.perf_counter() - t1)
@@ -102,11 +101,10 @@ def measure_same_time(model: Any, cameras: Any) -> float:
     for i in range(len(cameras)):
         cam = cameras[i : i + 1].to(device)
         t = model.camera_time(cam)
-        model.deformed_gaussians(t, cache=model.config.cache_deformation)
+        model.splat_inputs(t, cache=model.config.cache_deformation)
         _sync(device)
         t0 = time.perf_counter()
-        g = model.deformed_gaussians(t, cache=model.config.cache_deformation)
-        _rasterize(model, cam, *g)
+        _rasterize(model, cam, model.splat_inputs(t, cache=model.config.cache_deformation))
         _sync(device)
         times.append(time.perf_counter() - t0)
     return 1000.0 * sum(times) / len(times)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from garo_ns.benchmark import BenchArgs, run
+from garo_ns.benchmark import SPEED_ROWS, BenchArgs, run
 from garo_ns.scene import SceneSpec, generate_scene
 
 
@@ -16,7 +16,7 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
         split="val",
         output=out,
         work_dir=tmp_path / "runs",
-        variants=["deform-splatfacto", "garo-deform", "garo-prune0.3"],
+        variants=["deform-splatfacto", "garo-deform", "garo-prune0.3", "garo-deform+static4x"],
         speed=True,
         iterations=40,
         device="cpu",
@@ -27,8 +27,10 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
     run(args)
     result = json.loads(out.read_text())
     trained = ["deform-splatfacto", "garo-deform", "garo-prune0.3"]
-    rows = ["", "+tf32", "+bf16", "+static", "+static+bf16", "+static4x+bf16"]
-    assert list(result["variants"]) == [t + r for t in trained for r in rows]
+    rows = ["", *SPEED_ROWS]
+    assert "+graph" in rows and "+static+graph+tf32+fp16" in rows
+    expected = [t + r for t in trained for r in rows]
+    assert list(result["variants"]) == expected + ["garo-deform+static4x"]
     # Render-time rows reuse their variant's training: one run per trained variant.
     assert sorted(p.name for p in (tmp_path / "runs").glob("*.record.json")) == sorted(
         f"{t}.record.json" for t in trained
@@ -55,15 +57,29 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
     variants = result["variants"]
     settings = {n: v["render_settings"] for n, v in variants.items()}
     default = settings["garo-deform"]["static_threshold"]
-    assert settings["garo-deform+static+bf16"] == {
+    assert settings["garo-deform+static+graph+tf32+fp16"] == {
         "static_skip": True,
-        "render_precision": "bf16",
+        "render_precision": "tf32",
+        "cuda_graph": True,
         "static_threshold": default,
+        "storage_fp16": True,
     }
-    assert settings["garo-deform"] == {"static_skip": False, "render_precision": "fp32", "static_threshold": default}
-    assert settings["garo-deform+static4x+bf16"]["static_threshold"] == 4 * default
-    for t in trained:  # a looser threshold never finds fewer static Gaussians
-        assert variants[t + "+static4x+bf16"]["static_fraction"] >= variants[t + "+static"]["static_fraction"]
+    assert settings["garo-deform"] == {
+        "static_skip": False,
+        "render_precision": "fp32",
+        "cuda_graph": False,
+        "static_threshold": default,
+        "storage_fp16": False,
+    }
+    assert settings["garo-deform+static4x"]["static_threshold"] == 4 * default
+    # A looser threshold never finds fewer static Gaussians (measured after the fp16 row: the
+    # trained parameters were put back).
+    assert variants["garo-deform+static4x"]["static_fraction"] >= variants["garo-deform+static"]["static_fraction"]
+    for t in trained:
+        plain, half = variants[t + "+static+graph+tf32"], variants[t + "+static+graph+tf32+fp16"]
+        assert half["model_size_mb"] < 0.6 * plain["model_size_mb"] and half["storage"].startswith("fp16")
+        assert abs(half["psnr"] - plain["psnr"]) < 0.1  # rounding to half precision costs ~nothing
+        assert variants[t + "+graph"]["psnr"] == variants[t]["psnr"]  # no CUDA: the same eager path
     # Pruning the least contributing 30% at step 28 leaves fewer Gaussians than GARO alone.
     assert variants["garo-prune0.3"]["num_gaussians"] < variants["garo-deform"]["num_gaussians"]
     # bf16 changes the render a little, never a lot (tf32 is exact on a CPU).

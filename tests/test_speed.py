@@ -227,3 +227,68 @@ def test_contribution_pruning_during_training(scene_dir, tmp_path):
     # The recording callback runs before the model's own callbacks of the same step.
     assert counts[prune_step + 1] == counts[prune_step] - math.floor(0.5 * counts[prune_step])
     assert torch.isfinite(trainer.pipeline.model.means).all()
+
+
+def test_compact_storage_halves_the_model_and_renders_alike(garo_run, tmp_path):
+    from garo_ns import storage
+    from garo_ns.timing import model_size_mb, render_view
+
+    model = _eval_model(garo_run)
+    cam = garo_run["trainer"].pipeline.datamanager.train_dataset.cameras[2:3].to(model.device)
+    before = render_view(model, cam)
+    saved = storage.snapshot(model)
+    means = model.means.detach().clone()
+    try:
+        size = storage.save_compact(model, tmp_path / "model.pt")
+        assert size == (tmp_path / "model.pt").stat().st_size
+        assert size < 0.56 * model_size_mb(model) * 2**20  # half precision except positions
+        storage.load_compact(model, tmp_path / "model.pt")
+        assert torch.equal(model.means, means)  # positions kept exactly
+        for key in ("scales", "quats", "features_dc", "opacities"):
+            ref = saved[f"g.{key}"]
+            assert (model.gauss_params[key] - ref).abs().max() <= 1e-3 * ref.abs().max() + 1e-6
+        after = render_view(model, cam)
+        assert (after - before).abs().mean() < 2e-3  # far below what training resolves
+        assert not torch.equal(after, before)  # the rounding did reach the render
+        assert storage.round_to_storage(model) == size  # rounding twice changes nothing
+    finally:
+        storage.restore(model, saved)
+    assert torch.equal(render_view(model, cam), before)
+
+    bad = storage.compact_state(model)
+    bad["gauss_params.means"] = bad["gauss_params.means"][:-1]
+    torch.save(bad, tmp_path / "short.pt")
+    with pytest.raises(ValueError, match="gauss_params.means: file shape"):
+        storage.load_compact(model, tmp_path / "short.pt")
+    assert torch.equal(render_view(model, cam), before)  # a refused file leaves the model as it was
+
+
+def test_compact_storage_refuses_non_finite_models(garo_run, tmp_path):
+    from garo_ns import storage
+
+    model = _eval_model(garo_run)
+    saved = storage.snapshot(model)
+    try:
+        with torch.no_grad():
+            model.opacities[0] = float("nan")
+        with pytest.raises(ValueError, match="gauss_params.opacities holds non-finite"):
+            storage.save_compact(model, tmp_path / "broken.pt")
+        assert not (tmp_path / "broken.pt").exists()
+    finally:
+        storage.restore(model, saved)
+
+
+def test_cuda_graph_switch_is_a_no_op_without_cuda(garo_run):
+    model = _eval_model(garo_run)
+    if torch.cuda.is_available():
+        pytest.skip("covered by tests/test_graphs.py on a CUDA machine")
+    t = 0.4
+    with torch.no_grad():
+        plain = model.splat_inputs(t)
+        model.config.cuda_graph = True
+        try:
+            graphed = model.splat_inputs(t)
+        finally:
+            model.config.cuda_graph = False
+    for a, b in zip(plain, graphed):
+        assert torch.equal(a, b)

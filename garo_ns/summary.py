@@ -1,0 +1,162 @@
+"""`python -m garo_ns.summary`: one table across scenes from per-scene benchmark results.
+
+Reads the JSON files `garo_ns.benchmark` wrote (one per scene), and writes a summary JSON, a
+Markdown table (per scene and the average, as the paper's Table 1) and a PNG plot next to it.
+Each compared variant is set against the baseline trained and timed in the same file, so ratios
+never mix GPUs or runs.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Tuple
+
+import tyro
+
+BASELINE = "deform-splatfacto"
+METRICS = ("psnr", "ssim", "lpips", "fps", "num_gaussians", "model_size_mb")
+
+
+@dataclass
+class SummaryArgs:
+    """Summarise per-scene benchmark results."""
+
+    results: tyro.conf.Positional[List[Path]]
+    """Per-scene result JSONs of garo_ns.benchmark."""
+    output: Path = Path("benchmarks/results/summary.json")
+    """Summary JSON; the .md table and .png plot go next to it."""
+    variants: List[str] = field(default_factory=lambda: ["garo-deform"])
+    """Variants set against the baseline (each must be in every file)."""
+
+
+def _mean(values: List[Optional[float]]) -> Optional[float]:
+    kept = [v for v in values if v is not None]
+    return sum(kept) / len(kept) if kept and len(kept) == len(values) else None
+
+
+def scene_rows(result: Dict[str, Any], variants: List[str], source: str) -> Dict[str, Any]:
+    """Baseline and compared variants of one scene, with speed-up and PSNR drop per variant."""
+    found = result.get("variants", {})
+    missing = [v for v in [BASELINE, *variants] if v not in found]
+    if missing:
+        raise ValueError(f"{source}: no result for {missing} (has {sorted(found)})")
+    base = found[BASELINE]
+    row: Dict[str, Any] = {
+        "scene": result["scene"],
+        "split": result["split"],
+        "gpu": result.get("gpu"),
+        "git_commit": result.get("git_commit"),
+        "source": source,
+        BASELINE: {k: base.get(k) for k in (*METRICS, "iterations", "shortened")},
+    }
+    for name in variants:
+        v = found[name]
+        row[name] = {
+            **{k: v.get(k) for k in (*METRICS, "iterations", "shortened")},
+            "fps_ratio": v["fps"] / base["fps"],
+            "psnr_drop_db": base["psnr"] - v["psnr"],
+            "gaussian_ratio": v["num_gaussians"] / max(base["num_gaussians"], 1),
+        }
+    return row
+
+
+def summarise(results: List[Tuple[str, Dict[str, Any]]], variants: List[str]) -> Dict[str, Any]:
+    """Per-scene rows and their average (the average of per-scene ratios, as papers report it)."""
+    if not results:
+        raise ValueError("no result files given")
+    rows = [scene_rows(r, variants, src) for src, r in results]
+    scenes = [r["scene"] for r in rows]
+    if len(set(scenes)) != len(scenes):
+        raise ValueError(f"a scene appears twice: {scenes}")
+    average: Dict[str, Any] = {BASELINE: {k: _mean([r[BASELINE][k] for r in rows]) for k in METRICS}}
+    for name in variants:
+        keys = (*METRICS, "fps_ratio", "psnr_drop_db", "gaussian_ratio")
+        average[name] = {k: _mean([r[name][k] for r in rows]) for k in keys}
+    shortened = sorted({r["scene"] for r in rows for n in [BASELINE, *variants] if r[n].get("shortened")})
+    return {
+        "scenes": scenes,
+        "gpus": sorted({str(r["gpu"]) for r in rows}),
+        "variants": variants,
+        "rows": rows,
+        "average": average,
+        "shortened_scenes": shortened,
+        "note": "each ratio is taken within one scene's file (same run, same GPU); the average is the "
+        "mean over scenes of per-scene values",
+    }
+
+
+def write_report(summary: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
+    """Markdown table and a plot (per scene, an arrow from the baseline to each variant)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    def fmt(v: Optional[float], spec: str) -> str:
+        return "-" if v is None else format(v, spec)
+
+    lines = [f"# Baseline ({BASELINE}) against {', '.join(summary['variants'])} on {', '.join(summary['gpus'])}", ""]
+    head = "| scene | split | variant | PSNR | SSIM | LPIPS | FPS | speed-up | PSNR drop | Gaussians | MB |"
+    lines += [head, "|---|---|---|---|---|---|---|---|---|---|---|"]
+    entries = [(r["scene"], r["split"], r) for r in summary["rows"]] + [("average", "", summary["average"])]
+    for scene, split, row in entries:
+        for name in [BASELINE, *summary["variants"]]:
+            v = row[name]
+            gaussians = "-" if v["num_gaussians"] is None else f"{v['num_gaussians']:.0f}"
+            lines.append(
+                f"| {scene} | {split} | {name} | {fmt(v['psnr'], '.2f')} | {fmt(v['ssim'], '.4f')} | "
+                f"{fmt(v['lpips'], '.4f')} | {fmt(v['fps'], '.1f')} | "
+                f"{fmt(v.get('fps_ratio'), '.2f') + 'x' if v.get('fps_ratio') else '-'} | "
+                f"{fmt(v.get('psnr_drop_db'), '+.2f')} | {gaussians} | {fmt(v['model_size_mb'], '.1f')} |"
+            )
+    if summary["shortened_scenes"]:
+        lines += ["", f"Shortened schedules in: {', '.join(summary['shortened_scenes'])}."]
+    md = output.with_suffix(".md")
+    md.write_text("\n".join(lines) + "\n")
+
+    fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    for i, row in enumerate(summary["rows"]):
+        color = f"C{i}"
+        base = row[BASELINE]
+        ax.scatter(base["fps"], base["psnr"], color=color, marker="o", s=50, label=f"{row['scene']} (baseline: o)")
+        for name in summary["variants"]:
+            v = row[name]
+            ax.annotate("", (v["fps"], v["psnr"]), (base["fps"], base["psnr"]), arrowprops={"arrowstyle": "->"})
+            ax.scatter(v["fps"], v["psnr"], color=color, marker="*", s=120)
+    ax.set_xscale("log")
+    ax.set_xlabel("FPS (deformation + rasterization), log scale")
+    ax.set_ylabel("PSNR (dB)")
+    ax.set_title(f"baseline (o) -> {', '.join(summary['variants'])} (*)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    png = output.with_suffix(".png")
+    fig.savefig(png, dpi=120)
+    plt.close(fig)
+    return md, png
+
+
+def main(args: SummaryArgs) -> Dict[str, Any]:
+    """Read, summarise, write JSON, table and plot; print the table."""
+    loaded = []
+    for path in args.results:
+        try:
+            loaded.append((path.name, json.loads(Path(path).read_text())))
+        except (OSError, json.JSONDecodeError) as err:
+            raise SystemExit(f"error: cannot read benchmark result {path}: {err}") from None
+    try:
+        summary = summarise(loaded, list(args.variants))
+    except ValueError as err:
+        raise SystemExit(f"error: {err}") from None
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps(summary, indent=2))
+    md, png = write_report(summary, args.output)
+    print(md.read_text())
+    print(f"wrote {args.output}, {md}, {png}")
+    return summary
+
+
+if __name__ == "__main__":
+    main(tyro.cli(SummaryArgs))
