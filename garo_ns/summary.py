@@ -98,15 +98,16 @@ def write_report(summary: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
         return "-" if v is None else format(v, spec)
 
     lines = [f"# Baseline ({BASELINE}) against {', '.join(summary['variants'])} on {', '.join(summary['gpus'])}", ""]
-    head = "| scene | split | variant | PSNR | SSIM | LPIPS | FPS | speed-up | PSNR drop | Gaussians | MB |"
-    lines += [head, "|---|---|---|---|---|---|---|---|---|---|---|"]
+    head = "| scene | split | variant | steps | PSNR | SSIM | LPIPS | FPS | speed-up | PSNR drop | Gaussians | MB |"
+    lines += [head, "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     entries = [(r["scene"], r["split"], r) for r in summary["rows"]] + [("average", "", summary["average"])]
     for scene, split, row in entries:
         for name in [BASELINE, *summary["variants"]]:
             v = row[name]
             gaussians = "-" if v["num_gaussians"] is None else f"{v['num_gaussians']:.0f}"
             lines.append(
-                f"| {scene} | {split} | {name} | {fmt(v['psnr'], '.2f')} | {fmt(v['ssim'], '.4f')} | "
+                f"| {scene} | {split} | {name} | {v.get('iterations', '') or ''} | {fmt(v['psnr'], '.2f')} | "
+                f"{fmt(v['ssim'], '.4f')} | "
                 f"{fmt(v['lpips'], '.4f')} | {fmt(v['fps'], '.1f')} | "
                 f"{fmt(v.get('fps_ratio'), '.2f') + 'x' if v.get('fps_ratio') else '-'} | "
                 f"{fmt(v.get('psnr_drop_db'), '+.2f')} | {gaussians} | {fmt(v['model_size_mb'], '.1f')} |"

@@ -1,0 +1,73 @@
+"""Cross-scene summary of benchmark results (garo_ns.summary)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from garo_ns.summary import SummaryArgs, main, summarise
+
+
+def _result(scene, base_fps, garo_fps, base_psnr, garo_psnr, iterations=40_000):
+    def row(fps, psnr, n):
+        return {
+            "psnr": psnr,
+            "ssim": 0.9,
+            "lpips": None,
+            "fps": fps,
+            "num_gaussians": n,
+            "model_size_mb": n / 4000,
+            "iterations": iterations,
+            "shortened": iterations < 40_000,
+        }
+
+    return {
+        "scene": scene,
+        "split": "test",
+        "gpu": "GPU",
+        "git_commit": "abc",
+        "variants": {
+            "deform-splatfacto": row(base_fps, base_psnr, 100_000),
+            "garo-deform": row(garo_fps, garo_psnr, 50_000),
+        },
+    }
+
+
+def test_average_of_per_scene_ratios():
+    a = _result("a", 100.0, 300.0, 30.0, 29.8)
+    b = _result("b", 200.0, 200.0, 40.0, 40.4, iterations=30_000)
+    summary = summarise([("a.json", a), ("b.json", b)], ["garo-deform"])
+    avg = summary["average"]["garo-deform"]
+    assert avg["fps_ratio"] == pytest.approx(2.0)  # mean of 3x and 1x, not 500/300
+    assert avg["psnr_drop_db"] == pytest.approx((0.2 - 0.4) / 2)
+    assert avg["lpips"] is None  # not measured everywhere: no average
+    assert summary["average"]["deform-splatfacto"]["fps"] == pytest.approx(150.0)
+    assert summary["shortened_scenes"] == ["b"]
+
+
+def test_refuses_incomplete_or_duplicate_input(tmp_path):
+    a = _result("a", 100.0, 300.0, 30.0, 29.8)
+    with pytest.raises(ValueError, match="a.json: no result for \\['garo-prune0.5'\\]"):
+        summarise([("a.json", a)], ["garo-deform", "garo-prune0.5"])
+    with pytest.raises(ValueError, match="appears twice"):
+        summarise([("a.json", a), ("a2.json", a)], ["garo-deform"])
+    broken = tmp_path / "broken.json"
+    broken.write_text("{not json")
+    with pytest.raises(SystemExit, match="cannot read benchmark result .*broken.json"):
+        main(SummaryArgs(results=[broken], output=tmp_path / "out.json"))
+    assert not (tmp_path / "out.json").exists()
+
+
+def test_writes_json_table_and_plot(tmp_path):
+    paths = []
+    for scene, fps in (("a", 100.0), ("b", 50.0)):
+        path = tmp_path / f"{scene}.json"
+        path.write_text(json.dumps(_result(scene, fps, 2 * fps, 30.0, 29.9)))
+        paths.append(path)
+    out = tmp_path / "sum" / "summary.json"
+    main(SummaryArgs(results=paths, output=out))
+    assert json.loads(out.read_text())["average"]["garo-deform"]["fps_ratio"] == pytest.approx(2.0)
+    table = out.with_suffix(".md").read_text()
+    assert "| average |  | garo-deform |" in table and "2.00x" in table
+    assert out.with_suffix(".png").stat().st_size > 1000
