@@ -10,7 +10,8 @@ Variants: deform-splatfacto (baseline), garo-deform (full GARO), and on request 
 (the paper's ablations), garo-rho<value> (rho_max sweep) and garo-prune<ratio> (GARO plus pruning
 of the least contributing Gaussians). A name may carry render-time switches after `+`: `+static`
 (static Gaussians skip the MLP), `+static4x` (the same with a 4x looser threshold), `+tf32` /
-`+bf16` (MLP precision), `+graph` (everything before the rasterizer as one CUDA graph), `+fp16`
+`+bf16` (MLP precision), `+graph` (everything before the rasterizer as one CUDA graph), `+lean` (gsplat's kernels called
+directly), `+fp16`
 (parameters rounded to the compact half-precision file of garo_ns.storage; its size is the
 model size), e.g. `garo-deform+static+graph+tf32`;
 such variants reuse the training of the name before the first `+` and differ only at render time.
@@ -41,10 +42,21 @@ RENDER_SWITCHES: Dict[str, Dict[str, Any]] = {
     # A looser static threshold (4x the default): more Gaussians skip the MLP, at some error.
     "static4x": {"static_skip": True, "static_threshold_factor": 4.0},
     "graph": {"cuda_graph": True},
+    "lean": {"lean_raster": True},
     "fp16": {"storage": "fp16"},
 }
 # Render-time rows added by --speed for every trained variant: each switch alone, then together.
-SPEED_ROWS = ("+tf32", "+bf16", "+static", "+graph", "+graph+tf32", "+static+graph+tf32", "+static+graph+tf32+fp16")
+SPEED_ROWS = (
+    "+tf32",
+    "+bf16",
+    "+static",
+    "+graph",
+    "+lean",
+    "+graph+tf32",
+    "+static+graph+tf32",
+    "+static+graph+tf32+lean",
+    "+static+graph+tf32+lean+fp16",
+)
 
 
 def split_variant(name: str) -> Tuple[str, Dict[str, Any]]:
@@ -55,6 +67,7 @@ def split_variant(name: str) -> Tuple[str, Dict[str, Any]]:
         "render_precision": "fp32",
         "static_threshold_factor": 1.0,
         "cuda_graph": False,
+        "lean_raster": False,
         "storage": "fp32",
     }
     for switch in switches:

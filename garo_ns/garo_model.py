@@ -152,6 +152,9 @@ class GaroModelConfig(SplatfactoModelConfig):
     """When not training on CUDA, run everything between the time and the rasterizer (MLP,
     composition, activations) as one captured CUDA graph instead of dozens of kernel launches;
     captured again when the Gaussians or the render switches change. Same arithmetic as without."""
+    lean_raster: bool = False
+    """When not training on CUDA, call gsplat's kernels directly instead of its general Python
+    wrapper (garo_ns.rendering.rasterize_lean): same kernels and pixels, less Python per frame."""
     prune_contribution_ratio: float = 0.0
     """At each of `prune_contribution_steps`, prune this fraction of the Gaussians with the smallest
     summed blending weight over the training views (0: off)."""
@@ -613,6 +616,7 @@ class GaroModel(SplatfactoModel):
             sh_degree=sh_degree,
             render_mode=render_mode,
             backend=self.config.rasterizer,
+            lean=self.config.lean_raster and not self.training,
         )
         # What the strategy may read without knowing the model (no copies: detached views).
         info["means3d"] = means.detach()

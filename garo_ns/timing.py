@@ -45,6 +45,7 @@ def _rasterize(model: Any, camera: Any, inputs: Tuple[torch.Tensor, ...]) -> tor
         sh_degree=model.config.sh_degree,
         backgrounds=model.background_color.to(model.device)[None],
         backend=model.config.rasterizer,
+        lean=model.config.lean_raster,
     )
     return render
 

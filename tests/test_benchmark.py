@@ -28,7 +28,7 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
     result = json.loads(out.read_text())
     trained = ["deform-splatfacto", "garo-deform", "garo-prune0.3"]
     rows = ["", *SPEED_ROWS]
-    assert "+graph" in rows and "+static+graph+tf32+fp16" in rows
+    assert "+graph" in rows and "+lean" in rows and "+static+graph+tf32+lean+fp16" in rows
     expected = [t + r for t in trained for r in rows]
     assert list(result["variants"]) == expected + ["garo-deform+static4x"]
     # Render-time rows reuse their variant's training: one run per trained variant.
@@ -57,10 +57,11 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
     variants = result["variants"]
     settings = {n: v["render_settings"] for n, v in variants.items()}
     default = settings["garo-deform"]["static_threshold"]
-    assert settings["garo-deform+static+graph+tf32+fp16"] == {
+    assert settings["garo-deform+static+graph+tf32+lean+fp16"] == {
         "static_skip": True,
         "render_precision": "tf32",
         "cuda_graph": True,
+        "lean_raster": True,
         "static_threshold": default,
         "storage_fp16": True,
     }
@@ -68,6 +69,7 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
         "static_skip": False,
         "render_precision": "fp32",
         "cuda_graph": False,
+        "lean_raster": False,
         "static_threshold": default,
         "storage_fp16": False,
     }
@@ -76,10 +78,11 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
     # trained parameters were put back).
     assert variants["garo-deform+static4x"]["static_fraction"] >= variants["garo-deform+static"]["static_fraction"]
     for t in trained:
-        plain, half = variants[t + "+static+graph+tf32"], variants[t + "+static+graph+tf32+fp16"]
+        plain, half = variants[t + "+static+graph+tf32+lean"], variants[t + "+static+graph+tf32+lean+fp16"]
         assert half["model_size_mb"] < 0.6 * plain["model_size_mb"] and half["storage"].startswith("fp16")
         assert abs(half["psnr"] - plain["psnr"]) < 0.1  # rounding to half precision costs ~nothing
-        assert variants[t + "+graph"]["psnr"] == variants[t]["psnr"]  # no CUDA: the same eager path
+        for row in ("+graph", "+lean"):  # no CUDA: the same eager path and reference rasterizer
+            assert variants[t + row]["psnr"] == variants[t]["psnr"]
     # Pruning the least contributing 30% at step 28 leaves fewer Gaussians than GARO alone.
     assert variants["garo-prune0.3"]["num_gaussians"] < variants["garo-deform"]["num_gaussians"]
     # bf16 changes the render a little, never a lot (tf32 is exact on a CPU).

@@ -1,0 +1,53 @@
+"""The lean CUDA rasterization path against gsplat's own `rasterization` (same kernels, so the
+same pixels). Needs a CUDA device (run on the GPU machine)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from garo_ns.rendering import rasterize
+
+pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="gsplat's kernels need a CUDA device")
+
+
+def _scene(n: int = 20_000, seed: int = 0):
+    g = torch.Generator(device="cpu").manual_seed(seed)
+    means = (torch.rand(n, 3, generator=g) - 0.5) * 2.0
+    quats = torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=-1)
+    scales = torch.exp(torch.randn(n, 3, generator=g) * 0.5 - 4.0)
+    opacities = torch.rand(n, generator=g)
+    colors = torch.randn(n, 16, 3, generator=g) * 0.3
+    angle = 0.7
+    c2w = torch.eye(4)
+    c2w[:3, :3] = torch.tensor(
+        [[math.cos(angle), 0.0, math.sin(angle)], [0.0, 1.0, 0.0], [-math.sin(angle), 0.0, math.cos(angle)]]
+    )
+    c2w[:3, 3] = torch.tensor([1.0, 0.2, -3.5])
+    viewmat = torch.linalg.inv(c2w)[None]
+    K = torch.tensor([[[300.0, 0.0, 160.0], [0.0, 300.0, 120.0], [0.0, 0.0, 1.0]]])
+    return [t.cuda() for t in (means, quats, scales, opacities, colors, viewmat, K)]
+
+
+@torch.no_grad()
+@pytest.mark.parametrize("mode", ["RGB", "RGB+ED"])
+def test_lean_path_gives_gsplat_pixels(mode):
+    means, quats, scales, opacities, colors, viewmat, K = _scene()
+    background = torch.tensor([[0.1, 0.2, 0.3]], device="cuda")
+    kwargs = dict(sh_degree=3, backgrounds=background, render_mode=mode, backend="cuda")
+    ref, ref_alpha, _ = rasterize(means, quats, scales, opacities, colors, viewmat, K, 320, 240, **kwargs)
+    lean, alpha, info = rasterize(means, quats, scales, opacities, colors, viewmat, K, 320, 240, lean=True, **kwargs)
+    assert info["n_cameras"] == 1 and "means2d" in info
+    assert float(ref_alpha.mean()) > 0.05  # the scene is in view
+    torch.testing.assert_close(alpha, ref_alpha, rtol=0, atol=1e-6)
+    torch.testing.assert_close(lean, ref, rtol=0, atol=1e-5)
+
+
+def test_lean_is_ignored_under_autograd():
+    means, quats, scales, opacities, colors, viewmat, K = _scene(2000)
+    means.requires_grad_(True)
+    render, _, info = rasterize(means, quats, scales, opacities, colors, viewmat, K, 64, 48, sh_degree=3, lean=True)
+    render.sum().backward()
+    assert means.grad is not None and "gaussian_ids" in info  # gsplat's own path, with its info
