@@ -53,7 +53,7 @@ def main() -> None:
     weight = torch.rand(1, h, w, 3, generator=g).to(dev)  # a generic linear loss on the image
 
     rgb_diff, alpha_diff, num, den, n_visible, t_ref, t_cuda = 0.0, 0.0, 0.0, 0.0, 0, 0.0, 0.0
-    over, pixels, sum_diff, worst = 0, 0, 0.0, []
+    over, pixels, sum_diff, worst, worst_pixels = 0, 0, 0.0, [], []
     for v in range(views.shape[0]):
         outs = {}
         for name in ("cuda", "reference"):
@@ -83,6 +83,22 @@ def main() -> None:
         pixels += diff.numel()
         sum_diff += float(diff.sum())
         worst.append(diff.topk(min(100, diff.numel())).values.cpu())
+        # Where the largest differences sit, to tell rounding at a threshold from a systematic cause.
+        top = diff.topk(3)
+        for value, index in zip(top.values.tolist(), top.indices.tolist()):
+            y, x = divmod(index, w)
+            worst_pixels.append(
+                {
+                    "view": v,
+                    "x": x,
+                    "y": y,
+                    "diff": value,
+                    "rgb_cuda": ic[0, y, x].tolist(),
+                    "rgb_reference": ir[0, y, x].tolist(),
+                    "alpha_cuda": float(ac[0, y, x]),
+                    "alpha_reference": float(ar[0, y, x]),
+                }
+            )
         alpha_diff = max(alpha_diff, float((ac - ar).abs().max()))
         both = (rc > 0) & (rr > 0)
         n_visible += int(both.sum())
@@ -105,6 +121,7 @@ def main() -> None:
         "pixels_rgb_diff_over_1e-3": over,
         "mean_abs_rgb_diff": sum_diff / max(pixels, 1),
         "largest_100_rgb_diffs": [round(float(x), 6) for x in torch.cat(worst).topk(100).values],
+        "worst_pixels_per_view": worst_pixels,
         "visible_pairs": n_visible,
         "seconds_reference_fwd_bwd_per_view": t_ref / views.shape[0],
         "seconds_cuda_fwd_bwd_per_view": t_cuda / views.shape[0],
