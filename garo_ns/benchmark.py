@@ -232,7 +232,7 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
         model.refresh_static(train_times)
     results = {}
     original = storage.snapshot(model)
-    state = {"classified_at": trained_threshold, "rounded": False}
+    state: Dict[str, Any] = {"classified_at": trained_threshold, "rounded": False, "compact_mb": None}
 
     def score(name: str) -> Dict[str, Any]:
         settings = dict(split_variant(name)[1])
@@ -240,7 +240,7 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
         half = settings.pop("storage") == "fp16"
         if half != state["rounded"]:  # parameters as the compact file holds them, or back to the trained ones
             if half:
-                storage.round_to_storage(model)
+                state["compact_mb"] = storage.round_to_storage(model) / 2**20
             else:
                 storage.restore(model, original)
             state["rounded"] = half
@@ -269,7 +269,7 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
                 "training": record["train_peak_memory_mb"],
                 "rendering": timing["render_peak_memory_mb"],
             },
-            "model_size_mb": len(storage.compact_bytes(model)) / 2**20 if half else model_size_mb(model),
+            "model_size_mb": state["compact_mb"] if half else model_size_mb(model),
             "storage": "fp16 (positions fp32)" if half else "fp32",
             "train_seconds": record["train_seconds"],
             "train_steps_per_second": record["train_steps_per_second"],

@@ -31,8 +31,8 @@ def precision(mode: Precision, device: torch.device) -> Iterator[None]:
         finally:
             torch.backends.cuda.matmul.allow_tf32 = previous
     elif mode == "bf16":
-        # No cast cache: a cached bf16 weight would outlive nothing here (one forward per context)
-        # and must not be captured into a CUDA graph (garo_ns.graphs).
+        # No cast cache: it saves nothing with one forward per context, and a cached cast must not
+        # be captured into a CUDA graph (garo_ns.graphs), which would replay a freed weight copy.
         with torch.autocast(device_type=device.type, dtype=torch.bfloat16, cache_enabled=False):
             yield
     else:

@@ -18,11 +18,10 @@ from typing import Any, Dict, Iterator
 import torch
 
 from garo_ns.garo_model import viewmat_from_c2w
-from garo_ns.rendering import resolve_backend
+from garo_ns.rendering import TILE_SIZE, rasterize_lean, resolve_backend
 from garo_ns.timing import render_view
 
 STAGES = ("deformation", "projection", "color", "sorting", "compositing")
-TILE = 16
 
 
 @torch.no_grad()
@@ -66,41 +65,20 @@ def profile_frame(model: Any, cameras: Any, warmup: int = 3, repeats: int = 2) -
 
 
 def _staged_frame(model: Any, cam: Any, backend: str, stage: Any) -> None:
-    """One frame through the stages of `rendering.rasterize` (classic mode, unpacked, RGB)."""
+    """One frame through the stages of the renderer (classic mode, unpacked, RGB): on CUDA the
+    kernels of `rendering.rasterize_lean`, elsewhere the reference rasterizer's functions."""
     with stage("deformation"):  # MLP, composition and activations (one graph replay with cuda_graph)
         means, quats, scales, opacities, shs = model.splat_inputs(model.camera_time(cam))
     viewmats = viewmat_from_c2w(cam.camera_to_worlds)
     Ks = cam.get_intrinsics_matrices().to(means.device)
     W, H = int(cam.width.item()), int(cam.height.item())
-    tw, th = math.ceil(W / TILE), math.ceil(H / TILE)
-    campos = torch.linalg.inv(viewmats)[:, :3, 3]
     degree = model.config.sh_degree
-    background = model.background_color.to(means.device)[None]
-    if backend == "cuda":
-        from gsplat.cuda._wrapper import (
-            fully_fused_projection,
-            isect_offset_encode,
-            isect_tiles,
-            rasterize_to_pixels,
-            spherical_harmonics,
-        )
-
-        with stage("projection"):
-            radii, means2d, depths, conics, _ = fully_fused_projection(
-                means, None, quats, scales, viewmats, Ks, W, H, packed=False
-            )
-        with stage("color"):
-            dirs = means[None] - campos[:, None]
-            colors = spherical_harmonics(degree, dirs, shs[None].expand(1, *shs.shape), masks=radii > 0)
-            colors = torch.clamp_min(colors + 0.5, 0.0)
-        with stage("sorting"):
-            _, isect_ids, flatten_ids = isect_tiles(means2d, radii, depths, TILE, tw, th, packed=False, n_cameras=1)
-            offsets = isect_offset_encode(isect_ids, 1, tw, th)
-        with stage("compositing"):
-            rasterize_to_pixels(
-                means2d, conics, colors, opacities[None], W, H, TILE, offsets, flatten_ids, backgrounds=background
-            )
+    if backend == "cuda":  # the lean path's own steps, timed where they run
+        background = model.background_color.to(means.device)[None]
+        rasterize_lean(means, quats, scales, opacities, shs, viewmats, Ks, W, H, degree, background, stage=stage)
         return
+    tw, th = math.ceil(W / TILE_SIZE), math.ceil(H / TILE_SIZE)
+    campos = torch.linalg.inv(viewmats)[:, :3, 3]
     from garo_ns import rasterizer
     from garo_ns.sh import eval_sh
 
@@ -111,6 +89,6 @@ def _staged_frame(model: Any, cam: Any, backend: str, stage: Any) -> None:
     with stage("color"):
         colors = torch.clamp_min(eval_sh(degree, means[None] - campos[:, None], shs[None]) + 0.5, 0.0)
     with stage("sorting"):
-        _, tile_ids, flat_ids = rasterizer.intersect_tiles(means2d, radii, depths, TILE, tw, th)
+        _, tile_ids, flat_ids = rasterizer.intersect_tiles(means2d, radii, depths, TILE_SIZE, tw, th)
     with stage("compositing"):
-        rasterizer.composite(means2d, conics, opacities[None], colors, tile_ids, flat_ids, W, H, TILE)
+        rasterizer.composite(means2d, conics, opacities[None], colors, tile_ids, flat_ids, W, H, TILE_SIZE)

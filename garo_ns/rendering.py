@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
-from typing import Any, Dict, Literal, Optional, Tuple
+from typing import Any, Callable, ContextManager, Dict, Literal, Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -123,6 +124,10 @@ def rasterize(
 TILE_SIZE = 16
 
 
+def _no_stage(name: str) -> ContextManager[Any]:
+    return contextlib.nullcontext()
+
+
 def rasterize_lean(
     means: Tensor,
     quats: Tensor,
@@ -138,11 +143,14 @@ def rasterize_lean(
     with_depth: bool = False,
     near_plane: float = 0.01,
     far_plane: float = 1e10,
+    stage: Callable[[str], ContextManager[Any]] = _no_stage,
 ) -> Tuple[Tensor, Tensor, Dict[str, Any]]:
     """Inference-only CUDA rasterization: gsplat's five kernels (projection, SH colours, tile
     intersection, tile offsets, compositing) with the arguments `rasterize` gives them, without
     the general wrapper's per-call Python (argument checks, packing, distributed and
     antialiasing branches, a 4x4 inverse for the camera centre). Same pixels as `rasterize`.
+    `stage(name)` wraps each step (projection, color, sorting, compositing): the frame profile
+    times them there.
     """
     from gsplat.cuda._wrapper import (
         fully_fused_projection,
@@ -153,49 +161,53 @@ def rasterize_lean(
     )
 
     n_cams = viewmats.shape[0]
-    radii, means2d, depths, conics, _ = fully_fused_projection(
-        means,
-        None,
-        quats,
-        scales,
-        viewmats,
-        Ks,
-        width,
-        height,
-        packed=False,
-        near_plane=near_plane,
-        far_plane=far_plane,
-    )
-    if sh_degree is None:
-        rgb = colors.expand(n_cams, *colors.shape) if colors.dim() == 2 else colors
-    else:
-        # Camera centre in closed form (-R^T t): the world-to-camera matrices are rigid.
-        rot, trans = viewmats[:, :3, :3], viewmats[:, :3, 3:4]
-        campos = -(rot.transpose(1, 2) @ trans).squeeze(-1)
-        dirs = means[None] - campos[:, None]
-        rgb = spherical_harmonics(sh_degree, dirs, colors.expand(n_cams, *colors.shape), masks=radii > 0)
-        rgb = torch.clamp_min(rgb + 0.5, 0.0)
-    if with_depth:
-        rgb = torch.cat([rgb, depths[..., None]], dim=-1)
-        if backgrounds is not None:
-            backgrounds = torch.cat([backgrounds, backgrounds.new_zeros(n_cams, 1)], dim=-1)
-    tiles_w, tiles_h = math.ceil(width / TILE_SIZE), math.ceil(height / TILE_SIZE)
-    _, isect_ids, flatten_ids = isect_tiles(
-        means2d, radii, depths, TILE_SIZE, tiles_w, tiles_h, packed=False, n_cameras=n_cams
-    )
-    offsets = isect_offset_encode(isect_ids, n_cams, tiles_w, tiles_h)
-    render, alpha = rasterize_to_pixels(
-        means2d,
-        conics,
-        rgb,
-        opacities.expand(n_cams, -1),
-        width,
-        height,
-        TILE_SIZE,
-        offsets,
-        flatten_ids,
-        backgrounds=backgrounds,
-    )
+    with stage("projection"):
+        radii, means2d, depths, conics, _ = fully_fused_projection(
+            means,
+            None,
+            quats,
+            scales,
+            viewmats,
+            Ks,
+            width,
+            height,
+            packed=False,
+            near_plane=near_plane,
+            far_plane=far_plane,
+        )
+    with stage("color"):
+        if sh_degree is None:
+            rgb = colors.expand(n_cams, *colors.shape) if colors.dim() == 2 else colors
+        else:
+            # Camera centre in closed form (-R^T t): the world-to-camera matrices are rigid.
+            rot, trans = viewmats[:, :3, :3], viewmats[:, :3, 3:4]
+            campos = -(rot.transpose(1, 2) @ trans).squeeze(-1)
+            dirs = means[None] - campos[:, None]
+            rgb = spherical_harmonics(sh_degree, dirs, colors.expand(n_cams, *colors.shape), masks=radii > 0)
+            rgb = torch.clamp_min(rgb + 0.5, 0.0)
+        if with_depth:
+            rgb = torch.cat([rgb, depths[..., None]], dim=-1)
+            if backgrounds is not None:
+                backgrounds = torch.cat([backgrounds, backgrounds.new_zeros(n_cams, 1)], dim=-1)
+    with stage("sorting"):
+        tiles_w, tiles_h = math.ceil(width / TILE_SIZE), math.ceil(height / TILE_SIZE)
+        _, isect_ids, flatten_ids = isect_tiles(
+            means2d, radii, depths, TILE_SIZE, tiles_w, tiles_h, packed=False, n_cameras=n_cams
+        )
+        offsets = isect_offset_encode(isect_ids, n_cams, tiles_w, tiles_h)
+    with stage("compositing"):
+        render, alpha = rasterize_to_pixels(
+            means2d,
+            conics,
+            rgb,
+            opacities.expand(n_cams, -1),
+            width,
+            height,
+            TILE_SIZE,
+            offsets,
+            flatten_ids,
+            backgrounds=backgrounds,
+        )
     if with_depth:  # expected depth, as gsplat's RGB+ED
         render = torch.cat([render[..., :-1], render[..., -1:] / alpha.clamp_min(1e-10)], dim=-1)
     info = {"radii": radii, "means2d": means2d, "depths": depths, "width": width, "height": height, "n_cameras": n_cams}

@@ -32,7 +32,7 @@ def compact_state(model: Any) -> Dict[str, Tensor]:
             if tensor.numel() and float(tensor.abs().amax()) > torch.finfo(torch.float16).max:
                 raise ValueError(f"{name} exceeds the float16 range; store it in full precision")
             tensor = tensor.half()
-        state[name] = tensor.float() if name in FULL_PRECISION else tensor
+        state[name] = tensor
     return state
 
 

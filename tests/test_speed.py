@@ -278,10 +278,9 @@ def test_compact_storage_refuses_non_finite_models(garo_run, tmp_path):
         storage.restore(model, saved)
 
 
-def test_cuda_graph_switch_is_a_no_op_without_cuda(garo_run):
-    model = _eval_model(garo_run)
-    if torch.cuda.is_available():
-        pytest.skip("covered by tests/test_graphs.py on a CUDA machine")
+def test_cuda_graph_switch_is_a_no_op_off_cuda(garo_run):
+    model = _eval_model(garo_run)  # trained on the CPU, on any machine: graphs do not apply
+    assert model.device.type == "cpu"
     t = 0.4
     with torch.no_grad():
         plain = model.splat_inputs(t)
