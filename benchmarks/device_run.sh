@@ -2,7 +2,7 @@
 # GPU-machine driver for one hold of a multi-GPU machine (the `device` tool), in phases that fit
 # into back-to-back calls (each call is at most 10 minutes; the machine is kept while calls follow):
 #   bash benchmarks/device_run.sh setup SCENE          copy .scenes/SCENE to /tmp, compile gsplat
-#   bash benchmarks/device_run.sh smoke SCENE GPU      tests/test_graphs.py and a 200-step run of both
+#   bash benchmarks/device_run.sh smoke SCENE GPU      the CUDA-only tests and a 200-step run of both
 #                                                      arms with every speed row on one GPU; checks that
 #                                                      graph rows score like the rows without graphs
 #   bash benchmarks/device_run.sh launch NAME SCENE SPLIT GPUS [benchmark args...]
@@ -38,7 +38,7 @@ setup)
 smoke)
   scene=$1; export CUDA_VISIBLE_DEVICES=$2
   cd $W/src
-  python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py 2>&1 | tail -4
+  python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py tests/test_rendering_cuda.py 2>&1 | tail -6
   # A few steps of both arms through the CUDA path with every speed row, so a bug shows early.
   python3 -m garo_ns.benchmark --scene /tmp/$scene --split val --iterations 200 --quick --gpus 0 --speed \
       --variants deform-splatfacto garo-prune0.5 --output $W/smoke/smoke.json --work-dir $W/smoke/runs \

@@ -194,6 +194,7 @@ def _composite_tiles(
     th: int,
     tile_size: int,
     chunk: int,
+    alpha_min: float,
 ) -> Tuple[Tensor, Tensor]:
     """Composite tiles [t0, t1): accumulated features [T, P, D] and transmittance [T, P]."""
     dev, dt = m2d.device, m2d.dtype
@@ -219,7 +220,7 @@ def _composite_tiles(
             + cg[..., 1] * delta[..., 0] * delta[..., 1]
         )
         alpha = torch.clamp_max(opa[gid][:, None, :] * torch.exp(-sigma), ALPHA_MAX)
-        keep = (sigma >= 0) & (alpha >= ALPHA_MIN) & present[:, None, :]
+        keep = (sigma >= 0) & (alpha >= alpha_min) & present[:, None, :]
         alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
         log_t = torch.log1p(-alpha)
         csum = torch.cumsum(log_t, dim=-1)
@@ -248,6 +249,7 @@ def composite(
     tile_size: int = 16,
     chunk: int = 128,
     max_elements: int = 1 << 22,
+    alpha_min: float = ALPHA_MIN,
 ) -> Tuple[Tensor, Tensor]:
     """Alpha-composite depth-sorted Gaussians front to back in every tile.
 
@@ -255,6 +257,7 @@ def composite(
         means2d [C, N, 2], conics [C, N, 3], opacities [C, N], features [C, N, D]: projected
             Gaussians; tile_ids/flat_ids from `intersect_tiles`.
         chunk: Gaussians per tile handled at once; max_elements: pixels x Gaussians per batch.
+        alpha_min: Gaussians whose alpha at a pixel is below this are skipped there (gsplat: 1/255).
 
     Returns:
         accumulated features [C, H, W, D] (no background) and alphas [C, H, W, 1].
@@ -283,7 +286,7 @@ def composite(
     out_feat, out_alpha = [], []
     for t0 in batches:
         t1 = min(n_tiles, t0 + batch_tiles)
-        args = (t0, t1, per_tile, starts, flat_ids, pix_off, tw, th, tile_size, chunk)
+        args = (t0, t1, per_tile, starts, flat_ids, pix_off, tw, th, tile_size, chunk, alpha_min)
         if remat:
             acc, trans = checkpoint(_composite_tiles, m2d, con, opa, feat, *args, use_reentrant=False)
         else:
@@ -349,13 +352,15 @@ def rasterize(
     backgrounds: Optional[Tensor] = None,
     render_mode: RenderMode = "RGB",
     chunk: int = 128,
+    alpha_min: float = ALPHA_MIN,
 ) -> Tuple[Tensor, Tensor, Dict[str, Any]]:
     """Render Gaussians into C cameras; the call mirrors `gsplat.rasterization(packed=False)`.
 
     Returns render [C, H, W, D], alphas [C, H, W, 1] and an `info` dict with the keys gsplat's
     strategies read: means2d [C, N, 2] (non-leaf; `.grad` after backward), radii [C, N],
     depths, conics, opacities, gaussian_ids/camera_ids (None: not packed), width, height,
-    n_cameras, tile_size, tile_width, tile_height.
+    n_cameras, tile_size, tile_width, tile_height. `alpha_min` is gsplat's skip threshold (1/255);
+    other values serve diagnosis (the parity benchmark's threshold band).
     """
     _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree)
     if render_mode not in ("RGB", "D", "ED", "RGB+D", "RGB+ED"):
@@ -402,7 +407,9 @@ def rasterize(
 
     tw, th = math.ceil(width / tile_size), math.ceil(height / tile_size)
     tiles_per_gauss, tile_ids, flat_ids = intersect_tiles(means2d, radii, depths, tile_size, tw, th)
-    render, alphas = composite(means2d, conics, opac, feats.to(dt), tile_ids, flat_ids, width, height, tile_size, chunk)
+    render, alphas = composite(
+        means2d, conics, opac, feats.to(dt), tile_ids, flat_ids, width, height, tile_size, chunk, alpha_min=alpha_min
+    )
     if not render.requires_grad and (means2d.requires_grad or feats.requires_grad or opac.requires_grad):
         # Nothing visible: keep the outputs on the autograd graph (zero gradients), as gsplat does,
         # so a training step on an empty view does not fail. Inputs here are already finite.

@@ -173,6 +173,25 @@ def test_several_cameras_equal_separate_renders_and_background():
     torch.testing.assert_close(img[empty], bg[:, None, None, :].expand(3, H, W, 3)[empty])
 
 
+def test_alpha_threshold_skips_faint_gaussians_and_can_be_moved():
+    """A Gaussian whose peak alpha is below 1/255 is skipped (gsplat's rule); lowering the
+    threshold, as the parity benchmark's band does, brings it back."""
+    views, Ks, W, H = camera(seed=2)
+    means = torch.zeros(1, 3)
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]])
+    scales = torch.full((1, 3), 0.2)
+    colors = torch.ones(1, 3)
+    faint = torch.tensor([0.9 / 255])
+    img, alpha, _ = rasterize(means, quats, scales, faint, colors, views, Ks, W, H)
+    assert float(alpha.max()) == 0.0 and float(img.max()) == 0.0
+    img, alpha, _ = rasterize(means, quats, scales, faint, colors, views, Ks, W, H, alpha_min=0.5 / 255)
+    assert 0.8 / 255 < float(alpha.max()) < 0.9 / 255
+    strong = torch.tensor([0.5])
+    base = rasterize(means, quats, scales, strong, colors, views, Ks, W, H)[0]
+    same = rasterize(means, quats, scales, strong, colors, views, Ks, W, H, alpha_min=1.0 / 255)[0]
+    assert torch.equal(base, same)
+
+
 def test_depth_modes_and_means2d_gradient():
     means, quats, scales, opac, colors = cloud(150, seed=2)
     means = means.requires_grad_()
