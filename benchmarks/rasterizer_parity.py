@@ -69,7 +69,7 @@ def main() -> None:
 
     rgb_diff, alpha_diff, num, den, n_visible, t_ref, t_cuda = 0.0, 0.0, 0.0, 0.0, 0, 0.0, 0.0
     over, pixels, sum_diff, worst, worst_pixels = 0, 0, 0.0, [], []
-    beyond_band, over_beyond_band = 0.0, 0
+    beyond_band, over_beyond_band, beyond_pixels = 0.0, 0, []
     for v in range(views.shape[0]):
         outs = {}
         for name in ("cuda", "reference"):
@@ -109,6 +109,22 @@ def main() -> None:
         pixels += diff.numel()
         sum_diff += float(diff.sum())
         worst.append(diff.topk(min(100, diff.numel())).values.cpu())
+        top_excess = excess.flatten().topk(3)
+        for value, index in zip(top_excess.values.tolist(), top_excess.indices.tolist()):
+            if value > 0:
+                y, x = divmod(index, w)
+                beyond_pixels.append(
+                    {
+                        "view": v,
+                        "x": x,
+                        "y": y,
+                        "beyond_threshold_band": value,
+                        "diff": float(diff[index]),
+                        "rgb_cuda": ic[0, y, x].tolist(),
+                        "rgb_reference": ir[0, y, x].tolist(),
+                        "rgb_reference_band": [r[0, y, x].tolist() for r in shifted],
+                    }
+                )
         # Where the largest differences sit, to tell rounding at a threshold from a systematic cause.
         top = diff.topk(3)
         for value, index in zip(top.values.tolist(), top.indices.tolist()):
@@ -153,6 +169,7 @@ def main() -> None:
         "pixels_rgb_diff_over_1e-3_beyond_threshold_band": over_beyond_band,
         "largest_100_rgb_diffs": [round(float(x), 6) for x in torch.cat(worst).topk(100).values],
         "worst_pixels_per_view": worst_pixels,
+        "largest_beyond_threshold_band": sorted(beyond_pixels, key=lambda p: -p["beyond_threshold_band"])[:20],
         "visible_pairs": n_visible,
         "seconds_reference_fwd_bwd_per_view": t_ref / views.shape[0],
         "seconds_cuda_fwd_bwd_per_view": t_cuda / views.shape[0],

@@ -195,6 +195,7 @@ def train_variant(args: BenchArgs, name: str, deadline: Optional[float]) -> Dict
         trainer.save_checkpoint(last_step["step"])
     seconds = time.perf_counter() - start
     iterations = last_step["step"] + 1
+    health = getattr(trainer.pipeline.model, "health_log", [])
     record = {
         "variant": name,
         "method": method,
@@ -205,6 +206,9 @@ def train_variant(args: BenchArgs, name: str, deadline: Optional[float]) -> Dict
         "train_steps_per_second": iterations / seconds,
         "train_peak_memory_mb": torch.cuda.max_memory_allocated() / 2**20 if args.device == "cuda" else None,
         "config": str(config.get_base_dir() / "config.yml"),
+        # A collapsed deformation field renders the scene as static: such an arm is no comparison.
+        "deformation_collapsed": any(h["collapsed"] for h in health),
+        "deformation_health": health[-1] if health else None,
     }
     (args.work_dir / f"{name}.record.json").write_text(json.dumps(record, indent=2))
     return record
@@ -276,6 +280,7 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
             "iterations": record["iterations"],
             "shortened": record["iterations"] < FULL_ITERATIONS,
             "stopped_by_deadline": record["stopped_by_deadline"],
+            "deformation_collapsed": record.get("deformation_collapsed"),
             "garo_mode": model.config.garo_mode,
             "rho_max": model.config.rho_max,
             "prune_contribution_ratio": model.config.prune_contribution_ratio,
@@ -343,6 +348,8 @@ def write_report(result: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
         lp = "-" if v["lpips"] is None else f"{v['lpips']:.4f}"
         static = v.get("static_fraction")
         static_txt = "-" if static is None or not v.get("render_settings", {}).get("static_skip") else f"{static:.0%}"
+        if v.get("deformation_collapsed"):
+            name = f"{name} (deformation collapsed)"
         lines.append(
             f"| {name} | {v['iterations']} | {v['psnr']:.2f} | {v['ssim']:.4f} | {lp} | {v['fps']:.1f} | {speed} | "
             f"{v['ms_deformation']:.2f} | {v['ms_rasterization']:.2f} | {v['num_gaussians']} | {static_txt} | "

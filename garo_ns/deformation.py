@@ -7,13 +7,15 @@ of its position, rotation (quaternion) and log-scale at that time.
 from __future__ import annotations
 
 import contextlib
-from typing import Iterator, Literal, Tuple
+from typing import Dict, Iterator, List, Literal, Tuple
 
 import torch
 from torch import Tensor, nn
 
 Precision = Literal["fp32", "tf32", "bf16"]
 PRECISIONS = ("fp32", "tf32", "bf16")
+HeadInit = Literal["zero", "default"]
+HEAD_INITS = ("zero", "default")
 
 
 @contextlib.contextmanager
@@ -52,14 +54,25 @@ class DeformationField(nn.Module):
     """D-3DGS's deformation MLP: `depth` ReLU layers of `width` with the input re-injected after
     layer `skip`, and three linear heads for position, rotation and scale offsets.
 
-    The heads start at zero, so the deformation starts as the identity when it is switched on
-    after the static warm-up, and training continues smoothly from the canonical Gaussians.
+    `head_init`: "zero" starts the heads at zero (the deformation starts as the identity when it is
+    switched on after the static warm-up); "default" keeps PyTorch's random initialisation, as the
+    official D-3DGS code does (the field starts with small offsets, mostly a common shift).
     """
 
-    def __init__(self, pos_freqs: int = 10, time_freqs: int = 6, depth: int = 8, width: int = 256, skip: int = 4):
+    def __init__(
+        self,
+        pos_freqs: int = 10,
+        time_freqs: int = 6,
+        depth: int = 8,
+        width: int = 256,
+        skip: int = 4,
+        head_init: HeadInit = "zero",
+    ):
         super().__init__()
         if depth < 1 or width < 1:
             raise ValueError(f"depth and width must be >= 1, got depth={depth}, width={width}")
+        if head_init not in HEAD_INITS:
+            raise ValueError(f"head_init must be one of {HEAD_INITS}, got {head_init!r}")
         self.pos_freqs, self.time_freqs, self.skip = pos_freqs, time_freqs, skip
         in_dim = 3 * (1 + 2 * pos_freqs) + (1 + 2 * time_freqs)
         layers = [nn.Linear(in_dim, width)]
@@ -69,9 +82,26 @@ class DeformationField(nn.Module):
         self.d_xyz = nn.Linear(width, 3)
         self.d_rot = nn.Linear(width, 4)
         self.d_scale = nn.Linear(width, 3)
-        for head in (self.d_xyz, self.d_rot, self.d_scale):
-            nn.init.zeros_(head.weight)
-            nn.init.zeros_(head.bias)
+        if head_init == "zero":
+            for head in (self.d_xyz, self.d_rot, self.d_scale):
+                nn.init.zeros_(head.weight)
+                nn.init.zeros_(head.bias)
+
+    def _encode(self, xyz: Tensor, time: Tensor | float) -> Tensor:
+        t = torch.as_tensor(time, dtype=xyz.dtype, device=xyz.device)
+        t = t.reshape(-1, 1).expand(xyz.shape[0], 1)
+        return torch.cat([positional_encoding(xyz, self.pos_freqs), positional_encoding(t, self.time_freqs)], dim=-1)
+
+    def hidden(self, xyz: Tensor, time: Tensor | float) -> List[Tensor]:
+        """The ReLU output of every hidden layer [N, width] (before the skip concatenation)."""
+        x = self._encode(xyz, time)
+        h, out = x, []
+        for i, layer in enumerate(self.layers):
+            h = torch.relu(layer(h))
+            out.append(h)
+            if i == self.skip and i + 1 < len(self.layers):
+                h = torch.cat([x, h], dim=-1)
+        return out
 
     def forward(self, xyz: Tensor, time: Tensor | float) -> Tuple[Tensor, Tensor, Tensor]:
         """Offsets at `time` for canonical positions `xyz` [N, 3].
@@ -83,13 +113,31 @@ class DeformationField(nn.Module):
         Returns:
             d_xyz [N, 3], d_rot [N, 4], d_log_scale [N, 3].
         """
-        t = torch.as_tensor(time, dtype=xyz.dtype, device=xyz.device)
-        t = t.reshape(-1, 1).expand(xyz.shape[0], 1)
-        x = torch.cat([positional_encoding(xyz, self.pos_freqs), positional_encoding(t, self.time_freqs)], dim=-1)
-        h = x
-        for i, layer in enumerate(self.layers):
-            h = torch.relu(layer(h))
-            if i == self.skip and i + 1 < len(self.layers):
-                h = torch.cat([x, h], dim=-1)
+        h = self.hidden(xyz, time)[-1]
         dt = xyz.dtype  # bf16 autocast hands back bf16; callers get their own dtype
         return self.d_xyz(h).to(dt), self.d_rot(h).to(dt), self.d_scale(h).to(dt)
+
+
+@torch.no_grad()
+def field_health(field: DeformationField, xyz: Tensor, times: Tensor) -> Dict[str, object]:
+    """Whether the field still models motion, on sample positions `xyz` [N, 3] at `times` [T].
+
+    Returns `time_sensitivity` (mean over points of the RMS deviation of the position offset from
+    its mean over the times, world units), `mean_offset` (mean |d_xyz|), and `dead_fraction` per
+    hidden layer (units that are zero for every sample). A layer that is all dead, or a time
+    sensitivity of zero, means the field has collapsed to one motion for every time: its ReLUs
+    get no gradient and it never recovers.
+    """
+    offsets, alive = [], None
+    for t in times.tolist():
+        hidden = field.hidden(xyz, t)
+        used = torch.stack([(h > 0).any(0) for h in hidden])  # [layers, width]
+        alive = used if alive is None else alive | used
+        offsets.append(field.d_xyz(hidden[-1]))
+    d = torch.stack(offsets)  # [T, N, 3]
+    spread = (d - d.mean(0, keepdim=True)).pow(2).sum(-1).mean(0).sqrt()
+    return {
+        "time_sensitivity": float(spread.mean()),
+        "mean_offset": float(d.norm(dim=-1).mean()),
+        "dead_fraction": [round(float(1 - a.float().mean()), 4) for a in alive],
+    }

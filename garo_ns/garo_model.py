@@ -31,7 +31,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 from torch.nn import Parameter
 
-from garo_ns.deformation import DeformationField, Precision, precision
+from garo_ns.deformation import DeformationField, Precision, field_health, precision
 from garo_ns.errors import GaroTrainingError
 from garo_ns.garo_strategy import GaroStrategy
 from garo_ns.graphs import TimeGraph, graphs_available
@@ -115,6 +115,11 @@ class GaroModelConfig(SplatfactoModelConfig):
     """The input is concatenated again after this hidden layer."""
     deform_warmup: int = 3000
     """Static warm-up: the deformation field is used from this step on (D-3DGS warm_up)."""
+    deform_head_init: Literal["zero", "default"] = "zero"
+    """Initial output heads of the MLP: zero (identity at the switch-on) or PyTorch's default (D-3DGS)."""
+    health_every: int = 500
+    """Check every this many steps after the warm-up that the deformation field still models
+    motion (garo_ns.deformation.field_health): logged, with a warning when it has collapsed. 0: off."""
     time_noise: float = 0.0
     """Training only: the MLP's time input gets Gaussian noise of this many frame intervals (one
     draw per step, shared by all Gaussians), decaying linearly to 0 at `time_noise_steps`. D-3DGS
@@ -227,7 +232,12 @@ class GaroModel(SplatfactoModel):
             }
         )
         self.deformation = DeformationField(
-            cfg.deform_pos_freqs, cfg.deform_time_freqs, cfg.deform_depth, cfg.deform_width, cfg.deform_skip
+            cfg.deform_pos_freqs,
+            cfg.deform_time_freqs,
+            cfg.deform_depth,
+            cfg.deform_width,
+            cfg.deform_skip,
+            head_init=cfg.deform_head_init,
         )
         self.camera_optimizer = cfg.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu")
 
@@ -298,6 +308,7 @@ class GaroModel(SplatfactoModel):
         self._deform_cache: Optional[Tuple[Any, Tuple[Tensor, Tensor, Tensor]]] = None
         self._static_cache: Optional[Tuple[Any, Tensor, Tuple[Tensor, Tensor, Tensor]]] = None
         self._graph = TimeGraph()
+        self.health_log: List[Dict[str, Any]] = []
 
     # ------------------------------------------------------------------ parameters
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
@@ -352,6 +363,7 @@ class GaroModel(SplatfactoModel):
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.step_post_backward),
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.prune_by_contribution),
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.update_static),
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.check_health),
         ]
 
     def step_cb(self, optimizers: Optimizers, step: int) -> None:
@@ -530,6 +542,36 @@ class GaroModel(SplatfactoModel):
                 from nerfstudio.utils import writer
 
                 writer.put_scalar("garo/static_fraction", fraction, step)
+
+    def check_health(self, step: int) -> None:
+        """Training callback: every `health_every` steps after the warm-up, measure whether the
+        deformation field still models motion; warn once when it has collapsed (a hidden layer
+        all dead, or offsets that no longer change with time), which no later step can undo."""
+        cfg = self.config
+        if cfg.health_every <= 0 or not self.deformation_active() or self.num_points == 0:
+            return
+        if (step - cfg.deform_warmup) % cfg.health_every != 0:
+            return
+        times = self._train_times if self._train_times is not None else torch.linspace(0.0, 1.0, 8)
+        times = times[torch.linspace(0, times.numel() - 1, min(8, times.numel())).round().long()]
+        pick = torch.randperm(self.num_points, generator=torch.Generator().manual_seed(step))[:4096]
+        health = field_health(self.deformation, self.means.detach()[pick.to(self.device)], times)
+        health["step"] = int(step)
+        health["collapsed"] = bool(
+            max(health["dead_fraction"]) >= 1.0 or health["time_sensitivity"] <= 1e-6 * self.scene_extent
+        )
+        self.health_log.append(health)
+        from nerfstudio.utils import writer
+
+        writer.put_scalar("garo/deform_time_sensitivity", health["time_sensitivity"], step)
+        writer.put_scalar("garo/deform_dead_fraction_max", max(health["dead_fraction"]), step)
+        if health["collapsed"] and not any(h["collapsed"] for h in self.health_log[:-1]):
+            CONSOLE.print(
+                f"[bold red]Step {step}: the deformation field has collapsed (time sensitivity "
+                f"{health['time_sensitivity']:.2e}, dead units per layer {health['dead_fraction']}); "
+                "the scene will render as static. Retrain with another seed or "
+                "--pipeline.model.deform-head-init default.[/bold red]"
+            )
 
     @torch.no_grad()
     def contribution(self, cameras: Cameras) -> Tensor:
