@@ -54,9 +54,10 @@ class DeformationField(nn.Module):
     """D-3DGS's deformation MLP: `depth` ReLU layers of `width` with the input re-injected after
     layer `skip`, and three linear heads for position, rotation and scale offsets.
 
-    `head_init`: "zero" starts the heads at zero (the deformation starts as the identity when it is
-    switched on after the static warm-up); "default" keeps PyTorch's random initialisation, as the
-    official D-3DGS code does (the field starts with small offsets, mostly a common shift).
+    `head_init`: "default" keeps PyTorch's random initialisation, as the official D-3DGS code does
+    (the field starts with small offsets, mostly a common shift); "zero" starts the heads at zero,
+    the identity at the switch-on, but then every unit of the last hidden layer receives the same
+    first updates, and that layer can die as a whole (see GaroModelConfig.deform_head_init).
     """
 
     def __init__(
@@ -66,7 +67,7 @@ class DeformationField(nn.Module):
         depth: int = 8,
         width: int = 256,
         skip: int = 4,
-        head_init: HeadInit = "zero",
+        head_init: HeadInit = "default",
     ):
         super().__init__()
         if depth < 1 or width < 1:

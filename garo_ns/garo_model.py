@@ -115,8 +115,11 @@ class GaroModelConfig(SplatfactoModelConfig):
     """The input is concatenated again after this hidden layer."""
     deform_warmup: int = 3000
     """Static warm-up: the deformation field is used from this step on (D-3DGS warm_up)."""
-    deform_head_init: Literal["zero", "default"] = "zero"
-    """Initial output heads of the MLP: zero (identity at the switch-on) or PyTorch's default (D-3DGS)."""
+    deform_head_init: Literal["zero", "default"] = "default"
+    """Initial output heads of the MLP: PyTorch's default (as D-3DGS) or zero (identity at the
+    switch-on). Zero heads give every unit of the last hidden layer the same first updates; on lego
+    their last layer died wholesale in 1 of 5 runs, the field then modelled no motion
+    (benchmarks/results/deform_health_H200.json; 0 of 5 with the default)."""
     health_every: int = 500
     """Check every this many steps after the warm-up that the deformation field still models
     motion (garo_ns.deformation.field_health): logged, with a warning when it has collapsed. 0: off."""

@@ -56,7 +56,7 @@ class QuickSchedule:
             if sched is not None and hasattr(sched, "max_steps"):
                 sched.max_steps = s
         # D-3DGS's deformation rate (8e-4) is tuned for 37k deforming steps; with a few hundred, the
-        # MLP would barely leave its zero start, so it learns faster here.
+        # MLP would barely move from its initial state, so it learns faster here.
         deform = config.optimizers["deformation"]
         deform["optimizer"].lr = self.deform_lr
         deform["scheduler"].lr_final = self.deform_lr / 100
