@@ -551,7 +551,8 @@ class GaroModel(SplatfactoModel):
         deformation field still models motion; warn once when it has collapsed (a hidden layer
         all dead, or offsets that no longer change with time), which no later step can undo."""
         cfg = self.config
-        if cfg.health_every <= 0 or not self.deformation_active() or self.num_points == 0:
+        # Not at the switch-on itself: zero heads give no motion there by design.
+        if cfg.health_every <= 0 or step <= cfg.deform_warmup or self.num_points == 0:
             return
         if (step - cfg.deform_warmup) % cfg.health_every != 0:
             return

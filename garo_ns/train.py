@@ -49,6 +49,12 @@ class QuickSchedule:
         m.garo_stop = m.stop_split_at
         m.garo_every = m.refine_every
         m.static_every = max(s // 10, 1)
+        m.health_every = max(s // 6, 1)
+        # The heads start at zero here: with this schedule's 6x deformation rate, a field starting
+        # from random offsets is still moving everywhere after a few hundred steps (no Gaussian of
+        # the built-in scene under a third of a pixel), while the zero start leaves the static parts
+        # quiet. The collapse that zero heads risk at 40k steps is watched by the health check.
+        m.deform_head_init = "zero"
         m.time_noise_steps = s
         m.prune_contribution_steps = (int(s * 0.7),)
         for opt in config.optimizers.values():

@@ -68,9 +68,9 @@ def test_training_health_check_flags_a_collapse_once(garo_run, capsys):
     assert model.health_log, "the trained fixture's field was never checked"
     assert not any(h["collapsed"] for h in model.health_log)
     step = model.config.deform_warmup + 7 * model.config.health_every
-    model.step = step
-    log, bias = list(model.health_log), model.deformation.layers[-1].bias.detach().clone()
+    log, bias, trained_step = list(model.health_log), model.deformation.layers[-1].bias.detach().clone(), model.step
     try:
+        model.step = step  # the check runs once the deformation is on
         with torch.no_grad():
             model.deformation.layers[-1].bias.fill_(-1e3)
         capsys.readouterr()
@@ -84,3 +84,4 @@ def test_training_health_check_flags_a_collapse_once(garo_run, capsys):
         with torch.no_grad():
             model.deformation.layers[-1].bias.copy_(bias)
         model.health_log[:] = log
+        model.step = trained_step  # the fixture is shared
