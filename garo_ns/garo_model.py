@@ -573,8 +573,9 @@ class GaroModel(SplatfactoModel):
             CONSOLE.print(
                 f"[bold red]Step {step}: the deformation field has collapsed (time sensitivity "
                 f"{health['time_sensitivity']:.2e}, dead units per layer {health['dead_fraction']}); "
-                "the scene will render as static. Retrain with another seed or "
-                "--pipeline.model.deform-head-init default.[/bold red]"
+                "the scene will render as static. Retrain with another seed"
+                + (" or --pipeline.model.deform-head-init default" if cfg.deform_head_init == "zero" else "")
+                + ".[/bold red]"
             )
 
     @torch.no_grad()
