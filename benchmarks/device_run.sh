@@ -2,9 +2,10 @@
 # GPU-machine driver for one hold of a multi-GPU machine (the `device` tool), in phases that fit
 # into back-to-back calls (each call is at most 10 minutes; the machine is kept while calls follow):
 #   bash benchmarks/device_run.sh setup SCENE          copy .scenes/SCENE to /tmp, compile gsplat
-#   bash benchmarks/device_run.sh smoke SCENE GPU      the CUDA-only tests and a 200-step run of both
-#                                                      arms with every speed row on one GPU; checks that
-#                                                      graph rows score like the rows without graphs
+#   bash benchmarks/device_run.sh gputests GPU         the CUDA-only tests
+#   bash benchmarks/device_run.sh smoke SCENE GPU      a 200-step run of both arms with every speed row on
+#                                                      one GPU; checks that graph and lean rows score like
+#                                                      the rows without
 #   bash benchmarks/device_run.sh launch NAME SCENE SPLIT GPUS [benchmark args...]
 #                                                      python -m garo_ns.benchmark in the background on the
 #                                                      GPUs GPUS (e.g. 2,3; pass --gpus 0 1 to use both),
@@ -35,10 +36,13 @@ setup)
   t0=$(date +%s)
   python3 -c "from gsplat.cuda._backend import _C; assert _C is not None; print('gsplat CUDA ready')" || exit 1
   echo "gsplat compile: $(( $(date +%s) - t0 )) s" ;;
+gputests)
+  export CUDA_VISIBLE_DEVICES=$1
+  cd $W/src
+  python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py tests/test_rendering_cuda.py 2>&1 | tail -6 ;;
 smoke)
   scene=$1; export CUDA_VISIBLE_DEVICES=$2
   cd $W/src
-  python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py tests/test_rendering_cuda.py 2>&1 | tail -6
   # A few steps of both arms through the CUDA path with every speed row, so a bug shows early.
   python3 -m garo_ns.benchmark --scene /tmp/$scene --split val --iterations 200 --quick --gpus 0 --speed \
       --variants deform-splatfacto garo-prune0.5 --output $W/smoke/smoke.json --work-dir $W/smoke/runs \
@@ -48,10 +52,10 @@ smoke)
 import json, sys
 v = json.load(open(sys.argv[1]))["variants"]
 for name, row in v.items():
-    if "+graph" in name and "error" not in row:
-        plain = v.get(name.replace("+graph", ""), {})
+    for switch in ("+graph", "+lean"):  # exact switches: same PSNR as the row without them
+        plain = v.get(name.replace(switch, ""), {}) if switch in name and "error" not in row else {}
         if "psnr" in plain:
-            print(f"{name}: psnr {row['psnr']:.4f} vs {plain['psnr']:.4f} without graph, fps {row['fps']:.0f} vs {plain['fps']:.0f}")
+            print(f"{name}: psnr {row['psnr']:.4f} vs {plain['psnr']:.4f} without {switch}, fps {row['fps']:.0f} vs {plain['fps']:.0f}")
     if "error" in row:
         print(f"{name}: ERROR {row['error']}")
 PY

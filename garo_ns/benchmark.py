@@ -426,7 +426,8 @@ def run(args: BenchArgs) -> Dict[str, Any]:
         "background": args.background,
         "iterations_full_schedule": FULL_ITERATIONS,
         "fps_protocol": "mean over views of synchronised (deformation MLP + rasterization) time, "
-        f"{args.warmup_views} warm-up views dropped, {args.timing_repeats} passes, full resolution",
+        f"{args.warmup_views} warm-up views dropped, {args.timing_repeats} passes, full resolution, "
+        "camera matrices prepared on the device before timing",
         "variants": variants,
     }
     base = variants.get("deform-splatfacto")

@@ -41,11 +41,18 @@ def precision(mode: Precision, device: torch.device) -> Iterator[None]:
         yield
 
 
-def positional_encoding(x: Tensor, n_freqs: int) -> Tensor:
-    """[x, sin(2^k x), cos(2^k x) for k < n_freqs] along the last axis: D * (1 + 2 n_freqs) features."""
+def frequency_bands(n_freqs: int, device: torch.device | None = None) -> Tensor:
+    """2^k for k < n_freqs (exact in floating point)."""
+    return 2.0 ** torch.arange(n_freqs, device=device, dtype=torch.float32)
+
+
+def positional_encoding(x: Tensor, n_freqs: int, freqs: Tensor | None = None) -> Tensor:
+    """[x, sin(2^k x), cos(2^k x) for k < n_freqs] along the last axis: D * (1 + 2 n_freqs) features.
+    `freqs`: `frequency_bands(n_freqs)` made beforehand (saves two kernels a call)."""
     if n_freqs == 0:
         return x
-    freqs = 2.0 ** torch.arange(n_freqs, device=x.device, dtype=x.dtype)
+    freqs = frequency_bands(n_freqs, x.device) if freqs is None else freqs
+    freqs = freqs.to(x.dtype)
     angles = (x[..., None, :] * freqs[:, None]).flatten(-2)
     return torch.cat([x, torch.sin(angles), torch.cos(angles)], dim=-1)
 
@@ -75,6 +82,9 @@ class DeformationField(nn.Module):
         if head_init not in HEAD_INITS:
             raise ValueError(f"head_init must be one of {HEAD_INITS}, got {head_init!r}")
         self.pos_freqs, self.time_freqs, self.skip = pos_freqs, time_freqs, skip
+        # Not saved: fixed by the two counts, and checkpoints from before them load unchanged.
+        self.register_buffer("pos_bands", frequency_bands(pos_freqs), persistent=False)
+        self.register_buffer("time_bands", frequency_bands(time_freqs), persistent=False)
         in_dim = 3 * (1 + 2 * pos_freqs) + (1 + 2 * time_freqs)
         layers = [nn.Linear(in_dim, width)]
         for i in range(depth - 1):
@@ -91,7 +101,13 @@ class DeformationField(nn.Module):
     def _encode(self, xyz: Tensor, time: Tensor | float) -> Tensor:
         t = torch.as_tensor(time, dtype=xyz.dtype, device=xyz.device)
         t = t.reshape(-1, 1).expand(xyz.shape[0], 1)
-        return torch.cat([positional_encoding(xyz, self.pos_freqs), positional_encoding(t, self.time_freqs)], dim=-1)
+        return torch.cat(
+            [
+                positional_encoding(xyz, self.pos_freqs, self.pos_bands),
+                positional_encoding(t, self.time_freqs, self.time_bands),
+            ],
+            dim=-1,
+        )
 
     def hidden(self, xyz: Tensor, time: Tensor | float) -> List[Tensor]:
         """The ReLU output of every hidden layer [N, width] (before the skip concatenation)."""

@@ -34,10 +34,10 @@ from torch.nn import Parameter
 from garo_ns.deformation import DeformationField, Precision, field_health, precision
 from garo_ns.errors import GaroTrainingError
 from garo_ns.garo_strategy import GaroStrategy
-from garo_ns.graphs import TimeGraph, graphs_available
+from garo_ns.graphs import InputGraph, TimeGraph, graphs_available
 from garo_ns.importance import least_contributing, view_contribution
 from garo_ns.metrics import make_lpips
-from garo_ns.rendering import Backend, rasterize
+from garo_ns.rendering import Backend, RenderView, lean_front, rasterize
 from garo_ns.sh import num_sh_bases
 from garo_ns.static import classify_static, motion_statistics
 
@@ -46,7 +46,8 @@ GAUSSIAN_KEYS = ("means", "scales", "quats", "features_dc", "features_rest", "op
 
 def viewmat_from_c2w(c2w: Tensor) -> Tensor:
     """World-to-camera [C, 4, 4] in gsplat's convention (OpenCV axes) from nerfstudio's c2w [C, 3, 4]."""
-    rot = c2w[:, :3, :3] * torch.tensor([1.0, -1.0, -1.0], device=c2w.device, dtype=c2w.dtype)
+    # Flip the y and z axes (OpenGL to OpenCV) without a host-to-device copy of a sign vector.
+    rot = torch.cat([c2w[:, :3, :1], -c2w[:, :3, 1:3]], dim=-1)
     rot_inv = rot.transpose(1, 2)
     view = torch.zeros(c2w.shape[0], 4, 4, device=c2w.device, dtype=c2w.dtype)
     view[:, :3, :3] = rot_inv
@@ -159,7 +160,9 @@ class GaroModelConfig(SplatfactoModelConfig):
     cuda_graph: bool = False
     """When not training on CUDA, run everything between the time and the rasterizer (MLP,
     composition, activations) as one captured CUDA graph instead of dozens of kernel launches;
-    captured again when the Gaussians or the render switches change. Same arithmetic as without."""
+    captured again when the Gaussians or the render switches change. Same arithmetic as without.
+    With `lean_raster` too, the camera's share (projection, view directions, visibility) is a
+    second graph, fed the camera's matrices."""
     lean_raster: bool = False
     """When not training on CUDA, call gsplat's kernels directly instead of its general Python
     wrapper (garo_ns.rendering.rasterize_lean): same kernels and pixels, less Python per frame."""
@@ -309,8 +312,9 @@ class GaroModel(SplatfactoModel):
         self._train_cameras: Optional[Cameras] = None
         self._last_step: Optional[int] = None
         self._deform_cache: Optional[Tuple[Any, Tuple[Tensor, Tensor, Tensor]]] = None
-        self._static_cache: Optional[Tuple[Any, Tensor, Tuple[Tensor, Tensor, Tensor]]] = None
+        self._static_cache: Optional[Tuple[Any, Tensor, Tuple[Tensor, ...], Tuple[Tensor, ...]]] = None
         self._graph = TimeGraph()
+        self._camera_graph = InputGraph()
         self.health_log: List[Dict[str, Any]] = []
 
     # ------------------------------------------------------------------ parameters
@@ -422,20 +426,24 @@ class GaroModel(SplatfactoModel):
         self._deform_cache = (key, out) if cache else None
         return out
 
-    def _render_field(self, time: Union[float, Tensor], versions: Tuple[Any, ...]) -> Tuple[Tensor, Tensor, Tensor]:
+    def _render_field(
+        self, time: Union[float, Tensor], versions: Tuple[Any, ...], in_place: bool = False
+    ) -> Tuple[Tensor, Tensor, Tensor]:
         """The deformed Gaussians as rendered outside training: `render_precision`, and with
-        `static_skip` the MLP only on dynamic Gaussians. `time` may be a device scalar (graphs)."""
+        `static_skip` the MLP only on dynamic Gaussians. `time` may be a device scalar (graphs).
+        `in_place` writes the dynamic rows into the cached frozen tensors and returns those (for a
+        CUDA graph, whose outputs are overwritten by each replay anyway; their static rows never
+        change, and the copying path overwrites every dynamic row it reads from them)."""
         with precision(self.config.render_precision, self.means.device):
             split = self._static_split(versions) if self.config.static_skip else None
             if split is None:
                 return self._apply_field(time)
-            dynamic, (means, quats, scales) = split
-            d_xyz, d_rot, d_scale = self.deformation(self.means.detach()[dynamic], time)
-            return (
-                means.index_copy(0, dynamic, self.means[dynamic] + d_xyz),
-                quats.index_copy(0, dynamic, F.normalize(self.quats[dynamic], dim=-1) + d_rot),
-                scales.index_copy(0, dynamic, self.scales[dynamic] + d_scale),
-            )
+            dynamic, frozen, canonical = split
+            d_xyz, d_rot, d_scale = self.deformation(canonical[0], time)
+            moved = (canonical[0] + d_xyz, canonical[1] + d_rot, canonical[2] + d_scale)
+            if in_place:
+                return tuple(f.index_copy_(0, dynamic, m) for f, m in zip(frozen, moved))  # type: ignore[return-value]
+            return tuple(f.index_copy(0, dynamic, m) for f, m in zip(frozen, moved))  # type: ignore[return-value]
 
     def splat_inputs(self, time: float, cache: bool = False) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         """What the rasterizer takes at `time`: means, quaternions, scales, opacities [N] and SH
@@ -452,8 +460,9 @@ class GaroModel(SplatfactoModel):
             key = (self.config.render_precision, self.config.static_skip, active, versions)
 
             def step(t: Tensor) -> Tuple[Tensor, ...]:
-                field = self._render_field(t, versions) if active else (self.means, self.quats, self.scales)
-                return self._activated(*field)
+                if not active:
+                    return self._activated(self.means, self.quats, self.scales)
+                return self._activated(*self._render_field(t, versions, in_place=True))
 
             return self._graph(key, step, time, self.device, reuse=cache)  # type: ignore[return-value]
         return self._activated(*self.deformed_gaussians(time, cache=cache))
@@ -485,23 +494,23 @@ class GaroModel(SplatfactoModel):
         # Storage pointer too: assigning `.data` (checkpoint loading) keeps identity and version.
         return tuple((id(t), t._version, t.data_ptr()) for t in tensors)
 
-    def _static_split(self, key: Tuple[Any, ...]) -> Optional[Tuple[Tensor, Tuple[Tensor, Tensor, Tensor]]]:
-        """Indices of the dynamic Gaussians and every Gaussian with its frozen offsets applied, or
-        None when no valid classification exists (e.g. a checkpoint from before it was added).
-        Recomputed only when `key` (the parameters' versions) changes."""
+    def _static_split(self, key: Tuple[Any, ...]) -> Optional[Tuple[Tensor, Tuple[Tensor, ...], Tuple[Tensor, ...]]]:
+        """Indices of the dynamic Gaussians, every Gaussian with its frozen offsets applied (means,
+        normalised quaternions, log-scales) and the dynamic Gaussians' canonical values (same
+        three, what the MLP and its offsets start from), or None when no valid classification
+        exists (e.g. a checkpoint from before it was added). Recomputed only when `key` (the
+        parameters' versions) changes, so a frame gathers nothing."""
         static, offset = self.strategy_state.get("static"), self.strategy_state.get("static_offset")
         if not isinstance(static, Tensor) or not isinstance(offset, Tensor) or static.shape[0] != self.num_points:
             return None
         if self._static_cache is None or self._static_cache[0] != key:
             dynamic = torch.nonzero(~static.to(self.device)).squeeze(-1)
             off = offset.to(self.device)
-            frozen = (
-                self.means + off[:, :3],
-                F.normalize(self.quats, dim=-1) + off[:, 3:7],
-                self.scales + off[:, 7:],
-            )
-            self._static_cache = (key, dynamic, frozen)
-        return self._static_cache[1], self._static_cache[2]
+            quats = F.normalize(self.quats, dim=-1)
+            frozen = (self.means + off[:, :3], quats + off[:, 3:7], self.scales + off[:, 7:])
+            canonical = (self.means.detach()[dynamic], quats[dynamic], self.scales[dynamic])
+            self._static_cache = (key, dynamic, frozen, canonical)
+        return self._static_cache[1:]
 
     def static_fraction(self) -> Optional[float]:
         """Share of Gaussians currently classified static, or None before any classification."""
@@ -620,6 +629,62 @@ class GaroModel(SplatfactoModel):
             CONSOLE.print(f"step {step}: pruned {int(mask.sum())} least contributing Gaussians, {self.num_points} left")
 
     # ------------------------------------------------------------------ rendering
+    def camera_view(self, camera: Cameras, c2w: Optional[Tensor] = None) -> RenderView:
+        """`camera` (one) as the rasterizer takes it, at this step's resolution; `c2w` replaces
+        its pose (the camera optimizer's correction during training)."""
+        c2w = camera.camera_to_worlds if c2w is None else c2w
+        scale = self._get_downscale_factor()
+        camera.rescale_output_resolution(1 / scale)
+        K = camera.get_intrinsics_matrices().to(self.device)
+        width, height = int(camera.width.item()), int(camera.height.item())
+        camera.rescale_output_resolution(scale)
+        return RenderView(viewmat_from_c2w(c2w.to(self.device)), K, width, height, self.camera_time(camera))
+
+    def render(
+        self,
+        view: RenderView,
+        render_mode: str = "RGB",
+        backgrounds: Optional[Tensor] = None,
+        inputs: Optional[Tuple[Tensor, ...]] = None,
+    ) -> Tuple[Tensor, Tensor, Dict[str, Any]]:
+        """Deform to `view.time` (or take `inputs`, `splat_inputs`'s outputs) and rasterize:
+        render [1, H, W, C], alpha [1, H, W, 1] and the rasterizer's info. Outside training with
+        `cuda_graph` and `lean_raster` on CUDA, the projection of the graph-deformed Gaussians
+        replays as a second CUDA graph."""
+        if inputs is None:
+            inputs = self.splat_inputs(view.time, cache=self.config.cache_deformation)
+        means, quats, scales, opacities, colors = inputs
+        sh_degree = min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
+        lean = self.config.lean_raster and not self.training
+        front = None
+        graphed = self._graph.outputs is not None and means is self._graph.outputs[0]
+        if lean and graphed and render_mode in ("RGB", "RGB+ED") and not torch.is_grad_enabled():
+            # The field graph's buffers are fixed until it is captured again (its capture count).
+            key = (self._graph.captures, view.width, view.height)
+            front = self._camera_graph(
+                key,
+                lambda viewmat, K: lean_front(means, quats, scales, viewmat, K, view.width, view.height, True),
+                view.viewmat,
+                view.K,
+            )
+        return rasterize(
+            means=means,
+            quats=quats,
+            scales=scales,
+            opacities=opacities,
+            colors=colors,
+            viewmats=view.viewmat,
+            Ks=view.K,
+            width=view.width,
+            height=view.height,
+            sh_degree=sh_degree,
+            backgrounds=backgrounds,
+            render_mode=render_mode,  # type: ignore[arg-type]
+            backend=self.config.rasterizer,
+            lean=lean,
+            front=front,
+        )
+
     def get_outputs(self, camera: Cameras) -> Dict[str, Union[Tensor, List]]:
         if not isinstance(camera, Cameras):
             raise TypeError(f"get_outputs needs a Cameras object, got {type(camera).__name__}")
@@ -629,42 +694,20 @@ class GaroModel(SplatfactoModel):
             c2w = self.camera_optimizer.apply_to_camera(camera)
         else:
             c2w = camera.camera_to_worlds
-        time = self.camera_time(camera)
-        means, quats, scales, opacities, colors = self.splat_inputs(time, cache=self.config.cache_deformation)
+        view = self.camera_view(camera, c2w)
+        inputs = self.splat_inputs(view.time, cache=self.config.cache_deformation)
 
         if self.crop_box is not None and not self.training:
-            keep = self.crop_box.within(means).squeeze()
+            keep = self.crop_box.within(inputs[0]).squeeze()
             if keep.sum() == 0:
-                return self.get_empty_outputs(
-                    int(camera.width.item()), int(camera.height.item()), self.background_color
-                )
-            means, quats, scales, opacities, colors = (x[keep] for x in (means, quats, scales, opacities, colors))
-
-        scale = self._get_downscale_factor()
-        camera.rescale_output_resolution(1 / scale)
-        K = camera.get_intrinsics_matrices().to(self.device)
-        W, H = int(camera.width.item()), int(camera.height.item())
-        camera.rescale_output_resolution(scale)
+                return self.get_empty_outputs(view.width, view.height, self.background_color)
+            inputs = tuple(x[keep] for x in inputs)
+        means, quats, scales = inputs[:3]
+        W, H = view.width, view.height
         self.last_size = (H, W)
-        viewmat = viewmat_from_c2w(c2w.to(self.device))
 
         render_mode = "RGB+ED" if (self.config.output_depth_during_training or not self.training) else "RGB"
-        sh_degree = min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
-        render, alpha, info = rasterize(
-            means=means,
-            quats=quats,
-            scales=scales,
-            opacities=opacities,
-            colors=colors,
-            viewmats=viewmat,
-            Ks=K,
-            width=W,
-            height=H,
-            sh_degree=sh_degree,
-            render_mode=render_mode,
-            backend=self.config.rasterizer,
-            lean=self.config.lean_raster and not self.training,
-        )
+        render, alpha, info = self.render(view, render_mode, inputs=inputs)
         # What the strategy may read without knowing the model (no copies: detached views).
         info["means3d"] = means.detach()
         info["quats3d"] = quats.detach()

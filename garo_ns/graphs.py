@@ -60,22 +60,66 @@ class TimeGraph:
 
     def _capture(self, fn: Callable[[Tensor], Tuple[Tensor, ...]], time: float, device: torch.device) -> None:
         self.time = torch.full((), float(time), device=device)
-        # Warm-up on a side stream (lazy cuBLAS/allocator set-up must not happen during capture).
-        stream = torch.cuda.Stream(device=device)
-        stream.wait_stream(torch.cuda.current_stream(device))
-        with torch.cuda.stream(stream):
-            for _ in range(self.warmup):
-                fn(self.time)
-        torch.cuda.current_stream(device).wait_stream(stream)
-        graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(graph):
-            self.outputs = fn(self.time)
-        self.graph = graph
+        self.graph, self.outputs = capture(fn, (self.time,), device, self.warmup)
         self.captures += 1
 
     def release(self) -> None:
         """Drop the graph and its memory pool (e.g. when the Gaussians change)."""
         self.key, self.graph, self.outputs, self.time, self.last_time = None, None, None, None, None
+
+
+class InputGraph:
+    """A CUDA graph of `fn(*inputs)` for one key, the inputs being small tensors (a camera's
+    matrices) copied into the graph's own buffers before each replay; captured again whenever the
+    key or the inputs' shapes change. As with TimeGraph, the key must change whenever anything
+    else `fn` reads changes, and the returned tensors are overwritten by the next call."""
+
+    def __init__(self, warmup: int = 2):
+        self.warmup = warmup
+        self.key: Optional[Hashable] = None
+        self.graph: Optional[torch.cuda.CUDAGraph] = None
+        self.inputs: Tuple[Tensor, ...] = ()
+        self.outputs: Any = None
+        self.captures = 0
+
+    def __call__(self, key: Hashable, fn: Callable[..., Any], *inputs: Tensor) -> Any:
+        """`fn(*inputs)` by graph replay, capturing it first for a new key or new input shapes."""
+        if torch.is_grad_enabled():
+            raise RuntimeError("InputGraph replays inference only; call it under torch.no_grad()")
+        key = (key, tuple((x.shape, x.dtype, x.device) for x in inputs))
+        if self.key != key or self.graph is None:
+            self.release()
+            self.inputs = tuple(x.detach().clone() for x in inputs)
+            self.graph, self.outputs = capture(fn, self.inputs, self.inputs[0].device, self.warmup)
+            self.key = key
+            self.captures += 1
+        else:
+            for buffer, x in zip(self.inputs, inputs):
+                buffer.copy_(x)
+        self.graph.replay()
+        return self.outputs
+
+    def release(self) -> None:
+        """Drop the graph, its buffers and its memory pool."""
+        self.key, self.graph, self.inputs, self.outputs = None, None, (), None
+
+
+def capture(
+    fn: Callable[..., Any], args: Tuple[Tensor, ...], device: torch.device, warmup: int
+) -> Tuple[torch.cuda.CUDAGraph, Any]:
+    """Capture `fn(*args)` as a CUDA graph (after `warmup` eager runs on a side stream, so that
+    lazy cuBLAS and allocator set-up does not happen during capture); returns the graph and the
+    outputs it writes on each replay. The capture itself computes nothing: replay to get values."""
+    stream = torch.cuda.Stream(device=device)
+    stream.wait_stream(torch.cuda.current_stream(device))
+    with torch.cuda.stream(stream):
+        for _ in range(warmup):
+            fn(*args)
+    torch.cuda.current_stream(device).wait_stream(stream)
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        outputs = fn(*args)
+    return graph, outputs
 
 
 def graphs_available(device: torch.device) -> bool:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import math
-from typing import Any, Callable, ContextManager, Dict, Literal, Optional, Tuple
+from typing import Any, Callable, ContextManager, Dict, Literal, NamedTuple, Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -56,12 +56,14 @@ def rasterize(
     far_plane: float = 1e10,
     backend: Backend = "auto",
     lean: bool = False,
+    front: Optional[Front] = None,
 ) -> Tuple[Tensor, Tensor, Dict[str, Any]]:
     """Render with classic (non-antialiased) 3DGS rasterization, unpacked, plain gradients.
 
     Same arguments and outputs on both backends; `info` always carries means2d (with grad after
     backward), radii, width, height and n_cameras for the densification strategies. `lean`: on
-    CUDA without autograd, call the kernels directly (`rasterize_lean`); ignored otherwise.
+    CUDA without autograd, call the kernels directly (`rasterize_lean`, which takes `front` when
+    the caller has it); ignored otherwise.
     """
     on_cuda = resolve_backend(backend, means.device) == "cuda"
     if on_cuda and lean and not torch.is_grad_enabled() and render_mode in ("RGB", "RGB+ED"):
@@ -80,6 +82,7 @@ def rasterize(
             with_depth=render_mode == "RGB+ED",
             near_plane=near_plane,
             far_plane=far_plane,
+            front=front,
         )
     if on_cuda:
         from gsplat import rasterization
@@ -122,10 +125,72 @@ def rasterize(
 
 
 TILE_SIZE = 16
+EPS2D = 0.3  # gsplat's classic-mode low-pass: added to the 2D covariance's diagonal
+
+
+class RenderView(NamedTuple):
+    """One camera as the rasterizer takes it, prepared once: world-to-camera [1, 4, 4] and
+    intrinsics [1, 3, 3] on the render device, image size, and the time to deform to."""
+
+    viewmat: Tensor
+    K: Tensor
+    width: int
+    height: int
+    time: float
+
+
+# What the lean path computes before sorting: radii, means2d, depths, conics, view directions and
+# the visibility mask (the last two only when colours come from SH).
+Front = Tuple[Tensor, Tensor, Tensor, Tensor, Optional[Tensor], Optional[Tensor]]
+
+
+def _kernels() -> Any:
+    from gsplat.cuda._backend import _C
+
+    return _C
 
 
 def _no_stage(name: str) -> ContextManager[Any]:
     return contextlib.nullcontext()
+
+
+def lean_front(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    with_sh: bool,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+) -> Front:
+    """Projection (gsplat's fused kernel, classic mode, unpacked) and, for SH colours, the view
+    directions and visibility mask. Fixed-shape work on the current stream: a CUDA graph can
+    capture it (the SH kernel itself cannot: it launches on the legacy default stream)."""
+    radii, means2d, depths, conics, _ = _kernels().fully_fused_projection_fwd(
+        means.contiguous(),
+        None,
+        quats.contiguous(),
+        scales.contiguous(),
+        viewmats.contiguous(),
+        Ks.contiguous(),
+        width,
+        height,
+        EPS2D,
+        near_plane,
+        far_plane,
+        0.0,  # no radius clip
+        False,  # no antialiasing compensation
+        _kernels().CameraModelType.PINHOLE,
+    )
+    if not with_sh:
+        return radii, means2d, depths, conics, None, None
+    # Camera centre in closed form (-R^T t): the world-to-camera matrices are rigid.
+    rot, trans = viewmats[:, :3, :3], viewmats[:, :3, 3:4]
+    campos = -(rot.transpose(1, 2) @ trans).squeeze(-1)
+    return radii, means2d, depths, conics, means[None] - campos[:, None], radii > 0
 
 
 def rasterize_lean(
@@ -144,69 +209,55 @@ def rasterize_lean(
     near_plane: float = 0.01,
     far_plane: float = 1e10,
     stage: Callable[[str], ContextManager[Any]] = _no_stage,
+    front: Optional[Front] = None,
 ) -> Tuple[Tensor, Tensor, Dict[str, Any]]:
-    """Inference-only CUDA rasterization: gsplat's five kernels (projection, SH colours, tile
-    intersection, tile offsets, compositing) with the arguments `rasterize` gives them, without
-    the general wrapper's per-call Python (argument checks, packing, distributed and
-    antialiasing branches, a 4x4 inverse for the camera centre). Same pixels as `rasterize`.
-    `stage(name)` wraps each step (projection, color, sorting, compositing): the frame profile
-    times them there.
+    """Inference-only CUDA rasterization: gsplat's kernels (projection, SH colours, tile
+    intersection, tile offsets, compositing) called directly with the arguments `rasterize`
+    gives them, without the general wrapper's per-call Python (argument checks, autograd
+    functions, packing, distributed and antialiasing branches, a 4x4 inverse for the camera
+    centre). Same pixels as `rasterize`. `front`: `lean_front`'s outputs when the caller has
+    them (e.g. from a CUDA graph replay); computed here otherwise. `stage(name)` wraps each step
+    (projection, color, sorting, compositing): the frame profile times them there.
     """
-    from gsplat.cuda._wrapper import (
-        fully_fused_projection,
-        isect_offset_encode,
-        isect_tiles,
-        rasterize_to_pixels,
-        spherical_harmonics,
-    )
-
+    kernels = _kernels()
     n_cams = viewmats.shape[0]
     with stage("projection"):
-        radii, means2d, depths, conics, _ = fully_fused_projection(
-            means,
-            None,
-            quats,
-            scales,
-            viewmats,
-            Ks,
-            width,
-            height,
-            packed=False,
-            near_plane=near_plane,
-            far_plane=far_plane,
-        )
+        if front is None:
+            front = lean_front(
+                means, quats, scales, viewmats, Ks, width, height, sh_degree is not None, near_plane, far_plane
+            )
+        radii, means2d, depths, conics, dirs, visible = front
     with stage("color"):
         if sh_degree is None:
             rgb = colors.expand(n_cams, *colors.shape) if colors.dim() == 2 else colors
         else:
-            # Camera centre in closed form (-R^T t): the world-to-camera matrices are rigid.
-            rot, trans = viewmats[:, :3, :3], viewmats[:, :3, 3:4]
-            campos = -(rot.transpose(1, 2) @ trans).squeeze(-1)
-            dirs = means[None] - campos[:, None]
-            rgb = spherical_harmonics(sh_degree, dirs, colors.expand(n_cams, *colors.shape), masks=radii > 0)
-            rgb = torch.clamp_min(rgb + 0.5, 0.0)
+            rgb = kernels.compute_sh_fwd(sh_degree, dirs, colors.expand(n_cams, *colors.shape), visible)
+            rgb = rgb.add_(0.5).clamp_min_(0.0)
         if with_depth:
             rgb = torch.cat([rgb, depths[..., None]], dim=-1)
             if backgrounds is not None:
                 backgrounds = torch.cat([backgrounds, backgrounds.new_zeros(n_cams, 1)], dim=-1)
     with stage("sorting"):
         tiles_w, tiles_h = math.ceil(width / TILE_SIZE), math.ceil(height / TILE_SIZE)
-        _, isect_ids, flatten_ids = isect_tiles(
-            means2d, radii, depths, TILE_SIZE, tiles_w, tiles_h, packed=False, n_cameras=n_cams
+        _, isect_ids, flatten_ids = kernels.isect_tiles(
+            means2d, radii, depths, None, None, n_cams, TILE_SIZE, tiles_w, tiles_h, True, True
         )
-        offsets = isect_offset_encode(isect_ids, n_cams, tiles_w, tiles_h)
+        offsets = kernels.isect_offset_encode(isect_ids, n_cams, tiles_w, tiles_h)
     with stage("compositing"):
-        render, alpha = rasterize_to_pixels(
+        if rgb.shape[-1] not in (3, 4):
+            raise ValueError(f"the lean path composites 3 or 4 channels, got {rgb.shape[-1]}")
+        render, alpha, _ = kernels.rasterize_to_pixels_fwd(
             means2d,
             conics,
-            rgb,
-            opacities.expand(n_cams, -1),
+            rgb.contiguous(),
+            opacities.expand(n_cams, -1).contiguous(),
+            None if backgrounds is None else backgrounds.contiguous(),
+            None,
             width,
             height,
             TILE_SIZE,
             offsets,
             flatten_ids,
-            backgrounds=backgrounds,
         )
     if with_depth:  # expected depth, as gsplat's RGB+ED
         render = torch.cat([render[..., :-1], render[..., -1:] / alpha.clamp_min(1e-10)], dim=-1)

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from garo_ns.deformation import DeformationField, precision
-from garo_ns.graphs import TimeGraph
+from garo_ns.graphs import InputGraph, TimeGraph
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
 
@@ -55,3 +55,30 @@ def test_replay_refuses_autograd():
     field, xyz = _field(), torch.rand(10, 3, device="cuda")
     with pytest.raises(RuntimeError, match="inference only"):
         TimeGraph()("k", lambda t: field(xyz, t), 0.1, xyz.device)
+
+
+@torch.no_grad()
+def test_input_graph_replays_new_inputs_and_recaptures_on_new_shapes():
+    weight = torch.randn(64, 32, device="cuda")
+
+    def fn(a, b):
+        return torch.relu(a @ weight + b), (a > 0).sum(-1)
+
+    graph = InputGraph()
+    for seed in range(3):
+        torch.manual_seed(seed)
+        a, b = torch.randn(100, 64, device="cuda"), torch.randn(32, device="cuda")
+        replay = [x.clone() for x in graph("k", fn, a, b)]
+        for x, y in zip(replay, fn(a, b)):
+            torch.testing.assert_close(x, y, rtol=0, atol=0)
+    assert graph.captures == 1
+    smaller = torch.randn(50, 64, device="cuda")
+    out = graph("k", fn, smaller, b)
+    assert graph.captures == 2 and out[0].shape == (50, 32)
+    graph("other", fn, smaller, b)
+    assert graph.captures == 3
+
+
+def test_input_graph_refuses_autograd():
+    with pytest.raises(RuntimeError, match="inference only"):
+        InputGraph()("k", lambda a: a * 2, torch.ones(3, device="cuda"))

@@ -283,3 +283,15 @@ def test_bad_inputs_raise_value_errors_naming_the_argument():
         rasterize(means, quats, scales, opac, colors, views, Ks, 0, H)
     with pytest.raises(ValueError, match="colors"):
         rasterize(means, quats, scales, opac, colors, views, Ks, W, H, sh_degree=3)
+
+
+def test_viewmat_inverts_the_pose_with_opencv_axes():
+    from garo_ns.garo_model import viewmat_from_c2w
+
+    torch.manual_seed(0)
+    rot, _ = torch.linalg.qr(torch.randn(2, 3, 3))
+    c2w = torch.cat([rot, torch.randn(2, 3, 1)], dim=-1)
+    flipped = torch.eye(4).repeat(2, 1, 1)
+    flipped[:, :3, :4] = c2w
+    flipped[:, :3, 1:3] *= -1  # OpenGL camera axes (nerfstudio) to OpenCV (gsplat)
+    torch.testing.assert_close(viewmat_from_c2w(c2w), torch.linalg.inv(flipped), rtol=0, atol=1e-5)

@@ -6,7 +6,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from garo_ns.rendering import rasterize
+from garo_ns.graphs import InputGraph
+from garo_ns.rendering import lean_front, rasterize, rasterize_lean
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="gsplat's kernels need a CUDA device")
 
@@ -44,3 +45,24 @@ def test_lean_is_ignored_under_autograd():
     render, _, info = rasterize(means, quats, scales, opacities, colors, viewmat, K, 64, 48, sh_degree=3, lean=True)
     render.sum().backward()
     assert means.grad is not None and "gaussian_ids" in info  # gsplat's own path, with its info
+
+
+@torch.no_grad()
+@pytest.mark.parametrize("with_depth", [False, True])
+def test_projection_graph_gives_the_lean_pixels(with_depth):
+    # The model's camera graph: projection, view directions and visibility captured once, then
+    # replayed for each camera; the SH and compositing kernels run after it.
+    means, quats, scales, opacities, colors, viewmat, K = _scene()
+    background = torch.tensor([[0.1, 0.2, 0.3]], device="cuda")
+    graph = InputGraph()
+    for shift in (0.0, 0.3, -0.2):
+        view = viewmat.clone()
+        view[0, 0, 3] += shift
+        front = graph("scene", lambda v, k: lean_front(means, quats, scales, v, k, 320, 240, True), view, K)
+        args = (means, quats, scales, opacities, colors, view, K, 320, 240, 3, background, with_depth)
+        ref, ref_alpha, _ = rasterize_lean(*args)
+        got, alpha, info = rasterize_lean(*args, front=front)
+        assert float(ref_alpha.mean()) > 0.05
+        assert torch.equal(alpha, ref_alpha) and torch.equal(got, ref)
+        assert info["radii"] is front[0]
+    assert graph.captures == 1

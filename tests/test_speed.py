@@ -158,6 +158,33 @@ def test_static_gaussians_render_like_the_full_field(garo_run):
     assert calls[0] == n and calls[1] == round(n * (1 - fraction))  # the MLP ran on dynamic Gaussians only
 
 
+def test_in_place_static_composition_matches_the_copying_one(garo_run):
+    # CUDA graphs write the dynamic rows into the cached frozen tensors; the copying path (viewer
+    # cache, export) must give the same values and stay right after such writes.
+    model = _eval_model(garo_run)
+    model.refresh_static()
+    static = torch.zeros(model.num_points, dtype=torch.bool)
+    static[::2] = True  # half static, half dynamic, whatever the field does
+    model.strategy_state["static"] = static
+    model.config.static_skip = True
+    try:
+        with torch.no_grad():
+            versions = model._param_versions()
+            copied = [x.clone() for x in model._render_field(0.2, versions)]
+            placed = model._render_field(0.2, versions, in_place=True)
+            for a, b in zip(copied, placed):
+                assert torch.equal(a, b)
+            model._render_field(0.9, versions, in_place=True)  # other values in the dynamic rows
+            for a, b in zip(copied, model._render_field(0.2, versions)):
+                assert torch.equal(a, b)
+            moved = model._render_field(0.9, versions)[0]
+            assert not torch.equal(moved[~static], copied[0][~static])  # the dynamic rows do move
+            assert torch.equal(moved[static], copied[0][static])  # the static ones do not
+    finally:
+        model.config.static_skip = False
+        model.refresh_static()
+
+
 def test_static_classification_survives_a_checkpoint(garo_run):
     from garo_ns.eval import load_run
 
