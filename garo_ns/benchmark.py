@@ -359,16 +359,22 @@ def write_report(result: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
     md = output.with_suffix(".md")
     md.write_text("\n".join(lines) + "\n")
 
-    fig, ax = plt.subplots(figsize=(6, 4.5))
+    # Points are numbered and named in a legend beside the axes: with the speed rows, many
+    # variants share a PSNR and their names would overprint each other.
+    fig, ax = plt.subplots(figsize=(10, 4.8))
     counts = [v["num_gaussians"] for v in variants.values()]
     top = max(counts) if counts else 1
-    for name, v in variants.items():
-        ax.scatter(v["fps"], v["psnr"], s=40 + 800 * v["num_gaussians"] / top, alpha=0.6)
-        ax.annotate(name, (v["fps"], v["psnr"]), textcoords="offset points", xytext=(6, 4), fontsize=8)
+    for i, (name, v) in enumerate(variants.items(), start=1):
+        ax.scatter(v["fps"], v["psnr"], s=40 + 800 * v["num_gaussians"] / top, alpha=0.6, label=f"{i}: {name}")
+        ax.annotate(str(i), (v["fps"], v["psnr"]), textcoords="offset points", xytext=(5, 4), fontsize=8)
     ax.set_xlabel("FPS (deformation + rasterization)")
     ax.set_ylabel(f"PSNR on {result['split']} (dB)")
     ax.set_title(f"{result['scene']}: marker area ~ number of Gaussians")
     ax.grid(alpha=0.3)
+    if variants:
+        legend = ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
+        for handle in legend.legend_handles:
+            handle.set_sizes([30])  # the legend names points; their size is in the axes
     fig.tight_layout()
     png = output.with_suffix(".png")
     fig.savefig(png, dpi=120)
