@@ -44,6 +44,9 @@ def test_average_of_per_scene_ratios():
     assert avg["lpips"] is None  # not measured everywhere: no average
     assert summary["average"]["deform-splatfacto"]["fps"] == pytest.approx(150.0)
     assert summary["shortened_scenes"] == ["b"]
+    claim = summary["paper_claim"]["garo-deform"]
+    assert claim["scenes_meeting"] == ["a"]  # 3x at 0.2 dB; b is 1x
+    assert claim["average_meets"]  # 2.0x at -0.1 dB on average
 
 
 def test_refuses_incomplete_or_duplicate_input(tmp_path):
@@ -70,4 +73,5 @@ def test_writes_json_table_and_plot(tmp_path):
     assert json.loads(out.read_text())["average"]["garo-deform"]["fps_ratio"] == pytest.approx(2.0)
     table = out.with_suffix(".md").read_text()
     assert "| average |  | garo-deform |" in table and "2.00x" in table
+    assert "garo-deform: met on average (2.00x at +0.10 dB); met on 2 of 2 scenes (a, b)." in table
     assert out.with_suffix(".png").stat().st_size > 1000
