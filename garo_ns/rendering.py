@@ -66,7 +66,10 @@ def rasterize(
     the caller has it); ignored otherwise.
     """
     on_cuda = resolve_backend(backend, means.device) == "cuda"
-    if on_cuda and lean and not torch.is_grad_enabled() and render_mode in ("RGB", "RGB+ED"):
+    # The lean path composites SH colours or plain RGB (plus depth); other channel counts need the
+    # wrapper's padding to a kernel-supported width, so they take gsplat's own path.
+    lean_fits = sh_degree is not None or colors.shape[-1] == 3
+    if on_cuda and lean and lean_fits and not torch.is_grad_enabled() and render_mode in ("RGB", "RGB+ED"):
         return rasterize_lean(
             means,
             quats,
@@ -219,6 +222,8 @@ def rasterize_lean(
     them (e.g. from a CUDA graph replay); computed here otherwise. `stage(name)` wraps each step
     (projection, color, sorting, compositing): the frame profile times them there.
     """
+    if sh_degree is None and colors.shape[-1] != 3:
+        raise ValueError(f"the lean path composites RGB colours, got {colors.shape[-1]} channels")
     kernels = _kernels()
     n_cams = viewmats.shape[0]
     with stage("projection"):
@@ -244,8 +249,6 @@ def rasterize_lean(
         )
         offsets = kernels.isect_offset_encode(isect_ids, n_cams, tiles_w, tiles_h)
     with stage("compositing"):
-        if rgb.shape[-1] not in (3, 4):
-            raise ValueError(f"the lean path composites 3 or 4 channels, got {rgb.shape[-1]}")
         render, alpha, _ = kernels.rasterize_to_pixels_fwd(
             means2d,
             conics,

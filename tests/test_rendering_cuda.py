@@ -66,3 +66,13 @@ def test_projection_graph_gives_the_lean_pixels(with_depth):
         assert torch.equal(alpha, ref_alpha) and torch.equal(got, ref)
         assert info["radii"] is front[0]
     assert graph.captures == 1
+
+
+@torch.no_grad()
+def test_lean_falls_back_for_channel_counts_it_cannot_composite():
+    means, quats, scales, opacities, _, viewmat, K = _scene(2000)
+    features = torch.rand(2000, 2, device="cuda")  # two channels, no SH: gsplat pads them
+    ref, _, _ = rasterize(means, quats, scales, opacities, features, viewmat, K, 64, 48)
+    lean, _, info = rasterize(means, quats, scales, opacities, features, viewmat, K, 64, 48, lean=True)
+    assert lean.shape[-1] == 2 and "gaussian_ids" in info  # gsplat's own path, with its info
+    torch.testing.assert_close(lean, ref, rtol=0, atol=0)
