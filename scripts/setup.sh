@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# Creates .venv with the pinned dependencies and the plugin installed (editable). Idempotent.
-# Needs Python >= 3.10 with venv; no GPU. Torch 2.14.1 + torchvision 0.29.1 are CUDA builds that
-# also run on CPU (the preinstalled CPU-only torch cannot import torchvision).
+# Creates .venv with the exact versions of requirements-lock.txt and the plugin installed (editable).
+# Idempotent. Needs Python >= 3.10 with venv; no GPU. pyproject.toml only states ranges (so that the
+# plugin can join an existing nerfstudio environment); the lock makes this set the same everywhere:
+# nerfstudio 1.1.5, gsplat 1.4.0, torch 2.14.1 + torchvision 0.29.1 (CUDA builds that also run on CPU).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 py=${PYTHON:-python3}
