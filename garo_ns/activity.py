@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, Dict, Optional, Tuple
+from typing import Any, Dict, Tuple
 
 import torch
 from torch import Tensor
@@ -54,9 +54,3 @@ def activity_candidates(activity: Tensor, tau: float, n_max: int) -> Tensor:
     order = torch.argsort(activity[idx], stable=True)
     return idx[order[: max(int(n_max), 0)]]
 
-
-def random_candidates(counts: Tensor, n_max: int, generator: Optional[torch.Generator] = None) -> Tensor:
-    """n_max Gaussians drawn uniformly without replacement among the visible ones (GCA-only ablation)."""
-    idx = torch.nonzero(counts > 0).squeeze(1)
-    perm = torch.randperm(idx.numel(), generator=generator, device="cpu").to(idx.device)
-    return idx[perm[: max(int(n_max), 0)]]

@@ -1,7 +1,9 @@
 """Time-conditioned deformation field of D-3DGS (Yang et al., CVPR 2024).
 
 An MLP of positional encodings of a Gaussian's canonical position and of time predicts offsets
-of its position, rotation (quaternion) and log-scale at that time.
+of its position, rotation (quaternion) and log-scale at that time. For synthetic scenes D-3DGS
+first passes the time encoding through a small network of its own (one hidden layer of 256, out
+`time_net` features); real captures feed the encoding directly (`time_net=0`).
 """
 
 from __future__ import annotations
@@ -75,17 +77,25 @@ class DeformationField(nn.Module):
         width: int = 256,
         skip: int = 4,
         head_init: HeadInit = "default",
+        time_net: int = 0,
     ):
         super().__init__()
         if depth < 1 or width < 1:
             raise ValueError(f"depth and width must be >= 1, got depth={depth}, width={width}")
+        if time_net < 0:
+            raise ValueError(f"time_net must be >= 0 (0: no time network), got {time_net}")
         if head_init not in HEAD_INITS:
             raise ValueError(f"head_init must be one of {HEAD_INITS}, got {head_init!r}")
         self.pos_freqs, self.time_freqs, self.skip = pos_freqs, time_freqs, skip
         # Not saved: fixed by the two counts, and checkpoints from before them load unchanged.
         self.register_buffer("pos_bands", frequency_bands(pos_freqs), persistent=False)
         self.register_buffer("time_bands", frequency_bands(time_freqs), persistent=False)
-        in_dim = 3 * (1 + 2 * pos_freqs) + (1 + 2 * time_freqs)
+        time_dim = 1 + 2 * time_freqs
+        # D-3DGS's time network for synthetic scenes: encoding -> 256 -> ReLU -> `time_net` features.
+        self.time_net = (
+            nn.Sequential(nn.Linear(time_dim, 256), nn.ReLU(), nn.Linear(256, time_net)) if time_net > 0 else None
+        )
+        in_dim = 3 * (1 + 2 * pos_freqs) + (time_net if time_net > 0 else time_dim)
         layers = [nn.Linear(in_dim, width)]
         for i in range(depth - 1):
             layers.append(nn.Linear(width + (in_dim if i == skip else 0), width))
@@ -100,14 +110,12 @@ class DeformationField(nn.Module):
 
     def _encode(self, xyz: Tensor, time: Tensor | float) -> Tensor:
         t = torch.as_tensor(time, dtype=xyz.dtype, device=xyz.device)
-        t = t.reshape(-1, 1).expand(xyz.shape[0], 1)
-        return torch.cat(
-            [
-                positional_encoding(xyz, self.pos_freqs, self.pos_bands),
-                positional_encoding(t, self.time_freqs, self.time_bands),
-            ],
-            dim=-1,
-        )
+        t_enc = positional_encoding(t.reshape(-1, 1), self.time_freqs, self.time_bands)
+        if self.time_net is not None:
+            t_enc = self.time_net(t_enc)
+        # One time (a scalar) is encoded once and broadcast: the time network runs on one row.
+        t_enc = t_enc.expand(xyz.shape[0], -1) if t_enc.shape[0] == 1 else t_enc
+        return torch.cat([positional_encoding(xyz, self.pos_freqs, self.pos_bands), t_enc.to(xyz.dtype)], dim=-1)
 
     def hidden(self, xyz: Tensor, time: Tensor | float) -> List[Tensor]:
         """The ReLU output of every hidden layer [N, width] (before the skip concatenation)."""

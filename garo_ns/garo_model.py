@@ -114,6 +114,10 @@ class GaroModelConfig(SplatfactoModelConfig):
     """Width of the deformation MLP."""
     deform_skip: int = 4
     """The input is concatenated again after this hidden layer."""
+    deform_time_net: int = 30
+    """D-3DGS's time network for synthetic scenes (`--is_blender`): the time encoding passes through
+    a 256-unit hidden layer to this many features before the MLP. 0: the encoding goes in directly,
+    as D-3DGS does for real captures (the `-real` presets)."""
     deform_warmup: int = 3000
     """Static warm-up: the deformation field is used from this step on (D-3DGS warm_up)."""
     deform_head_init: Literal["zero", "default"] = "default"
@@ -174,26 +178,28 @@ class GaroModelConfig(SplatfactoModelConfig):
 
     # --- GARO (geometry-aware redundancy optimisation) ---
     garo_mode: Literal["off", "oaa", "gca", "full"] = "full"
-    """off: plain densification (the D-3DGS baseline); oaa: activity only; gca: curvature only on a
-    random candidate set; full: activity candidates filtered by curvature (the paper's method)."""
+    """off: plain densification (the D-3DGS baseline); oaa: activity only (the paper's "w/o GCA");
+    gca: curvature only, every visible Gaussian a candidate (the paper's "w/o OAA"); full: activity
+    candidates filtered by curvature (the paper's method)."""
     tau_activity: float = 5e-5
-    """Candidates are Gaussians whose mean view-space gradient norm is below this."""
+    """Candidates are Gaussians whose mean view-space gradient norm is below this (the paper's)."""
     n_max: int = 10_000
-    """At most this many candidates (the least active) per GARO step."""
+    """At most this many candidates (the least active) per GARO step (the paper's)."""
     tau_curvature: float = 0.5
-    """Candidates whose curvature is below this are redundant."""
+    """Candidates whose curvature is below this are redundant (the paper's)."""
     rho_max: float = 0.02
-    """At most floor(rho_max * N) Gaussians are pruned per GARO step."""
+    """At most floor(rho_max * N) Gaussians are pruned per GARO step (the paper's default)."""
     k_neighbors: int = 10
-    """Neighbours for the curvature estimate."""
-    garo_start: int = 1000
-    """First step at which GARO may prune."""
-    garo_stop: int = 15000
-    """GARO prunes up to (not including) this step."""
-    garo_every: int = 500
-    """GARO prunes every this many steps (on refinement steps)."""
-    garo_seed: int = 0
-    """Seed of the random candidate set of the GCA-only ablation."""
+    """Neighbours for the curvature estimate (the paper's K)."""
+    garo_start: Optional[int] = None
+    """First step at which GARO may prune; None: the first refinement step (after `warmup_length`)."""
+    garo_stop: Optional[int] = None
+    """GARO prunes up to (not including) this step; None: `stop_split_at`, where densification ends."""
+    garo_every: Optional[int] = None
+    """GARO prunes every this many steps; None: `refine_every` (every densification step, as the paper)."""
+    garo_activity_window: Literal["training", "garo_step"] = "training"
+    """training: g_i is the mean over every iteration of training in which Gaussian i was visible
+    (the paper's equation); garo_step: the mean since the previous GARO step only."""
 
 
 class GaroModel(SplatfactoModel):
@@ -220,11 +226,18 @@ class GaroModel(SplatfactoModel):
         n = means.shape[0]
         if n < 4:
             raise ValueError(f"need at least 4 initial Gaussians, got {n}")
+        # As 3DGS/D-3DGS: scale from the RMS distance to the 3 nearest neighbours, identity
+        # rotation, and random points start nearly grey (SH DC of random / 255).
         dists, _ = self.k_nearest_sklearn(means, 3)
-        scales = torch.log(torch.from_numpy(dists).mean(-1, keepdim=True).clamp_min(1e-7)).repeat(1, 3)
-        quats = F.normalize(torch.randn(n, 4, generator=torch.Generator().manual_seed(1)), dim=-1)
+        rms = torch.from_numpy(dists).float().pow(2).mean(-1, keepdim=True).sqrt()
+        scales = torch.log(rms.clamp_min(1e-7)).repeat(1, 3)
+        quats = torch.zeros(n, 4)
+        quats[:, 0] = 1.0
         dim_sh = num_sh_bases(cfg.sh_degree)
-        features_dc = (colors - 0.5) / 0.28209479177387814 if colors is not None else torch.rand(n, 3)
+        if colors is not None:
+            features_dc = (colors - 0.5) / 0.28209479177387814
+        else:
+            features_dc = torch.rand(n, 3, generator=torch.Generator().manual_seed(1)) / 255.0
         features_rest = torch.zeros(n, dim_sh - 1, 3)
         opacities = torch.logit(torch.full((n, 1), 0.1))
         self.gauss_params = torch.nn.ParameterDict(
@@ -237,14 +250,7 @@ class GaroModel(SplatfactoModel):
                 "opacities": Parameter(opacities),
             }
         )
-        self.deformation = DeformationField(
-            cfg.deform_pos_freqs,
-            cfg.deform_time_freqs,
-            cfg.deform_depth,
-            cfg.deform_width,
-            cfg.deform_skip,
-            head_init=cfg.deform_head_init,
-        )
+        self.deformation = self._make_deformation()
         self.camera_optimizer = cfg.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu")
 
         from nerfstudio.models.splatfacto import SSIM
@@ -302,7 +308,7 @@ class GaroModel(SplatfactoModel):
                 garo_start_iter=cfg.garo_start,
                 garo_stop_iter=cfg.garo_stop,
                 garo_every=cfg.garo_every,
-                seed=cfg.garo_seed,
+                activity_window=cfg.garo_activity_window,
             )
         self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene_extent)
         # Static classification lives in the strategy state: densification and pruning keep it
@@ -316,6 +322,18 @@ class GaroModel(SplatfactoModel):
         self._graph = TimeGraph()
         self._camera_graph = InputGraph()
         self.health_log: List[Dict[str, Any]] = []
+
+    def _make_deformation(self) -> DeformationField:
+        cfg = self.config
+        return DeformationField(
+            cfg.deform_pos_freqs,
+            cfg.deform_time_freqs,
+            cfg.deform_depth,
+            cfg.deform_width,
+            cfg.deform_skip,
+            head_init=cfg.deform_head_init,
+            time_net=cfg.deform_time_net,
+        )
 
     # ------------------------------------------------------------------ parameters
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
@@ -717,7 +735,10 @@ class GaroModel(SplatfactoModel):
             self.strategy.step_pre_backward(self.gauss_params, self.optimizers, self.strategy_state, self.step, info)
 
         background = self.background_color.to(self.device)
-        rgb = torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0)
+        rgb = render[..., :3] + (1 - alpha) * background
+        # The training loss sees the render unclamped, as D-3DGS's does: a clamp would stop the
+        # gradient of every over-bright pixel (and with it part of the densification signal).
+        rgb = rgb if self.training else torch.clamp(rgb, 0.0, 1.0)
         depth = None
         if render_mode == "RGB+ED":
             depth = render[..., 3:4]
@@ -765,6 +786,13 @@ class GaroModel(SplatfactoModel):
         n = state_dict["gauss_params.means"].shape[0]
         for key, param in self.gauss_params.items():
             param.data = param.data.new_zeros((n,) + tuple(param.shape[1:]))
+        if self.deformation.time_net is not None and not any(k.startswith("deformation.time_net.") for k in state_dict):
+            # Written before the time network was part of the recipe: rebuild the field without it
+            # so the run renders as it was trained (an optimizer built earlier is not bound to it).
+            CONSOLE.print("[yellow]Checkpoint has no deformation time network: loading the field without it[/yellow]")
+            self.config.deform_time_net = 0
+            device = self.background_rgb.device
+            self.deformation = self._make_deformation().to(device)
         return torch.nn.Module.load_state_dict(self, state_dict, strict=strict)
 
     def get_extra_state(self) -> Dict[str, Any]:

@@ -7,11 +7,15 @@ A Gaussian is redundant when it is both
     tau_curvature, with normals from the smallest-scale axis carried through the deformation.
 At each GARO step at most floor(rho_max * N) redundant Gaussians are removed, flattest first.
 
-Activity is accumulated in the strategy's own tensors, on its own schedule, and reset after each
-GARO step, so g_i measures the window since the last one. Geometry is read at the time of the
-training camera of the GARO step: the model puts deformed positions (`means3d`) and rotations
-(`quats3d`) into the rasterizer's `info`; the canonical scales that choose the normal's axis are the
-strategy's own `params["scales"]`.
+As the paper places it, GARO runs inside adaptive density control: by default at every
+refinement step (every `refine_every` steps after `refine_start_iter`, until `refine_stop_iter`),
+just before the step's cloning, splitting and pruning. Activity is the paper's g_i: the mean over
+every iteration of training in which Gaussian i was visible (`activity_window="training"`); a
+Gaussian made by cloning or splitting inherits its parent's record, as gsplat's ops copy every
+per-Gaussian state row. `activity_window="garo_step"` restarts the mean after each GARO step.
+Geometry is read at the time of the GARO step's training camera: the model puts deformed
+positions (`means3d`) and rotations (`quats3d`) into the rasterizer's `info`; the canonical scales
+that choose the normal's axis are the strategy's own `params["scales"]`.
 """
 
 from __future__ import annotations
@@ -19,20 +23,14 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from typing import Any, Dict, Literal, Union
+from typing import Any, Dict, Literal, Optional, Tuple, Union
 
 import torch
 from gsplat.strategy import DefaultStrategy
 from gsplat.strategy.ops import remove
 from torch import Tensor
 
-from garo_ns.activity import (
-    accumulate,
-    activity_candidates,
-    mean_activity,
-    random_candidates,
-    visible_gradient_norms,
-)
+from garo_ns.activity import accumulate, activity_candidates, mean_activity, visible_gradient_norms
 from garo_ns.curvature import curvature
 from garo_ns.normals import normals
 
@@ -50,9 +48,11 @@ def select_redundant(
     tau_curvature: float,
     rho_max: float,
     k: int,
-    generator: torch.Generator | None = None,
 ) -> Dict[str, Any]:
     """GARO's joint measurement: which Gaussians to prune now.
+
+    Modes: "full" (the paper: activity candidates, then curvature), "oaa" (activity only, least
+    active first), "gca" (curvature only: every visible Gaussian is a candidate, flattest first).
 
     Returns a dict with `prune` (indices, at most floor(rho_max * N)), and the counts
     `candidates` and `redundant` for logging.
@@ -60,7 +60,7 @@ def select_redundant(
     n = points.shape[0]
     cap = int(math.floor(max(0.0, min(1.0, rho_max)) * n))
     if mode == "gca":
-        cand = random_candidates(counts, n_max, generator)
+        cand = torch.nonzero(counts > 0).squeeze(1)
     else:
         cand = activity_candidates(activity, tau_activity, n_max)
     if mode == "oaa":
@@ -78,12 +78,14 @@ class GaroStrategy(DefaultStrategy):
     """DefaultStrategy (clone, split, opacity and size pruning, opacity reset) plus GARO pruning.
 
     Args (beyond DefaultStrategy's):
-        mode: "full" (activity then curvature), "oaa" (activity only), "gca" (curvature only, on
-            n_max candidates drawn uniformly at random from the visible Gaussians, seeded).
+        mode: "full" (activity then curvature), "oaa" (activity only), "gca" (curvature only,
+            every visible Gaussian a candidate).
         tau_activity, n_max, tau_curvature, rho_max, k_neighbors: see the module docstring.
         garo_start_iter, garo_stop_iter, garo_every: GARO prunes at steps s with
-            start <= s < stop and s % every == 0; activity is accumulated until stop.
-        seed: seed of the random candidate draw (gca), combined with the step.
+            start <= s < stop and s % every == 0. None (the default) follows densification:
+            every refinement step, i.e. refine_start_iter < s < refine_stop_iter, s % refine_every == 0.
+        activity_window: "training" (mean over all visible iterations so far, the paper's g_i) or
+            "garo_step" (mean since the last GARO step).
     """
 
     mode: Literal["oaa", "gca", "full"] = "full"
@@ -92,10 +94,10 @@ class GaroStrategy(DefaultStrategy):
     tau_curvature: float = 0.5
     rho_max: float = 0.02
     k_neighbors: int = 10
-    garo_start_iter: int = 500
-    garo_stop_iter: int = 15_000
-    garo_every: int = 100
-    seed: int = 0
+    garo_start_iter: Optional[int] = None
+    garo_stop_iter: Optional[int] = None
+    garo_every: Optional[int] = None
+    activity_window: Literal["training", "garo_step"] = "training"
 
     def initialize_state(self, scene_scale: float = 1.0) -> Dict[str, Any]:
         state = super().initialize_state(scene_scale)
@@ -103,9 +105,17 @@ class GaroStrategy(DefaultStrategy):
         state.update({"garo_grad": None, "garo_count": None, "garo_last": {}})
         return state
 
+    def garo_schedule(self) -> Tuple[int, int, int]:
+        """(start, stop, every) of the GARO steps, with the unset ones taken from densification."""
+        start = self.refine_start_iter + 1 if self.garo_start_iter is None else self.garo_start_iter
+        stop = self.refine_stop_iter if self.garo_stop_iter is None else self.garo_stop_iter
+        every = self.refine_every if self.garo_every is None else self.garo_every
+        return start, stop, max(every, 1)
+
     def is_garo_step(self, step: int) -> bool:
         """Whether GARO prunes at this step."""
-        return self.garo_start_iter <= step < self.garo_stop_iter and step % max(self.garo_every, 1) == 0
+        start, stop, every = self.garo_schedule()
+        return start <= step < stop and step % every == 0
 
     def step_post_backward(
         self,
@@ -116,7 +126,7 @@ class GaroStrategy(DefaultStrategy):
         info: Dict[str, Any],
         packed: bool = False,
     ) -> None:
-        if step < self.garo_stop_iter:
+        if step < self.garo_schedule()[1]:
             self.update_activity(params, state, info, packed)
         if self.is_garo_step(step):
             keep = self.prune_redundant(params, optimizers, state, step, info)
@@ -154,9 +164,6 @@ class GaroStrategy(DefaultStrategy):
         if quats is None or quats.shape[0] != n:
             quats = params["quats"].detach()
         scales = torch.exp(params["scales"].detach())
-        gen = None
-        if self.mode == "gca":
-            gen = torch.Generator().manual_seed(self.seed * 1_000_003 + step)
         result = select_redundant(
             mean_activity(state["garo_grad"], state["garo_count"]),
             state["garo_count"],
@@ -168,7 +175,6 @@ class GaroStrategy(DefaultStrategy):
             self.tau_curvature,
             self.rho_max,
             self.k_neighbors,
-            gen,
         )
         prune = result["prune"]
         keep = None
@@ -177,9 +183,9 @@ class GaroStrategy(DefaultStrategy):
             mask[prune] = True
             remove(params=params, optimizers=optimizers, state=state, mask=mask)
             keep = ~mask
-        # A fresh window for the next GARO step.
-        state["garo_grad"].zero_()
-        state["garo_count"].zero_()
+        if self.activity_window == "garo_step":  # a fresh window for the next GARO step
+            state["garo_grad"].zero_()
+            state["garo_count"].zero_()
         if params["means"].is_cuda:
             torch.cuda.synchronize()
         state["garo_last"] = {

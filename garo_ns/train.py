@@ -45,9 +45,6 @@ class QuickSchedule:
         m.reset_alpha_every = 10
         m.stop_split_at = int(s * 0.6)
         m.sh_degree_interval = max(s // 8, 1)
-        m.garo_start = m.warmup_length
-        m.garo_stop = m.stop_split_at
-        m.garo_every = m.refine_every
         m.static_every = max(s // 10, 1)
         m.health_every = max(s // 6, 1)
         # The heads start at zero here: with this schedule's 6x deformation rate, a field starting

@@ -85,16 +85,26 @@ def test_activity_filters_candidates_and_oaa_mode_ranks_by_activity():
     assert few["candidates"] == 7
 
 
-def test_gca_mode_draws_a_seeded_random_candidate_set():
-    points, quats, scales = plane_and_sphere()
+def test_gca_mode_ranks_every_visible_gaussian_flattest_first():
+    # 12,000 visible Gaussians, more than any n_max = 10k sample: the flattest 100 sit on a plane
+    # at the end of the index range, every other Gaussian has neighbours whose normals turn.
+    g = torch.Generator().manual_seed(3)
+    n_noise, n_flat = 11_900, 100
+    noise_pts = torch.rand(n_noise, 3, generator=g) * 4 + torch.tensor([0.0, 0.0, 2.0])
+    noise_nrm = torch.nn.functional.normalize(torch.randn(n_noise, 3, generator=g), dim=-1)
+    flat_pts = torch.rand(n_flat, 3, generator=g) * 0.2
+    flat_pts[:, 2] = 0.0
+    sign = torch.where(torch.rand(n_flat, 1, generator=g) < 0.5, -1.0, 1.0)  # normals of both orientations
+    flat_nrm = torch.tensor([0.0, 0.0, 1.0]).expand(n_flat, 3) * sign
+    points, nrm = torch.cat([noise_pts, flat_pts]), torch.cat([noise_nrm, flat_nrm])
     n = len(points)
     activity, counts = torch.full((n,), 1.0), torch.ones(n)  # all active: only GCA can pick them
-    counts[:100] = 0  # never seen: never candidates
-    args = (activity, counts, points, normals(quats, scales), "gca", 5e-5, 200, 0.5, 0.1, 10)
-    a = select_redundant(*args, generator=torch.Generator().manual_seed(1))
-    b = select_redundant(*args, generator=torch.Generator().manual_seed(1))
-    assert torch.equal(a["prune"], b["prune"]) and a["candidates"] == 200
-    assert (a["prune"] >= 100).all() and (a["prune"] < 600).all()
+    counts[:50] = 0  # never seen: never candidates
+    out = select_redundant(activity, counts, points, nrm, "gca", 5e-5, 10_000, 0.5, 100 / n + 1e-9, 10)
+    assert out["candidates"] == n - 50  # every visible Gaussian, not a sample of n_max
+    assert sorted(out["prune"].tolist()) == list(range(n_noise, n))  # exactly the flat ones
+    c = curvature(points, nrm, out["prune"], 10)
+    assert torch.equal(c, c.sort().values)  # flattest first
 
 
 @pytest.mark.parametrize("method", [knn_brute, knn_grid])
@@ -215,7 +225,56 @@ def test_strategy_step_prunes_at_most_rho_and_keeps_everything_aligned():
     for key, opt in optimizers.items():
         assert opt.state[opt.param_groups[0]["params"][0]]["exp_avg"].shape[0] == n
     assert (params["means"][:, 2].abs() > 0.1).sum() == 400  # the sphere is intact
-    assert state["garo_count"].sum() == 0  # a fresh activity window after the GARO step
+    assert torch.equal(state["garo_count"], torch.full((n,), 10.0))  # the paper's g_i: no reset at a GARO step
+
+
+@pytest.mark.parametrize("window", ["training", "garo_step"])
+def test_activity_is_the_mean_over_visible_steps_across_garo_steps(window):
+    # 8 Gaussians on a line, far apart (curvature cannot matter: tau_curvature 2 accepts everyone,
+    # and tau_activity 0 makes no candidate, so nothing is pruned and rows keep their identity).
+    n, w, h = 8, 800, 600
+    points = torch.stack([torch.arange(n, dtype=torch.float32), torch.zeros(n), torch.zeros(n)], -1)
+    params, optimizers = make_params(points, torch.tensor([1.0, 0, 0, 0]).expand(n, 4), torch.full((n, 3), 0.01))
+    strategy = GaroStrategy(
+        garo_start_iter=5, garo_every=5, refine_start_iter=10_000, tau_activity=0.0, activity_window=window
+    )
+    state = strategy.initialize_state()
+    g = torch.Generator().manual_seed(0)
+    norms, seen = torch.zeros(24, n), torch.zeros(24, n, dtype=torch.bool)
+    for step in range(1, 25):
+        pix = torch.rand(1, n, 2, generator=g) * 1e-6  # gradient in pixels
+        visible = torch.rand(1, n, generator=g) < 0.6
+        m2d = torch.zeros(1, n, 2, requires_grad=True)
+        m2d.grad = pix.clone()
+        info = {"means2d": m2d, "radii": visible.int(), "width": w, "height": h, "n_cameras": 1, "gaussian_ids": None}
+        strategy.step_post_backward(params, optimizers, state, step, info)
+        ndc = pix[0] * torch.tensor([w / 2, h / 2])  # pixels to NDC, as 3DGS thresholds it
+        norms[step - 1], seen[step - 1] = ndc.norm(dim=-1), visible[0]
+    assert [strategy.is_garo_step(s) for s in (5, 10, 15, 20)] == [True] * 4
+    since = 0 if window == "training" else 20  # the last GARO step was at step 20
+    want = (norms[since:] * seen[since:]).sum(0) / seen[since:].sum(0)
+    got = mean_activity(state["garo_grad"], state["garo_count"])
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=0, equal_nan=True)  # NaN: not seen in the window
+    assert torch.isfinite(got).sum() >= 6
+
+
+def test_default_schedule_prunes_at_every_refinement_step_and_only_there():
+    strategy = GaroStrategy(refine_start_iter=500, refine_stop_iter=15_000, refine_every=100)
+    steps = [s for s in range(0, 20_000) if strategy.is_garo_step(s)]
+    assert steps == list(range(600, 15_000, 100))  # gsplat refines at s > 500, s % 100 == 0, s < 15k
+    custom = GaroStrategy(garo_start_iter=1000, garo_stop_iter=3000, garo_every=500)
+    assert [s for s in range(0, 20_000) if custom.is_garo_step(s)] == [1000, 1500, 2000, 2500]
+
+
+def test_model_config_declares_the_schedule_once():
+    from garo_ns.garo_model import GaroModelConfig
+
+    cfg = GaroModelConfig()
+    assert (cfg.garo_start, cfg.garo_stop, cfg.garo_every) == (None, None, None)  # follow densification
+    strategy = GaroStrategy(
+        refine_start_iter=cfg.warmup_length, refine_stop_iter=cfg.stop_split_at, refine_every=cfg.refine_every
+    )
+    assert strategy.garo_schedule() == (cfg.warmup_length + 1, cfg.stop_split_at, cfg.refine_every)
 
 
 @pytest.mark.parametrize(

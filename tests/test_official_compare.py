@@ -1,0 +1,57 @@
+"""The comparison with the official D-3DGS code reports only pairs run under the same conditions."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+_spec = importlib.util.spec_from_file_location(
+    "official_compare", Path(__file__).parents[1] / "benchmarks" / "official_compare.py"
+)
+official_compare = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(official_compare)  # type: ignore[union-attr]
+
+
+def ours(scene="/tmp/jumpingjacks", iterations=40_000, split="test", background="black", psnr=37.5, lpips=0.012):
+    arm = {"psnr": psnr, "ssim": 0.99, "lpips": lpips, "num_gaussians": 80_000, "fps": 200.0, "iterations": iterations}
+    return {"scene": scene, "split": split, "background": background, "variants": {"deform-splatfacto": arm}}
+
+
+def official(iterations=40_000, split="test", background="black", psnr=37.6, lpips=0.011):
+    arm = {"psnr": psnr, "ssim": 0.99, "lpips": lpips, "num_gaussians": 88_000, "fps": 150.0}
+    arm.update(iterations=iterations, split=split, background=background)
+    return {"gpu": "H200", "rows": [{"scene": "jumpingjacks", "official": arm}]}
+
+
+def test_a_matching_pair_is_reported_with_its_gaps_and_verdict():
+    out = official_compare.compare([ours()], official())
+    assert out["refused"] == [] and len(out["rows"]) == 1
+    row = out["rows"][0]
+    assert row["scene"] == "jumpingjacks"
+    assert row["psnr_gap_db"] == pytest.approx(-0.1) and row["lpips_gap"] == pytest.approx(0.001)
+    assert row["target_met"] is True
+    assert official_compare.compare([ours(psnr=37.3)], official())["rows"][0]["target_met"] is False  # -0.3 dB
+    assert official_compare.compare([ours(lpips=0.015)], official())["rows"][0]["target_met"] is False
+    assert "| jumpingjacks (test) | 40,000 | 37.50 / 37.60 |" in official_compare.markdown(out)
+
+
+@pytest.mark.parametrize(
+    "ours_kwargs, official_kwargs, word",
+    [
+        ({"iterations": 39_000}, {}, "iterations"),
+        ({}, {"split": "val"}, "split"),
+        ({"background": "white"}, {}, "background"),
+        ({}, {"iterations": None}, "iterations"),
+    ],
+)
+def test_arms_that_differ_in_steps_split_or_background_are_refused(ours_kwargs, official_kwargs, word):
+    out = official_compare.compare([ours(**ours_kwargs)], official(**official_kwargs))
+    assert out["rows"] == []
+    assert len(out["refused"]) == 1 and word in out["refused"][0] and "jumpingjacks" in out["refused"][0]
+
+
+def test_a_scene_without_an_official_run_is_refused_not_dropped():
+    out = official_compare.compare([ours(scene="/tmp/mutant")], official())
+    assert out["rows"] == [] and out["refused"] == ["mutant: no official run"]
