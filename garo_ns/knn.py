@@ -2,8 +2,8 @@
 
 Two exact methods share one interface:
 * `knn_brute`: every query against every point, in blocks; candidates are ranked by a fused
-  matrix product and the survivors re-ranked by exact distances, so float32 cancellation in
-  the product cannot change the answer.
+  matrix product computed in float64 (in float32 its cancellation, about eps * |p|^2, reorders
+  neighbours of dense clusters far from the origin) and the survivors re-ranked by exact distances.
 * `knn_grid`: points are binned into a uniform grid sorted by cell; each query looks only at
   the 27 cells around it. Whenever the k-th distance found is within one cell size, no point
   outside those cells can be closer, so the answer is exact; the other queries (sparse regions)
@@ -24,31 +24,38 @@ def _check(points: Tensor, k: int) -> None:
 
 
 def _exact_rerank(points: Tensor, query_ids: Tensor, cand: Tensor, k: int, finite: Tensor) -> Tensor:
-    """The k candidates [Q, C] closest to each query by exact squared distance (self and non-finite excluded)."""
+    """The k candidates [Q, C] closest to each query by exact squared distance.
+
+    Non-finite points count as infinitely far and the query itself comes after them: when fewer
+    than k finite others exist, the answer is padded with non-finite points, never with itself.
+    """
     d = ((points[cand] - points[query_ids][:, None, :]) ** 2).sum(-1)
-    bad = (cand == query_ids[:, None]) | ~finite[cand]
-    d = torch.where(bad, torch.full_like(d, float("inf")), d)
-    sel = torch.topk(d, k, dim=1, largest=False).indices
+    d = torch.where(finite[cand], d, torch.full_like(d, float("inf")))
+    # Rank by (is self, distance): a stable sort by distance, then a stable sort by the flag.
+    by_dist = torch.argsort(d, dim=1, stable=True)
+    is_self = torch.gather(cand == query_ids[:, None], 1, by_dist)
+    sel = torch.gather(by_dist, 1, torch.argsort(is_self.to(torch.uint8), dim=1, stable=True)[:, :k])
     return torch.gather(cand, 1, sel)
 
 
-def knn_brute(points: Tensor, query_ids: Tensor, k: int, query_chunk: int = 4096, point_chunk: int = 1 << 17) -> Tensor:
+def knn_brute(points: Tensor, query_ids: Tensor, k: int, query_chunk: int = 4096, point_chunk: int = 1 << 16) -> Tensor:
     """Indices [Q, k] of the k nearest points to each queried point (itself excluded), by blocks."""
     _check(points, k)
     n = points.shape[0]
     finite = torch.isfinite(points).all(-1)
     pts = torch.where(finite[:, None], points, torch.zeros_like(points))
-    sq = torch.where(finite, (pts * pts).sum(-1), torch.full_like(pts[:, 0], float("inf")))
+    wide = pts.double()  # the ranking product's precision (see the module docstring)
+    sq = torch.where(finite, (wide * wide).sum(-1), torch.full_like(wide[:, 0], float("inf")))
     keep = min(2 * k + 2, n)  # margin for the exact re-rank
     out = []
     for q0 in range(0, query_ids.numel(), query_chunk):
         qid = query_ids[q0 : q0 + query_chunk]
-        q = pts[qid]
+        q = wide[qid]
         rows = torch.arange(qid.numel(), device=points.device)
-        best_d = torch.empty((qid.numel(), 0), device=points.device, dtype=points.dtype)
+        best_d = torch.empty((qid.numel(), 0), device=points.device, dtype=wide.dtype)
         best_i = torch.empty((qid.numel(), 0), device=points.device, dtype=torch.long)
         for p0 in range(0, n, point_chunk):
-            block = pts[p0 : p0 + point_chunk]
+            block = wide[p0 : p0 + point_chunk]
             # |p|^2 - 2 q.p ranks points like |q - p|^2 for a fixed query, as one fused product.
             score = torch.addmm(sq[p0 : p0 + point_chunk][None, :], q, block.T, alpha=-2.0)
             inside = (qid >= p0) & (qid < p0 + block.shape[0])
