@@ -221,6 +221,6 @@ def _filter_info(info: Dict[str, Any], keep: Tensor) -> Dict[str, Any]:
     filtered.grad = None if m2d.grad is None else m2d.grad[:, keep].clone()
     out["means2d"] = filtered
     for key in ("means3d", "quats3d", "scales3d"):
-        if isinstance(info.get(key), Tensor):
+        if isinstance(info.get(key), Tensor) and info[key].shape[0] == keep.shape[0]:
             out[key] = info[key][keep]
     return out

@@ -1,4 +1,7 @@
-"""GARO's pruning rule on known geometry, its bookkeeping inside gsplat's densification, and hard cases."""
+"""GARO's pruning rule on known geometry and its bookkeeping inside gsplat's densification.
+
+Hard cases with exact outcomes are in test_redundancy_strategy.py (injected after the optimizer step).
+"""
 
 from __future__ import annotations
 
@@ -12,7 +15,7 @@ from garo_ns.activity import accumulate, activity_candidates, mean_activity, vis
 from garo_ns.curvature import curvature
 from garo_ns.garo_strategy import GaroStrategy, select_redundant
 from garo_ns.knn import knn_brute, knn_grid
-from garo_ns.normals import normals, shortest_axis
+from garo_ns.normals import normals
 
 # A quaternion (w, x, y, z) is the identity here, so a Gaussian's smallest axis is its normal.
 
@@ -275,69 +278,3 @@ def test_model_config_declares_the_schedule_once():
         refine_start_iter=cfg.warmup_length, refine_stop_iter=cfg.stop_split_at, refine_every=cfg.refine_every
     )
     assert strategy.garo_schedule() == (cfg.warmup_length + 1, cfg.stop_split_at, cfg.refine_every)
-
-
-@pytest.mark.parametrize(
-    "case",
-    [
-        "fewer_than_k",
-        "duplicates",
-        "equal_scales",
-        "zero_scales",
-        "bad_quats",
-        "nan_grads",
-        "no_candidate",
-        "all_candidates",
-        "rho0",
-        "rho1",
-        "tau0",
-    ],
-)
-def test_hard_cases(case):
-    points, quats, scales = plane_and_sphere(60, 40)
-    kwargs = dict(garo_start_iter=1, garo_every=1, refine_start_iter=10_000)
-    if case == "fewer_than_k":
-        points, quats, scales = points[:5], quats[:5], scales[:5]
-    elif case == "duplicates":
-        points[:50] = points[0]
-    elif case == "equal_scales":
-        scales[:] = 0.01
-    elif case == "zero_scales":
-        scales[:10] = 0.0
-        scales[10:20] = 1e-40
-    elif case == "bad_quats":
-        quats[:10] = 0.0
-        quats[10:20] *= 1e6
-    elif case == "tau0":
-        kwargs.update(tau_activity=0.0, tau_curvature=0.0)
-    elif case == "rho0":
-        kwargs.update(rho_max=0.0)
-    elif case == "rho1":
-        kwargs.update(rho_max=1.0)
-    n = len(points)
-    params, optimizers = make_params(points, quats, scales.clamp_min(1e-45))
-    strategy = GaroStrategy(**kwargs)
-    state = strategy.initialize_state()
-    info = fake_info(n)
-    if case == "nan_grads":
-        info["means2d"].grad[0, :10] = float("nan")
-    if case == "no_candidate":
-        info["means2d"].grad[:] = 1.0
-    strategy.step_post_backward(params, optimizers, state, 1, info)
-    last = state["garo_last"]
-    kept = len(params["means"])
-    assert kept == n - last["pruned"] and 0 <= last["pruned"] <= math.floor(strategy.rho_max * n)
-    assert all(torch.isfinite(p).all() for p in params.values())
-    if case in ("no_candidate", "tau0", "rho0"):
-        assert last["pruned"] == 0
-    if case == "all_candidates" or case == "rho1":
-        assert last["candidates"] == n
-    if case == "rho1":
-        assert last["pruned"] == last["redundant"]
-    if case == "nan_grads":
-        assert last["candidates"] == n - 10  # NaN gradients give no estimate, the rest are unaffected
-    if case in ("equal_scales", "zero_scales", "bad_quats"):
-        nrm = normals(params["quats"].detach(), params["scales"].detach().exp())
-        torch.testing.assert_close(nrm.norm(dim=-1), torch.ones(kept))
-    if case == "equal_scales":
-        assert (shortest_axis(torch.full((4, 3), 0.01)) == 0).all()
