@@ -33,7 +33,12 @@
 # All runs train at once on the one GPU. Each is killed at the deadline, DEADLINE_S (default 1290) seconds
 # after call 1 started, so that scoring ends inside the hold; a run that did not reach 40000 is scored at its
 # last saved iteration (saves at 20k, 30k, 35k, 40k) and marked shortened.
-# Phases: assemble | start SCENE PORT | status | wait SECONDS | score
+#   stop-after ITER SECONDS  stops each run right after its iteration-ITER save (waiting at most SECONDS), then
+#           scores: what the 2026-11-23 run did (benchmarks/results/official_d3dgs_H200.json, ITER 20000).
+# Measured there (H200): three runs at once went at 15-20 it/s each once densification had grown the models, one
+# alone at about 42 it/s (57 in the 3000-step warm-up), so 40k takes about 16 minutes a scene alone: for the
+# full 40k figures, train ONE scene per hold (start A; wait ...), or one per GPU where several are lent.
+# Phases: assemble | start SCENE PORT | status | wait SECONDS | stop-after ITER SECONDS | score
 set -u
 phase=$1
 shift
@@ -163,6 +168,26 @@ wait)
   status
   if all_ended || [ "$(now)" -ge "$(deadline)" ]; then exec bash "$0" score; fi
   echo "not done yet: call wait again"
+  ;;
+stop-after)
+  it=$1 limit=$(($(now) + $2))
+  while [ "$(now)" -lt "$limit" ]; do
+    n=0
+    for s in $(cat $W/scenes); do
+      [ -e $W/out/$s/deform/iteration_$it/deform.pth ] || [ -e $W/$s.end ] || continue
+      n=$((n + 1))
+      if [ ! -e $W/$s.end ]; then # the .pth is written after the .ply; give it a moment to close
+        sleep 5
+        if [ ! -e $W/$s.end ] && kill -KILL -- -"$(cat $W/$s.pid)"; then
+          echo 137 >$W/$s.rc && date +%s.%N >$W/$s.end && echo "stopped $s after its $it save"
+        fi
+      fi
+    done
+    [ $n -eq "$(wc -l <$W/scenes)" ] && break
+    status | head -4
+    sleep 15
+  done
+  exec bash "$0" score
   ;;
 score)
   # Stop whatever still trains (each run is its own process session), so timing has the GPU alone.
