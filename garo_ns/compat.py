@@ -1,7 +1,8 @@
 """Fixes for nerfstudio 1.1.5 that every `ns-*` command needs; applied when the plugin is imported.
 
 nerfstudio imports plugin entry points before it parses arguments or loads a checkpoint, so
-importing `garo_ns.config` is early enough for both fixes.
+importing `garo_ns.config` is early enough for all of them: checkpoints that load under torch >= 2.6,
+one-line input errors, and crash-safe checkpoint writing and loading (`garo_ns.checkpoints`).
 """
 
 from __future__ import annotations
@@ -44,8 +45,11 @@ _previous_hook = sys.excepthook
 
 
 def install() -> None:
-    """Apply the fixes once per process."""
+    """Apply the fixes once per process (the checkpoint patch as soon as nerfstudio's trainer is imported)."""
     global _installed, _previous_hook
+    from garo_ns import checkpoints
+
+    checkpoints.install()
     if _installed:
         return
     _installed = True

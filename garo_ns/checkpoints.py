@@ -1,0 +1,214 @@
+"""Crash-safe checkpoints for nerfstudio's trainer (installed by `garo_ns.compat.install`).
+
+nerfstudio 1.1.5 writes `step-XXXXXXXXX.ckpt` in place and, with `save_only_latest_checkpoint` (its
+default), deletes every other checkpoint right after. A process killed during the write leaves a partial
+file; its loaders then pick the highest step in the folder whatever state it is in. Here:
+
+* a checkpoint is written to a temporary file in the same folder, flushed and fsync'd, then renamed
+  over its final name (`os.replace`, atomic on POSIX) and the folder is fsync'd; older checkpoints are
+  deleted only after that, so a complete checkpoint is on disk at every moment;
+* the temporary file is named `partial-0.step-XXXXXXXXX.ckpt.<pid>`: nerfstudio's own loaders (ns-viewer,
+  ns-eval, ns-render, ns-export) read the step of a file in that folder as the text between its first
+  '-' and first '.', so a leftover of an interrupted write reads as step 0 and never wins over a real
+  checkpoint (nor breaks their parsing); it is removed once a newer checkpoint is complete;
+* `ns-train --load-dir` takes the newest *complete* `step-*.ckpt`, skipping (with one line each) files
+  that are cut short, such as those stock nerfstudio leaves when killed during its in-place write.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import re
+import sys
+import time
+import zipfile
+from pathlib import Path
+from typing import Any, BinaryIO, Dict, List, Optional, Tuple
+
+import torch
+
+from garo_ns.errors import GaroInputError
+
+CHECKPOINT_NAME = re.compile(r"^step-(\d+)\.ckpt$")
+PARTIAL_PREFIX = "partial-0."
+# Test hook: "STEP:SECONDS" makes the write of the checkpoint of step STEP (and later ones) pause for
+# SECONDS after its first bytes are on disk, so that a test can kill the process mid-write.
+SLOW_WRITE_ENV = "GARO_CHECKPOINT_SLOW_WRITE"
+
+
+def checkpoint_name(step: int) -> str:
+    """nerfstudio's file name for the checkpoint of `step`."""
+    return f"step-{step:09d}.ckpt"
+
+
+def is_complete(path: Path) -> bool:
+    """True when `path` is a whole checkpoint file.
+
+    torch.save writes a zip archive whose central directory comes last, so a file cut short at any
+    point has no readable directory. (nerfstudio 1.x never writes torch's legacy non-zip format.)
+    """
+    try:
+        with zipfile.ZipFile(path) as archive:
+            return len(archive.infolist()) > 0
+    except (OSError, zipfile.BadZipFile):
+        return False
+
+
+def list_checkpoints(folder: Path) -> List[Tuple[int, Path]]:
+    """(step, path) of every file named like a checkpoint in `folder`, newest first (complete or not)."""
+    found = []
+    for entry in Path(folder).iterdir():
+        match = CHECKPOINT_NAME.match(entry.name)
+        if match and entry.is_file():
+            found.append((int(match.group(1)), entry))
+    return sorted(found, reverse=True)
+
+
+def latest_complete_step(folder: Path) -> Tuple[int, List[Path]]:
+    """The step of the newest complete checkpoint in `folder`, and the newer incomplete files skipped.
+
+    Raises GaroInputError when the folder is missing or holds no complete checkpoint.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise GaroInputError(f"cannot load the checkpoint: no checkpoint folder {folder}")
+    skipped = []
+    for step, path in list_checkpoints(folder):
+        if is_complete(path):
+            return step, skipped
+        skipped.append(path)
+    detail = f" ({', '.join(p.name for p in skipped)} incomplete)" if skipped else ""
+    raise GaroInputError(f"cannot load the checkpoint: no complete step-*.ckpt in {folder}{detail}")
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:  # some platforms cannot open folders; the rename is still atomic
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+class _SlowFile:
+    """File wrapper for the test hook: pauses once, after the first write reached the disk."""
+
+    def __init__(self, f: BinaryIO, delay: float) -> None:
+        self._f, self._delay, self._paused = f, delay, False
+
+    def write(self, data: Any) -> int:
+        n = self._f.write(data)
+        if not self._paused:
+            self._paused = True
+            self._f.flush()
+            os.fsync(self._f.fileno())
+            time.sleep(self._delay)
+        return n
+
+    def flush(self) -> None:
+        self._f.flush()
+
+
+def _slow_write_delay(step: int) -> float:
+    spec = os.environ.get(SLOW_WRITE_ENV, "")
+    if not spec:
+        return 0.0
+    first, seconds = spec.split(":")
+    return float(seconds) if step >= int(first) else 0.0
+
+
+def save_atomically(state: Dict[str, Any], folder: Path, step: int, keep_only_latest: bool) -> Path:
+    """Write `state` as the checkpoint of `step` in `folder`; with `keep_only_latest`, then delete the others.
+
+    At every moment the folder holds at least the previous complete checkpoint or the new one.
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    final = folder / checkpoint_name(step)
+    partial = folder / f"{PARTIAL_PREFIX}{final.name}.{os.getpid()}"
+    delay = _slow_write_delay(step)
+    try:
+        with open(partial, "wb") as f:
+            torch.save(state, _SlowFile(f, delay) if delay > 0 else f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(partial, final)
+    except BaseException:
+        partial.unlink(missing_ok=True)
+        raise
+    _fsync_dir(folder)
+    if keep_only_latest:
+        for _, path in list_checkpoints(folder):
+            if path != final:
+                path.unlink(missing_ok=True)
+    # Leftovers of writes that a crash interrupted: never loaded, removed once a newer checkpoint is whole.
+    for entry in folder.glob(f"{PARTIAL_PREFIX}*"):
+        if entry != partial:
+            entry.unlink(missing_ok=True)
+    return final
+
+
+def _trainer_save_checkpoint(self: Any, step: int) -> None:
+    """Trainer.save_checkpoint with nerfstudio 1.1.5's content, written crash-safe."""
+    pipeline = self.pipeline.module if hasattr(self.pipeline, "module") else self.pipeline
+    state = {
+        "step": step,
+        "pipeline": pipeline.state_dict(),
+        "optimizers": {k: v.state_dict() for (k, v) in self.optimizers.optimizers.items()},
+        "schedulers": {k: v.state_dict() for (k, v) in self.optimizers.schedulers.items()},
+        "scalers": self.grad_scaler.state_dict(),
+    }
+    save_atomically(state, self.checkpoint_dir, step, self.config.save_only_latest_checkpoint)
+
+
+def _resolve_load_step(config: Any) -> Optional[int]:
+    """Pin `config.load_step` to the newest complete checkpoint when the caller asked for the latest."""
+    if config.load_dir is None or config.load_step is not None:
+        return None
+    step, skipped = latest_complete_step(Path(config.load_dir))
+    for path in skipped:
+        print(f"skipping incomplete checkpoint {path} (its write was interrupted)")
+    config.load_step = step
+    return step
+
+
+_patched = False
+
+
+def install() -> bool:
+    """Patch nerfstudio's Trainer once its module is fully imported; returns whether it is patched.
+
+    `garo_ns.compat.install` calls this on every import of the plugin's entry points. The first call can
+    come while nerfstudio is still importing the trainer module (its dataparser registry loads plugins
+    from inside that import), when the patch cannot be applied yet; the method registry, which loads
+    `garo_ns.config` before any training starts, comes later, after the trainer module is complete.
+    """
+    global _patched
+    if _patched:
+        return True
+    trainer_module = sys.modules.get("nerfstudio.engine.trainer")
+    if trainer_module is None or not hasattr(trainer_module, "Trainer"):
+        return False
+    _patched = True
+    trainer_cls = trainer_module.Trainer
+    check_main_thread = getattr(trainer_module, "check_main_thread", lambda fn: fn)
+    trainer_cls.save_checkpoint = functools.update_wrapper(
+        check_main_thread(_trainer_save_checkpoint), _trainer_save_checkpoint
+    )
+    original_load = trainer_cls._load_checkpoint
+
+    def _load_checkpoint(self: Any) -> None:
+        pinned = _resolve_load_step(self.config)
+        try:
+            original_load(self)
+        finally:
+            if pinned is not None:  # leave the config as the user gave it ("the latest")
+                self.config.load_step = None
+
+    trainer_cls._load_checkpoint = _load_checkpoint
+    return True
