@@ -2,19 +2,22 @@
 
 nerfstudio imports plugin entry points before it parses arguments or loads a checkpoint, so
 importing `garo_ns.config` is early enough for all of them: checkpoints that load under torch >= 2.6,
-one-line input errors, and crash-safe checkpoint writing and loading (`garo_ns.checkpoints`).
+one-line input errors, a bad dataset reported before ns-train prints and saves its configuration (no run
+folder left behind), and crash-safe checkpoint writing and loading (`garo_ns.checkpoints`).
 """
 
 from __future__ import annotations
 
+import shutil
 import sys
+from pathlib import Path
 from types import TracebackType
-from typing import Optional, Type
+from typing import Any, Optional, Type
 
 import numpy as np
 import torch
 
-from garo_ns.errors import GaroError
+from garo_ns.errors import GaroError, GaroInputError
 
 _installed = False
 
@@ -44,12 +47,78 @@ def _excepthook(kind: Type[BaseException], err: BaseException, tb: Optional[Trac
 _previous_hook = sys.excepthook
 
 
+def check_dataset(config: Any) -> None:
+    """Validate the dataset of a TrainerConfig when its dataparser is one of the plugin's (`check_data`).
+
+    Raises GaroInputError; other dataparsers are left to nerfstudio.
+    """
+    datamanager = getattr(getattr(config, "pipeline", None), "datamanager", None)
+    check = getattr(getattr(datamanager, "dataparser", None), "check_data", None)
+    if callable(check):
+        check(getattr(datamanager, "data", None))  # ns-train's --data alias lands on the datamanager
+
+
+def _remove_empty_run_dir(base_dir: Path, output_dir: Path) -> None:
+    """Delete a run folder that holds nothing but its config.yml, and the folders between it and
+    `output_dir` that this leaves empty (never `output_dir` itself)."""
+    base_dir, output_dir = Path(base_dir).resolve(), Path(output_dir).resolve()
+    if output_dir not in base_dir.parents:
+        return
+    if not base_dir.is_dir() or any(p.name != "config.yml" for p in base_dir.iterdir()):
+        return
+    shutil.rmtree(base_dir)
+    for parent in base_dir.parents:
+        if parent == output_dir:
+            break
+        try:
+            parent.rmdir()
+        except OSError:
+            break
+
+
+def _patch_trainer_entry() -> bool:
+    """Fail on a bad dataset before ns-train prints and saves its configuration, and clean up after a
+    bad dataset found later (during Trainer.setup). Needs nerfstudio's trainer module fully imported."""
+    trainer_module = sys.modules.get("nerfstudio.engine.trainer")
+    if trainer_module is None or not hasattr(trainer_module, "Trainer"):
+        return False
+    from nerfstudio.configs.experiment_config import ExperimentConfig
+
+    original_print = ExperimentConfig.print_to_terminal
+
+    def print_to_terminal(self: Any) -> None:
+        # ns-train calls this right before save_config creates the run folder: the earliest point
+        # after the command line is parsed.
+        check_dataset(self)
+        original_print(self)
+
+    ExperimentConfig.print_to_terminal = print_to_terminal
+    trainer_cls = trainer_module.Trainer
+    original_setup = trainer_cls.setup
+
+    def setup(self: Any, *args: Any, **kwargs: Any) -> None:
+        try:
+            original_setup(self, *args, **kwargs)
+        except GaroInputError:
+            _remove_empty_run_dir(self.base_dir, self.config.output_dir)
+            raise
+
+    trainer_cls.setup = setup
+    return True
+
+
+_entry_patched = False
+
+
 def install() -> None:
-    """Apply the fixes once per process (the checkpoint patch as soon as nerfstudio's trainer is imported)."""
-    global _installed, _previous_hook
+    """Apply the fixes once per process; those on nerfstudio's trainer as soon as its module is imported
+    (the plugin's entry points can load while nerfstudio is still importing it)."""
+    global _installed, _previous_hook, _entry_patched
     from garo_ns import checkpoints
 
     checkpoints.install()
+    if not _entry_patched:
+        _entry_patched = _patch_trainer_entry()
     if _installed:
         return
     _installed = True

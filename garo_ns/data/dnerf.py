@@ -13,7 +13,7 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Literal, Tuple, Type
+from typing import Any, Dict, List, Literal, Optional, Tuple, Type
 
 import numpy as np
 import torch
@@ -39,6 +39,16 @@ class GaroDNeRFDataParserConfig(DataParserConfig):
     """Background the RGBA images are composited on; the model renders on the same colour."""
     eval_split: Literal["val", "test"] = "test"
     """Which split the `test` role reads (D-3DGS scores lego on val)."""
+
+    def check_data(self, data: Optional[Path] = None) -> None:
+        """Validate the splits training reads (train and `eval_split`) without loading pixels.
+
+        `ns-train` calls this before it prints or saves its configuration (see `garo_ns.compat`), so a
+        bad dataset stops with one line and leaves no run folder. Raises GaroInputError.
+        """
+        root = Path(data if data is not None else self.data)
+        read_split(root, "train")
+        read_split(root, self.eval_split)
 
 
 def camera_extent(c2w: np.ndarray) -> float:

@@ -50,6 +50,19 @@ class NerfDSDataParserConfig(DataParserConfig):
     use_points: bool = True
     """Seed the Gaussians with points.npy when the capture has it."""
 
+    def check_data(self, data: Optional[Path] = None) -> None:
+        """Validate the capture (files, cameras, times, image sizes, points) without loading pixels.
+
+        `ns-train` calls this before it prints or saves its configuration (see `garo_ns.compat`), so a
+        bad capture stops with one line and leaves no run folder. Raises GaroInputError.
+        """
+        root = Path(data if data is not None else self.data)
+        capture = read_capture(root, self.downscale_factor)
+        if not capture.splits[self.eval_split]:
+            raise GaroInputError(f"{root / 'dataset.json'}: no {self.eval_split}_ids to evaluate on")
+        if self.use_points:
+            read_points(root, capture)
+
 
 def _finite(value: Any, shape: Tuple[int, ...], where: str, name: str) -> np.ndarray:
     try:
