@@ -144,7 +144,6 @@ class GaroStrategy(DefaultStrategy):
         ids, norms = visible_gradient_norms(info, packed)
         accumulate(state["garo_grad"], state["garo_count"], ids, norms)
 
-    @torch.no_grad()
     def prune_redundant(
         self,
         params: Params,
@@ -154,49 +153,50 @@ class GaroStrategy(DefaultStrategy):
         info: Dict[str, Any],
     ) -> Tensor | None:
         """Remove redundant Gaussians; returns the kept mask (None when nothing was removed)."""
-        start = time.perf_counter()
-        n = len(params["means"])
-        points = info.get("means3d")
-        quats = info.get("quats3d")
-        # Without the model's geometry (or after a size change) use the canonical Gaussians.
-        if points is None or points.shape[0] != n:
-            points = params["means"].detach()
-        if quats is None or quats.shape[0] != n:
-            quats = params["quats"].detach()
-        scales = torch.exp(params["scales"].detach())
-        result = select_redundant(
-            mean_activity(state["garo_grad"], state["garo_count"]),
-            state["garo_count"],
-            points,
-            normals(quats, scales) if self.mode != "oaa" else points,
-            self.mode,
-            self.tau_activity,
-            self.n_max,
-            self.tau_curvature,
-            self.rho_max,
-            self.k_neighbors,
-        )
-        prune = result["prune"]
-        keep = None
-        if prune.numel() > 0:
-            mask = torch.zeros(n, dtype=torch.bool, device=params["means"].device)
-            mask[prune] = True
-            remove(params=params, optimizers=optimizers, state=state, mask=mask)
-            keep = ~mask
-        if self.activity_window == "garo_step":  # a fresh window for the next GARO step
-            state["garo_grad"].zero_()
-            state["garo_count"].zero_()
-        if params["means"].is_cuda:
-            torch.cuda.synchronize()
-        state["garo_last"] = {
-            "step": step,
-            "candidates": int(result["candidates"]),
-            "redundant": int(result["redundant"]),
-            "pruned": int(prune.numel()),
-            "seconds": time.perf_counter() - start,
-            "num_gaussians": len(params["means"]),
-        }
-        return keep
+        with torch.no_grad():  # a block, not a decorator: mutmut mutates undecorated methods only
+            start = time.perf_counter()
+            n = len(params["means"])
+            points = info.get("means3d")
+            quats = info.get("quats3d")
+            # Without the model's geometry (or after a size change) use the canonical Gaussians.
+            if points is None or points.shape[0] != n:
+                points = params["means"].detach()
+            if quats is None or quats.shape[0] != n:
+                quats = params["quats"].detach()
+            scales = torch.exp(params["scales"].detach())
+            result = select_redundant(
+                mean_activity(state["garo_grad"], state["garo_count"]),
+                state["garo_count"],
+                points,
+                normals(quats, scales) if self.mode != "oaa" else points,
+                self.mode,
+                self.tau_activity,
+                self.n_max,
+                self.tau_curvature,
+                self.rho_max,
+                self.k_neighbors,
+            )
+            prune = result["prune"]
+            keep = None
+            if prune.numel() > 0:
+                mask = torch.zeros(n, dtype=torch.bool, device=params["means"].device)
+                mask[prune] = True
+                remove(params=params, optimizers=optimizers, state=state, mask=mask)
+                keep = ~mask
+            if self.activity_window == "garo_step":  # a fresh window for the next GARO step
+                state["garo_grad"].zero_()
+                state["garo_count"].zero_()
+            if params["means"].is_cuda:
+                torch.cuda.synchronize()
+            state["garo_last"] = {
+                "step": step,
+                "candidates": int(result["candidates"]),
+                "redundant": int(result["redundant"]),
+                "pruned": int(prune.numel()),
+                "seconds": time.perf_counter() - start,
+                "num_gaussians": len(params["means"]),
+            }
+            return keep
 
     def log(self, state: Dict[str, Any], step: int) -> None:
         """Send the last GARO step's counts and wall time to nerfstudio's writer (once per GARO step)."""

@@ -9,6 +9,7 @@ property tests on clouds with duplicates and NaNs. These are the fast tests the 
 from __future__ import annotations
 
 import math
+import os
 
 import pytest
 import torch
@@ -22,6 +23,8 @@ from garo_ns.normals import normals, shortest_axis
 
 W, H, C = 800, 600, 3  # a real image size, not square, seen by three cameras at once
 NAN, INF = float("nan"), float("inf")
+# Examples per property test; scripts/mutation.sh lowers it to keep each mutant's run short.
+EXAMPLES = int(os.environ.get("GARO_PROPERTY_EXAMPLES", "100"))
 
 
 # --- activity -------------------------------------------------------------------------------------
@@ -252,7 +255,7 @@ def clouds(draw):
     return pts, q, k
 
 
-@settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=EXAMPLES, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(clouds(), st.integers(1, 7), st.integers(1, 70))
 def test_knn_brute_equals_brute_force(cloud, query_chunk, point_chunk):
     pts, q, k = cloud
@@ -262,7 +265,7 @@ def test_knn_brute_equals_brute_force(cloud, query_chunk, point_chunk):
     torch.testing.assert_close(distances_of(pts, q, got), reference_distances(pts, q, k), rtol=1e-5, atol=1e-9)
 
 
-@settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=EXAMPLES, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(clouds(), st.sampled_from([0.1, 0.5, 0.9]), st.sampled_from([4, 16, 4096]))
 def test_knn_grid_equals_brute_force(cloud, quantile, max_candidates):
     pts, q, k = cloud

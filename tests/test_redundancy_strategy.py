@@ -9,6 +9,7 @@ clearly above the thresholds used), so the right answer is a count, not a range.
 from __future__ import annotations
 
 import math
+import os
 
 import pytest
 import torch
@@ -20,6 +21,8 @@ from garo_ns.garo_strategy import GaroStrategy, select_redundant
 from garo_ns.normals import normals
 
 NAN, INF = float("nan"), float("inf")
+# Examples per property test; scripts/mutation.sh lowers it to keep each mutant's run short.
+EXAMPLES = int(os.environ.get("GARO_PROPERTY_EXAMPLES", "100"))
 THIN = torch.tensor([0.02, 0.02, 0.001])  # flat Gaussians: the third axis is the normal
 W, H = 800, 600
 
@@ -440,7 +443,7 @@ def selections(draw):
     )
 
 
-@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=EXAMPLES, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(selections())
 def test_selection_prunes_min_of_cap_and_redundant_and_only_redundant_ones(args):
     out = select_redundant(**args)
@@ -459,7 +462,7 @@ def test_selection_prunes_min_of_cap_and_redundant_and_only_redundant_ones(args)
         assert (c < args["tau_curvature"]).all() and torch.equal(c, c.sort().values)
 
 
-@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=EXAMPLES, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     st.integers(2, 60),
     st.floats(0.0, 1.0),
