@@ -63,6 +63,7 @@ def test_time_independent_field_has_zero_sensitivity_but_live_units():
     assert max(health["dead_fraction"]) < 1.0
 
 
+@pytest.mark.slow
 def test_training_health_check_flags_a_collapse_once(garo_run, capsys):
     model = garo_run["trainer"].pipeline.model
     assert model.health_log, "the trained fixture's field was never checked"

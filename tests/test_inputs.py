@@ -102,6 +102,7 @@ def test_static_dataset_error_through_ns_train_is_one_line(small_scene, tmp_path
     assert "Traceback" not in proc.stderr
 
 
+@pytest.mark.slow
 def test_non_finite_loss_stops_with_the_step_and_keeps_checkpoints(small_scene, tmp_path):
     import torch
 
@@ -136,6 +137,7 @@ def test_non_finite_loss_stops_with_the_step_and_keeps_checkpoints(small_scene, 
     assert all(torch.isfinite(v).all() for k, v in state["pipeline"].items() if k.startswith("_model.gauss_params"))
 
 
+@pytest.mark.slow
 def test_nerfstudio_dnerf_parser_background_extent_and_ns_eval(small_scene, tmp_path):
     """With nerfstudio's own dnerf-data (white by default, no metadata) the model still renders on the
     data's colour and scales densification by the camera extent; ns-eval loads the checkpoint (torch >= 2.6)."""

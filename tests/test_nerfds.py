@@ -155,6 +155,7 @@ def test_missing_data_directory(tmp_path):
         read_capture(tmp_path / "nowhere")
 
 
+@pytest.mark.slow
 def test_real_recipe_trains_from_points_on_cpu(tmp_path, both_layouts):
     """The real-scene preset: seeded from points.npy (no .cuda()), 10 time frequencies, time noise."""
     from garo_ns.train import QuickSchedule, make_config, seed_everything

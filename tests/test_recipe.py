@@ -70,6 +70,7 @@ def test_random_initialisation_follows_3dgs_synthetic_scenes():
     assert torch.equal(scales[:, 0], scales[:, 1]) and torch.equal(scales[:, 0], scales[:, 2])
 
 
+@pytest.mark.slow
 def test_training_loss_sees_the_render_unclamped(garo_run):
     model = garo_run["trainer"].pipeline.model
     camera = garo_run["trainer"].pipeline.datamanager.train_dataset.cameras[0:1].to(model.device)

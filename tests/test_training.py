@@ -19,11 +19,13 @@ MIN_TEST_PSNR = 17.0
 MAX_GARO_PSNR_DROP = 1.5
 
 
+@pytest.mark.slow
 def test_loss_falls_and_test_psnr_is_reached(garo_run):
     assert garo_run["l1_after"] < 0.5 * garo_run["l1_before"]
     assert garo_run["eval"]["psnr"] > MIN_TEST_PSNR, garo_run["eval"]
 
 
+@pytest.mark.slow
 def test_the_deformation_matters(garo_run):
     """Same camera, two times: the trained deformation makes the renders differ (measured on this schedule:
     2.5% of pixels change by more than 0.05, mean change 0.007); without it they are identical."""
@@ -52,6 +54,7 @@ def test_the_deformation_matters(garo_run):
     assert changed.float().mean() < 0.6, "the whole image changed: the static ground should stay put"
 
 
+@pytest.mark.slow
 def test_checkpoint_round_trip_renders_identically(garo_run):
     model = garo_run["trainer"].pipeline.model
     model.eval()
@@ -65,12 +68,14 @@ def test_checkpoint_round_trip_renders_identically(garo_run):
     assert set(loaded.strategy_state) == set(model.strategy_state)
 
 
+@pytest.mark.slow
 def test_garo_prunes_more_at_small_quality_cost(garo_run, baseline_run):
     g, b = garo_run["eval"], baseline_run["eval"]
     assert g["num_gaussians"] < b["num_gaussians"], (g, b)
     assert b["psnr"] - g["psnr"] < MAX_GARO_PSNR_DROP, (g, b)
 
 
+@pytest.mark.slow
 def test_eval_command_writes_json_for_a_split(garo_run, tmp_path):
     out = tmp_path / "val.json"
     result = run(EvalArgs(load_config=garo_run["config_path"], split="val", output_path=out))
@@ -80,6 +85,7 @@ def test_eval_command_writes_json_for_a_split(garo_run, tmp_path):
     assert saved["num_gaussians"] == garo_run["trainer"].pipeline.model.num_points
 
 
+@pytest.mark.slow
 def test_eval_command_rejects_runs_of_other_methods(garo_run, tmp_path):
     from garo_ns.errors import GaroInputError
 

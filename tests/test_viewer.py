@@ -71,6 +71,7 @@ def _wait_for(predicate, timeout: float, interval: float = 2.0):
         time.sleep(interval)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(CHROMIUM is None, reason="needs Debian's chromium (scripts/test.sh installs it)")
 def test_viewer_draws_the_scene_and_the_time_slider_moves_it(garo_run, tmp_path):
     pytest.importorskip("playwright")
