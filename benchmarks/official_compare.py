@@ -80,6 +80,8 @@ def compare(ours_results: List[Dict[str, Any]], official: Dict[str, Any]) -> Dic
             rows.append(pair(scene, our_arm(result), theirs[scene]))
         except PairMismatch as err:
             refused.append(str(err))
+    ours_scenes = {scene_name(r.get("scene", "?")) for r in ours_results}
+    refused += [f"{scene}: no run of ours" for scene in sorted(theirs) if scene not in ours_scenes]
     return {
         "gpu": official.get("gpu"),
         "official_commit": official.get("official_commit"),

@@ -54,4 +54,4 @@ def test_arms_that_differ_in_steps_split_or_background_are_refused(ours_kwargs, 
 
 def test_a_scene_without_an_official_run_is_refused_not_dropped():
     out = official_compare.compare([ours(scene="/tmp/mutant")], official())
-    assert out["rows"] == [] and out["refused"] == ["mutant: no official run"]
+    assert out["rows"] == [] and out["refused"] == ["mutant: no official run", "jumpingjacks: no run of ours"]
