@@ -1,7 +1,9 @@
-"""`garo-demo`: the main job on the embedded default.
+"""`garo-demo`: the main job on the built-in dynamic scene.
 
-Writes the built-in dynamic scene, trains `garo-deform` on it with a compressed schedule (CPU,
-or GPU when present), scores the test split and prints where everything is.
+Writes the built-in scene, trains `garo-deform` and the baseline `deform-splatfacto` on it with the same
+compressed schedule (CPU, or CUDA when present), and sets them side by side: test PSNR, Gaussians, model
+size and render time, as a table (`demo_results.md`, `demo_results.json`), a strip of test renders over time
+next to the ground truth (`demo_strip.png`) and the speed-against-error plot (`demo_speed_error.png`).
 """
 
 from __future__ import annotations
@@ -10,73 +12,203 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Any, Dict, List, Literal, Optional, Tuple
 
 from garo_ns import compat
 
 compat.install()
 
+Method = Literal["garo-deform", "deform-splatfacto"]
+
 
 @dataclass
 class DemoArgs:
-    """Train garo-deform on the built-in dynamic scene and print its test figures."""
+    """Train garo-deform and the baseline on the built-in dynamic scene and set them side by side."""
 
     output_dir: Path = Path("runs/demo")
-    """Where the scene, the run and the results go."""
+    """Where the scene, the runs and the results go."""
     steps: int = 1000
-    """Training steps (the full recipe is 40k; this compresses its phases)."""
+    """Training steps of each arm (the full recipe is 40k; this compresses its phases)."""
     resolution: int = 100
     """Scene resolution in pixels."""
-    method: Literal["garo-deform", "deform-splatfacto"] = "garo-deform"
+    methods: Tuple[Method, ...] = ("garo-deform", "deform-splatfacto")
+    """The arms to train, in this order."""
     device: Optional[Literal["cpu", "cuda"]] = None
     """Default: cuda when available."""
+    strip_frames: int = 6
+    """Test views in the picture, ordered by time."""
+    n_train: int = 40
+    """Training views of the generated scene."""
+    n_test: int = 8
+    """Test views of the generated scene."""
+    num_random: int = 5000
+    """Random Gaussians the scene starts from."""
 
 
-def run(args: DemoArgs) -> dict:
-    """Generate, train, evaluate; returns the evaluation result."""
-    import torch
-
-    from garo_ns.eval import evaluate
-    from garo_ns.scene import SceneSpec, generate_scene
+def train_arm(args: DemoArgs, method: Method, scene: Path, out: Path, device: str) -> Dict[str, Any]:
+    """Train one arm with nerfstudio's trainer (progress lines shown) and measure it; returns its figures."""
+    from garo_ns.eval import evaluate, load_split
+    from garo_ns.timing import measure_fps, model_size_mb
     from garo_ns.train import QuickSchedule, make_config, train
 
-    out = args.output_dir.resolve()
-    scene = out / f"scene_{args.resolution}px"
-    if not (scene / "transforms_test.json").exists():
-        generate_scene(scene, SceneSpec(resolution=args.resolution))
-        print(f"wrote the built-in scene to {scene}")
-    device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
-    config = make_config(
-        args.method, scene, out, device=device, schedule=QuickSchedule(steps=args.steps), experiment_name="demo"
-    )
-    config.logging.local_writer.enable = True  # show training progress
-    config.set_timestamp()
+    schedule = QuickSchedule(steps=args.steps, num_random=args.num_random)
+    config = make_config(method, scene, out, device=device, schedule=schedule, experiment_name=method)
+    config.logging.local_writer.enable = True  # nerfstudio's own progress output
+    config.logging.steps_per_log = max(args.steps // 20, 1)
     start = time.perf_counter()
     trainer = train(config)
     seconds = time.perf_counter() - start
+    model = trainer.pipeline.model
     result = evaluate(trainer.pipeline, scene, "test")
-    static = trainer.pipeline.model.static_fraction()
+    cameras, _ = load_split(scene, "test", model.background_color)
+    timing = measure_fps(model, cameras, warmup=1, repeats=1)
     result.update(
         {
-            "method": args.method,
+            "method": method,
             "iterations": args.steps,
             "train_seconds": seconds,
             "device": device,
-            "static_fraction": static,
+            "rasterizer": "gsplat (CUDA)" if device == "cuda" else "reference (pure torch)",
+            "render_ms": timing["ms_per_view"],
+            "fps": timing["fps"],
+            "model_mb": model_size_mb(model),
+            "static_fraction": model.static_fraction(),
+            "run_dir": str(config.get_base_dir()),
+            "config": str(config.get_base_dir() / "config.yml"),
         }
     )
-    run_dir = config.get_base_dir()
-    (run_dir / "eval_test.json").write_text(json.dumps(result, indent=2))
-    print(
-        f"\n{args.method} on the built-in scene ({args.resolution}px, {args.steps} steps, {device}, "
-        f"{seconds:.0f} s): test PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.4f}, "
-        f"{result['num_gaussians']} Gaussians"
-        + ("" if static is None else f", {static:.0%} of them static (skip the MLP with --pipeline.model.static-skip)")
-    )
-    print(f"run:      {run_dir}")
-    print(f"config:   {run_dir / 'config.yml'}  (ns-viewer --load-config ... --viewer.websocket-host 127.0.0.1)")
-    print(f"results:  {run_dir / 'eval_test.json'}")
+    (config.get_base_dir() / "eval_test.json").write_text(json.dumps(result, indent=2))
+    result["_pipeline"] = trainer.pipeline
     return result
+
+
+def _renders_over_time(pipeline: Any, scene: Path, frames: int) -> Tuple[List[float], List[Any], List[Any]]:
+    """Times, ground truths and renders [H, W, 3] of up to `frames` test views spread over time."""
+    import torch
+
+    from garo_ns.eval import load_split
+
+    model = pipeline.model
+    model.eval()
+    cameras, images = load_split(scene, "test", model.background_color)
+    order = sorted(range(len(images)), key=lambda i: float(cameras.times[i]))
+    pick = [order[round(k * (len(order) - 1) / max(frames - 1, 1))] for k in range(min(frames, len(order)))]
+    renders = []
+    with torch.no_grad():
+        for i in pick:
+            out = model.get_outputs_for_camera(cameras[i : i + 1].to(model.device))
+            renders.append(out["rgb"].clamp(0, 1).cpu())
+    return [float(cameras.times[i]) for i in pick], [images[i] for i in pick], renders
+
+
+def write_strip(arms: List[Dict[str, Any]], scene: Path, frames: int, path: Path) -> Path:
+    """A PNG: ground truth in the first row, each arm's renders below, test views left to right by time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = []
+    times: List[float] = []
+    for arm in arms:
+        times, gts, renders = _renders_over_time(arm["_pipeline"], scene, frames)
+        if not rows:
+            rows.append(("ground truth", gts))
+        rows.append((f"{arm['method']}\n{arm['psnr']:.2f} dB", renders))
+    cols = len(times)
+    fig, axes = plt.subplots(len(rows), cols, figsize=(1.8 * cols + 1.2, 1.9 * len(rows)), squeeze=False)
+    for r, (label, images) in enumerate(rows):
+        for c, img in enumerate(images):
+            ax = axes[r][c]
+            ax.imshow(img.numpy())
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if r == 0:
+                ax.set_title(f"t = {times[c]:.2f}", fontsize=9)
+            if c == 0:
+                ax.set_ylabel(label, fontsize=9)
+    fig.suptitle("Built-in scene, test views over time", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def write_speed_error_plot(arms: List[Dict[str, Any]], path: Path) -> Path:
+    """A PNG of render time against test PSNR, one point per arm."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.6))
+    for arm in arms:
+        ax.scatter(arm["render_ms"], arm["psnr"], s=60)
+        ax.annotate(
+            f"{arm['method']}\n{arm['num_gaussians']:,} Gaussians",
+            (arm["render_ms"], arm["psnr"]),
+            textcoords="offset points",
+            xytext=(6, 4),
+            fontsize=8,
+        )
+    ax.set_xlabel(f"render time per test view, ms ({arms[0]['rasterizer']})")
+    ax.set_ylabel("test PSNR, dB")
+    ax.ticklabel_format(useOffset=False)
+    ax.grid(alpha=0.3)
+    ax.margins(0.35)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def results_table(arms: List[Dict[str, Any]]) -> str:
+    """The side-by-side Markdown table."""
+    lines = [
+        "| method | test PSNR | SSIM | Gaussians | model MB | render ms/view | static | train s |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for a in arms:
+        static = "-" if a["static_fraction"] is None else f"{a['static_fraction']:.0%}"
+        lines.append(
+            f"| {a['method']} | {a['psnr']:.2f} | {a['ssim']:.4f} | {a['num_gaussians']:,} | {a['model_mb']:.2f} | "
+            f"{a['render_ms']:.1f} | {static} | {a['train_seconds']:.0f} |"
+        )
+    return "\n".join(lines)
+
+
+def run(args: DemoArgs) -> Dict[str, Any]:
+    """Generate the scene, train every arm, write the table, the strip and the plot; returns the results."""
+    import torch
+
+    from garo_ns.scene import SceneSpec, generate_scene
+
+    out = args.output_dir.resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    spec = SceneSpec(resolution=args.resolution, n_train=args.n_train, n_test=args.n_test)
+    scene = out / f"scene_{args.resolution}px_{args.n_train}x{args.n_test}"
+    if not (scene / "transforms_test.json").exists():
+        generate_scene(scene, spec)
+        print(f"wrote the built-in scene to {scene}")
+    device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
+    arms = [train_arm(args, method, scene, out, device) for method in args.methods]
+    strip = write_strip(arms, scene, args.strip_frames, out / "demo_strip.png")
+    plot = write_speed_error_plot(arms, out / "demo_speed_error.png")
+    table = results_table(arms)
+    public = [{k: v for k, v in a.items() if not k.startswith("_")} for a in arms]
+    summary = {"scene": str(scene), "resolution": args.resolution, "steps": args.steps, "device": device}
+    summary["arms"] = public
+    (out / "demo_results.json").write_text(json.dumps(summary, indent=2))
+    (out / "demo_results.md").write_text(
+        f"Built-in scene, {args.resolution} px, {args.steps} steps per arm, {device}.\n\n{table}\n"
+    )
+    print(f"\nBuilt-in scene ({args.resolution} px, {args.steps} steps per arm, {device}):\n\n{table}\n")
+    print(f"picture:  {strip}")
+    print(f"plot:     {plot}")
+    print(f"results:  {out / 'demo_results.json'}")
+    for a in public:
+        print(f"{a['method']}: ns-viewer --load-config {a['config']} --viewer.websocket-host 127.0.0.1")
+    return summary
 
 
 def main() -> None:

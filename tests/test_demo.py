@@ -1,0 +1,33 @@
+"""The demo's code path on a shortened schedule: both arms trained, figures side by side, picture and plot."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from PIL import Image
+
+
+@pytest.mark.slow
+def test_demo_writes_side_by_side_figures_strip_and_plot(tmp_path, capsys):
+    from garo_ns.demo import DemoArgs, run
+
+    args = DemoArgs(output_dir=tmp_path, steps=30, resolution=24, n_train=6, n_test=3, strip_frames=3, num_random=800)
+    summary = run(args)
+    saved = json.loads((tmp_path / "demo_results.json").read_text())
+    assert saved == summary
+    assert [a["method"] for a in saved["arms"]] == ["garo-deform", "deform-splatfacto"]
+    for arm in saved["arms"]:
+        assert arm["iterations"] == 30 and arm["n_images"] == 3
+        assert 5 < arm["psnr"] < 60 and arm["num_gaussians"] > 0
+        assert arm["model_mb"] > 0 and arm["render_ms"] > 0
+        assert (tmp_path / arm["method"]).is_dir()
+        assert json.loads((tmp_path.joinpath(*arm["run_dir"].split("/")[-2:]) / "eval_test.json").read_text())
+    table = (tmp_path / "demo_results.md").read_text()
+    assert "garo-deform" in table and "deform-splatfacto" in table and "render ms/view" in table
+    strip = Image.open(tmp_path / "demo_strip.png")
+    plot = Image.open(tmp_path / "demo_speed_error.png")
+    assert strip.width > strip.height > 100 and plot.width > 100
+    out = capsys.readouterr().out
+    assert "demo_strip.png" in out and "ns-viewer --load-config" in out
+    assert "Step" in out or "ETA" in out  # nerfstudio's progress lines were shown
