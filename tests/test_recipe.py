@@ -90,3 +90,32 @@ def test_training_loss_sees_the_render_unclamped(garo_run):
         model.train(was_training)
     assert train_rgb.max() > 1.5 and train_rgb.requires_grad  # the loss's gradient reaches bright pixels
     assert eval_rgb.max() <= 1.0 and eval_rgb.min() >= 0.0  # what is shown and scored is clamped
+
+
+def test_a_checkpoint_from_before_the_time_network_still_loads_and_renders_the_same():
+    box = SceneBox(torch.tensor([[-1.5] * 3, [1.5] * 3]))
+    old = GaroModelConfig(num_random=500, deform_time_net=0, deform_width=32, deform_depth=3, deform_skip=1).setup(
+        scene_box=box, num_train_data=1, metadata={"camera_extent": 4.0}
+    )
+    state = old.state_dict()
+    assert not any(k.startswith("deformation.time_net.") for k in state)
+    new = GaroModelConfig(num_random=500, deform_width=32, deform_depth=3, deform_skip=1).setup(
+        scene_box=box, num_train_data=1, metadata={"camera_extent": 4.0}
+    )
+    assert new.deformation.time_net is not None
+    new.load_state_dict(state)
+    assert new.deformation.time_net is None and new.config.deform_time_net == 0
+    xyz = old.means.detach()
+    for got, want in zip(new.deformation(xyz, 0.3), old.deformation(xyz, 0.3)):
+        assert torch.equal(got, want)
+    # A checkpoint with the time network loads into a model with one, unchanged.
+    again = GaroModelConfig(num_random=500, deform_width=32, deform_depth=3, deform_skip=1).setup(
+        scene_box=box, num_train_data=1, metadata={"camera_extent": 4.0}
+    )
+    with_net = again.state_dict()
+    new2 = GaroModelConfig(num_random=500, deform_width=32, deform_depth=3, deform_skip=1).setup(
+        scene_box=box, num_train_data=1, metadata={"camera_extent": 4.0}
+    )
+    new2.load_state_dict(with_net)
+    assert new2.deformation.time_net is not None
+    assert torch.equal(new2.deformation(xyz, 0.7)[0], again.deformation(xyz, 0.7)[0])
