@@ -26,6 +26,8 @@ def main(work: Path, notes_path: Path, out: Path) -> int:
         if ":" in line and line.startswith("    "):
             name, status = line.strip().rsplit(": ", 1)
             statuses[name] = status
+    unchecked = sorted(n for n, s in statuses.items() if s == "not checked")  # a run cut short
+    statuses = {n: s for n, s in statuses.items() if s != "not checked"}
     notes = json.loads(notes_path.read_text()) if notes_path.exists() else {}
     survivors = sorted(n for n, s in statuses.items() if s not in KILLED)
     equivalent = [n for n in survivors if notes.get(n, {}).get("kind") == "equivalent"]
@@ -44,6 +46,9 @@ def main(work: Path, notes_path: Path, out: Path) -> int:
         f"**Score: {killed} killed of {scored} non-equivalent mutants = {100 * killed / max(scored, 1):.1f}%** "
         f"({len(statuses)} mutants, {len(equivalent)} equivalent, {len(survivors) - len(equivalent)} "
         "harmless or unexplained survivors).",
+        "",
+        f"Not run (the run was stopped before them): {len(unchecked)} mutants"
+        + (": " + ", ".join(sorted({n.split("__mutmut")[0] for n in unchecked})) if unchecked else "."),
         "",
         "| module | mutants | killed | survived |",
         "|---|---|---|---|",

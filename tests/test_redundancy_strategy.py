@@ -499,3 +499,27 @@ def test_pruning_keeps_parameters_moments_and_state_rows_aligned(n, rho, seed, m
         assert torch.equal(st_["exp_avg_sq"], (kept.float().view(shape) * 2 + 1).expand_as(p)), key
     assert torch.equal(state["garo_grad"], grad0[kept])  # this step's gradient was 0
     assert torch.equal(state["garo_count"], count0[kept] + 1)
+
+
+def test_filtered_info_keeps_every_per_gaussian_entry_of_the_kept_rows():
+    from garo_ns.garo_strategy import _filter_info
+
+    n, keep = 6, torch.tensor([True, False, True, True, False, True])
+    rows = torch.arange(n, dtype=torch.float32)
+    info = fake_info(n, radii=torch.arange(n)[None] + 1)
+    info["means2d"].grad = rows.view(1, n, 1).expand(1, n, 2).clone()
+    per_camera = {"depths": rows[None], "conics": rows.view(1, n, 1).expand(1, n, 3), "opacities": rows[None]}
+    geometry = {"means3d": rows[:, None].expand(n, 3), "quats3d": rows[:, None].expand(n, 4)}
+    info.update(per_camera, **geometry, scales3d=rows[:, None].expand(n, 3), width=W)
+    out = _filter_info(info, keep)
+    kept = rows[keep]
+    assert torch.equal(out["radii"], (torch.arange(n)[None] + 1)[:, keep])
+    assert torch.equal(out["means2d"].grad[0, :, 0], kept) and out["means2d"].shape == (1, 4, 2)
+    for key in ("depths", "opacities"):
+        assert torch.equal(out[key][0], kept), key
+    assert torch.equal(out["conics"][0, :, 0], kept)
+    for key in ("means3d", "quats3d", "scales3d"):
+        assert torch.equal(out[key][:, 0], kept), key
+    assert out["width"] == W and info["means2d"].shape == (1, n, 2)  # the original is left alone
+    info["means2d"].grad = None
+    assert _filter_info(info, keep)["means2d"].grad is None
