@@ -67,6 +67,31 @@ class QuickSchedule:
             setattr(m, key, value)
 
 
+@dataclass
+class DemoSchedule(QuickSchedule):
+    """The demo's schedule: QuickSchedule, with the deformation field's warm-up and learning rate its own.
+
+    In QuickSchedule the deformation rate decays from step 0, so by the end of the static warm-up it has
+    already lost a third of its log-range, and the field then learns the motion in the remaining steps at
+    a falling rate. Here the rate holds at `deform_lr` until the field switches on (`deform_warmup_frac`
+    of the steps) and only then decays, to `deform_lr * deform_lr_final_ratio` at the last step.
+    """
+
+    deform_warmup_frac: float = 0.25
+    deform_lr_final_ratio: float = 0.01
+
+    def apply(self, config: Any) -> None:
+        """Write the schedule into a TrainerConfig."""
+        super().apply(config)
+        warmup = int(self.steps * self.deform_warmup_frac)
+        if "deform_warmup" not in self.extra:
+            config.pipeline.model.deform_warmup = warmup
+        sched = config.optimizers["deformation"]["scheduler"]
+        sched.warmup_steps = warmup
+        sched.lr_pre_warmup = self.deform_lr
+        sched.lr_final = self.deform_lr * self.deform_lr_final_ratio
+
+
 def make_config(
     method: Method,
     data: Path,

@@ -23,8 +23,14 @@ def test_demo_writes_side_by_side_figures_strip_and_plot(tmp_path, capsys):
         assert arm["model_mb"] > 0 and arm["render_ms"] > 0
         assert (tmp_path / arm["method"]).is_dir()
         assert json.loads((tmp_path.joinpath(*arm["run_dir"].split("/")[-2:]) / "eval_test.json").read_text())
+    floor = saved["arms"][0]["floor"]
+    assert floor is not None and "floor_gaussians" in floor
+    if floor["floor_gaussians"]:
+        assert 0 <= floor["floor_static_fraction"] <= 1 and floor["static_threshold"] > 0
+    assert saved["wall_seconds"] > 0 and saved["peak_rss_mb"] > 0 and saved["args"]["steps"] == 30
     table = (tmp_path / "demo_results.md").read_text()
     assert "garo-deform" in table and "deform-splatfacto" in table and "render ms/view" in table
+    assert "garo-deform floor:" in table
     strip = Image.open(tmp_path / "demo_strip.png")
     plot = Image.open(tmp_path / "demo_speed_error.png")
     assert strip.width > strip.height > 100 and plot.width > 100
