@@ -27,7 +27,7 @@ class DemoArgs:
 
     output_dir: Path = Path("runs/demo")
     """Where the scene, the runs and the results go."""
-    steps: int = 500
+    steps: int = 300
     """Training steps of each arm (the full recipe is 40k; this compresses its phases)."""
     resolution: int = 48
     """Scene resolution in pixels."""
@@ -43,7 +43,7 @@ class DemoArgs:
     """Test views of the generated scene."""
     n_val: int = 2
     """Validation views of the generated scene (the demo does not use them)."""
-    num_random: int = 1500
+    num_random: int = 1000
     """Random Gaussians the scene starts from."""
     deform_width: int = 64
     """Width of the deformation MLP."""
@@ -55,7 +55,7 @@ class DemoArgs:
     """Learning rate of the deformation MLP, held through the static warm-up, then decaying 100x."""
     deform_warmup_frac: float = 0.25
     """Share of the steps trained static before the deformation field switches on."""
-    densify_grad_thresh: float = 0.0005
+    densify_grad_thresh: float = 0.0008
     """Densification's gradient threshold (a higher one keeps the Gaussians, and the CPU time per step, fewer)."""
     static_threshold: Optional[float] = None
     """Static threshold as a share of the scene extent. Default: the model's 2.5e-4 scaled by 800 / resolution,
