@@ -46,7 +46,10 @@ cd "$work"
 export TORCHDYNAMO_DISABLE=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
 export GARO_PROPERTY_EXAMPLES=${GARO_PROPERTY_EXAMPLES:-25}
 # Two passes (the stages and the strategy, then kNN): the first one's results are there sooner.
-for names in "garo_ns.activity.* garo_ns.normals.* garo_ns.curvature.* garo_ns.garo_strategy.*" "garo_ns.knn.*"; do
+# MUTATION_NAMES (mutmut name globs, e.g. "garo_ns.curvature.*") runs those mutants only.
+passes=("garo_ns.activity.* garo_ns.normals.* garo_ns.curvature.* garo_ns.garo_strategy.*" "garo_ns.knn.*")
+if [ -n "${MUTATION_NAMES:-}" ]; then passes=("$MUTATION_NAMES"); fi
+for names in "${passes[@]}"; do
   # shellcheck disable=SC2086
   "$root/.venv/bin/mutmut" run --max-children "${MUTATION_JOBS:-2}" $names >> mutmut-run.log 2>&1 || {
     tail -c 3000 mutmut-run.log

@@ -392,12 +392,14 @@ def test_fewer_gaussians_than_neighbours():
 def test_empty_candidate_set_changes_nothing(case):
     params, optimizers = flat_plane_params(40)
     before = {k: v.detach().clone() for k, v in params.items()}
+    objects = dict(params)
     moments = {k: o.state[o.param_groups[0]["params"][0]]["exp_avg"].clone() for k, o in optimizers.items()}
     radii = torch.zeros(1, 40, dtype=torch.int32) if "none visible" in case else None
     mode = "gca" if case.startswith("gca") else "full"
     state = run_step(garo(rho_max=1.0, mode=mode), params, optimizers, fake_info(40, ndc=2.0, radii=radii))
     assert (state["garo_last"]["candidates"], state["garo_last"]["pruned"]) == (0, 0)
     for k, p in params.items():
+        assert p is objects[k], k  # nothing removed: the same tensors, not copies
         assert torch.equal(p.detach(), before[k]), k
         opt = optimizers[k]
         assert opt.param_groups[0]["params"][0] is p
@@ -523,3 +525,25 @@ def test_filtered_info_keeps_every_per_gaussian_entry_of_the_kept_rows():
     assert out["width"] == W and info["means2d"].shape == (1, n, 2)  # the original is left alone
     info["means2d"].grad = None
     assert _filter_info(info, keep)["means2d"].grad is None
+
+
+def test_strategy_modes_oaa_and_gca_decide_as_their_names_say():
+    # A sphere of inactive Gaussians: activity alone (oaa) prunes the least active; the paper's
+    # full rule prunes none (not flat). A flat plane of active Gaussians: only gca prunes it.
+    params, optimizers = sphere_params(50)
+    info = fake_info(50)
+    info["means2d"].grad[0, :, 0] = torch.linspace(0.9, 0.0, 50) / (W / 2)  # row 49 least active
+    for mode, pruned in (("full", []), ("oaa", [49, 48, 47, 46, 45])):
+        p, o = make_params(*(params[k].detach() for k in ("means", "quats", "scales")))
+        run_step(garo(mode=mode, rho_max=0.1, tau_curvature=0.01), p, o, info)
+        assert sorted(set(range(50)) - set(p["opacities"].detach().long().tolist()), reverse=True) == pruned, mode
+    for mode, pruned in (("full", 0), ("gca", 5)):
+        p, o = flat_plane_params(50)
+        state = run_step(garo(mode=mode, rho_max=0.1, tau_curvature=0.01), p, o, fake_info(50, ndc=2.0))
+        assert state["garo_last"]["pruned"] == pruned == 50 - len(p["means"]), mode
+
+
+def test_a_single_redundant_gaussian_is_removed():
+    params, optimizers = flat_plane_params(40)
+    state = run_step(garo(rho_max=1 / 40, tau_curvature=0.01), params, optimizers, fake_info(40))
+    assert state["garo_last"]["pruned"] == 1 and params["opacities"].detach().tolist() == list(range(1, 40))
