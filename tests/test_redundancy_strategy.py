@@ -547,3 +547,36 @@ def test_a_single_redundant_gaussian_is_removed():
     params, optimizers = flat_plane_params(40)
     state = run_step(garo(rho_max=1 / 40, tau_curvature=0.01), params, optimizers, fake_info(40))
     assert state["garo_last"]["pruned"] == 1 and params["opacities"].detach().tolist() == list(range(1, 40))
+
+
+def test_initial_state_has_every_garo_entry_a_checkpoint_restores():
+    # set_extra_state restores only the keys the fresh state has: all three must be there.
+    state = GaroStrategy().initialize_state()
+    assert (state["garo_grad"], state["garo_count"], state["garo_last"]) == (None, None, {})
+    assert state["scene_scale"] == 1.0 and GaroStrategy().initialize_state(3.5)["scene_scale"] == 3.5
+
+
+def test_packed_info_counts_by_the_rasterizer_ids():
+    params, optimizers = flat_plane_params(6)
+    strategy = garo(garo_start_iter=100, garo_stop_iter=200, refine_stop_iter=1000)
+    ids = torch.tensor([4, 0, 4])
+    m2d = torch.zeros(3, 2, requires_grad=True)
+    m2d.grad = torch.tensor([[0.5, 0.0], [0.25, 0.0], [0.75, 0.0]]) / (W / 2)
+    info = {"means2d": m2d, "radii": torch.ones(3), "width": W, "height": H, "n_cameras": 1, "gaussian_ids": ids}
+    state = strategy.initialize_state()
+    strategy.step_post_backward(params, optimizers, state, 1, info, packed=True)
+    assert state["garo_count"].tolist() == [1.0, 0, 0, 0, 2.0, 0]
+    torch.testing.assert_close(state["garo_grad"], torch.tensor([0.25, 0, 0, 0, 1.25, 0]))
+    assert state["count"].tolist() == [1.0, 0, 0, 0, 2.0, 0]  # densification's own counts, packed too
+
+
+def test_densification_after_garo_gets_the_optimizers():
+    # At an opacity-reset step DefaultStrategy resets opacities and their Adam moments.
+    params, optimizers = flat_plane_params(6)
+    strategy = garo(garo_start_iter=100, garo_stop_iter=200, refine_stop_iter=1000, reset_every=2)
+    state = strategy.initialize_state()
+    strategy.step_post_backward(params, optimizers, state, 2, fake_info(6))
+    cap = math.log(0.01 / 0.99)  # logit(2 * prune_opa)
+    torch.testing.assert_close(params["opacities"].detach(), torch.full((6,), cap))
+    opt = optimizers["opacities"]
+    assert torch.equal(opt.state[opt.param_groups[0]["params"][0]]["exp_avg"], torch.zeros(6))
