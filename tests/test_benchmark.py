@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import json
 
+import pytest
+import torch
+
 from garo_ns.benchmark import SPEED_ROWS, BenchArgs, run
 from garo_ns.scene import SceneSpec, generate_scene
 
 
+@pytest.mark.slow
 def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
     scene = generate_scene(tmp_path / "scene", SceneSpec(resolution=32, n_train=8, n_val=3, n_test=3))
     out = tmp_path / "results" / "smoke.json"
@@ -26,6 +30,10 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
     )
     run(args)
     result = json.loads(out.read_text())
+    from garo_ns.eval import load_split
+
+    _, images = load_split(scene, "val", torch.zeros(3))  # what a model that draws nothing scores
+    blank_psnr = sum(float(-10 * torch.log10((img**2).mean())) for img in images) / len(images)
     trained = ["deform-splatfacto", "garo-deform", "garo-prune0.3"]
     rows = ["", *SPEED_ROWS]
     assert "+graph" in rows and "+lean" in rows and "+static+graph+tf32+lean+fp16" in rows
@@ -48,11 +56,14 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
             "iterations",
         ):
             assert key in v
-        assert v["iterations"] == 40 and v["shortened"] is True and v["fps"] > 0 and v["psnr"] > 5
+        assert v["iterations"] == 40 and v["shortened"] is True and v["fps"] > 0
+        assert v["psnr"] > blank_psnr + 1, (v["psnr"], blank_psnr)  # better than rendering the background
         assert v["static_fraction"] is not None and v["ms_per_view_same_time"] > 0
         profile = v["profile"]
-        for stage in ("deformation", "projection", "color", "sorting", "compositing", "frame", "python_overhead"):
-            assert profile[f"ms_{stage}"] >= 0
+        stages = ("deformation", "projection", "color", "sorting", "compositing")
+        assert all(profile[f"ms_{s}"] > 0 for s in stages + ("frame",)), profile  # each stage ran and was timed
+        overhead = profile["ms_frame"] - sum(profile[f"ms_{s}"] for s in stages)
+        assert profile["ms_python_overhead"] == pytest.approx(max(0.0, overhead), abs=1e-9)
         assert profile["backend"] == "reference"
     variants = result["variants"]
     settings = {n: v["render_settings"] for n, v in variants.items()}
