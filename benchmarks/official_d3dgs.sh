@@ -199,15 +199,16 @@ score)
   status
   if [ -e /tmp/kit/prelude.sh ]; then source /tmp/kit/prelude.sh; else source .device/prelude.sh; fi
   export PYTHONPATH=$W/garo_head:${PYTHONPATH:-} # the committed evaluation code (SOURCES.json names the commit)
+  gpu=$(nvidia-smi --query-gpu=name --format=csv,noheader | head -1 | grep -o 'H[0-9]\{3\}' || echo GPU)
   python3 benchmarks/official_score.py --work $W --code $W/code --scenes $(cat $W/scenes) \
-    --sources $W/code/SOURCES.json --output $W/results/official_d3dgs_H200.json 2>&1 | tee $W/score.log
+    --sources $W/code/SOURCES.json --output $W/results/official_d3dgs_$gpu.json 2>&1 | tee $W/score.log
   if [ -n "${OUT:-}" ]; then
     cp $W/results/*.json $OUT/
     for s in $(cat $W/scenes); do
       echo "== $s (rc $(cat $W/$s.rc), $(cat $W/$s.start 2>/dev/null) -> $(cat $W/$s.end))"
       tr '\r' '\n' <$W/$s.log | grep -v '^Training progress' | grep -v '^\s*$' | tail -12
       tr '\r' '\n' <$W/$s.log | grep '^Training progress' | tail -1
-    done >$OUT/official_d3dgs_H200.log
+    done >$OUT/official_d3dgs_$gpu.log
     cp $W/score.log $OUT/score.log
   fi
   ;;
