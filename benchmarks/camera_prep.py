@@ -19,9 +19,9 @@ from typing import Any, Callable, Dict
 
 import torch
 
-from garo_ns.benchmark import environment
-from garo_ns.eval import load_split
-from garo_ns.garo_model import viewmat_from_c2w
+from garo_ns.bench.benchmark import environment
+from garo_ns.render.view import viewmat_from_c2w
+from garo_ns.tools.eval import load_split
 
 
 def _viewmat_with_sign_vector(c2w: torch.Tensor) -> torch.Tensor:

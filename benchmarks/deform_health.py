@@ -26,7 +26,7 @@ def train_replica(a: argparse.Namespace, init: str, seed: int) -> dict:
     import torch
     from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
-    from garo_ns.train import make_config, seed_everything
+    from garo_ns.tools.train import make_config, seed_everything
 
     config = make_config(
         "deform-splatfacto", a.scene, a.work_dir, device=a.device, eval_split="val", experiment_name=f"{init}-{seed}"

@@ -7,7 +7,7 @@
 #                                                      one GPU; checks that graph and lean rows score like
 #                                                      the rows without
 #   bash benchmarks/device_run.sh launch NAME SCENE SPLIT GPUS [benchmark args...]
-#                                                      python -m garo_ns.benchmark in the background on the
+#                                                      python -m garo_ns.bench.benchmark in the background on the
 #                                                      GPUs GPUS (e.g. 2,3; pass --gpus 0 1 to use both),
 #                                                      result $W/results/NAME.json, log $W/NAME.log
 #   bash benchmarks/device_run.sh extra NAME CMD...    any other command in the background (parity, ...)
@@ -44,7 +44,7 @@ smoke)
   scene=$1; export CUDA_VISIBLE_DEVICES=$2
   cd $W/src
   # A few steps of both arms through the CUDA path with every speed row, so a bug shows early.
-  python3 -m garo_ns.benchmark --scene /tmp/$scene --split val --iterations 200 --quick --gpus 0 --speed \
+  python3 -m garo_ns.bench.benchmark --scene /tmp/$scene --split val --iterations 200 --quick --gpus 0 --speed \
       --variants deform-splatfacto garo-prune0.5 --output $W/smoke/smoke.json --work-dir $W/smoke/runs \
       > $W/smoke.log 2>&1 || { tail -40 $W/smoke.log; exit 1; }
   tail -22 $W/smoke.log
@@ -64,7 +64,7 @@ launch)
   name=$1; scene=$2; split=$3; gpus=$4; shift 4
   [ -d /tmp/$scene ] || cp -r .scenes/$scene /tmp/$scene
   cd $W/src
-  CUDA_VISIBLE_DEVICES=$gpus setsid nohup bash -c "python3 -m garo_ns.benchmark --scene /tmp/$scene --split $split $* \
+  CUDA_VISIBLE_DEVICES=$gpus setsid nohup bash -c "python3 -m garo_ns.bench.benchmark --scene /tmp/$scene --split $split $* \
       --output $W/results/$name.json --work-dir $W/$name > $W/$name.log 2>&1; echo \$? > $W/jobs/$name.done" \
       > /dev/null 2>&1 &
   touch $W/jobs/$name.job; sleep 2; echo "launched $name on GPUs $gpus" ;;

@@ -75,9 +75,9 @@ def main() -> None:
         last = state["garo_last"]
     times.sort()
     # Where the time goes, and the K-nearest search under other chunkings (same inputs, same answer).
-    from garo_ns.activity import activity_candidates, mean_activity
-    from garo_ns.knn import knn
-    from garo_ns.normals import normals
+    from garo_ns.redundancy.activity import activity_candidates, mean_activity
+    from garo_ns.redundancy.knn import knn
+    from garo_ns.redundancy.normals import normals
 
     params, optimizers = make_gaussians(a.n, dev, seed=0)
     act = (torch.rand(a.n, generator=torch.Generator().manual_seed(1)) * 1.5e-4).to(dev)
@@ -98,7 +98,7 @@ def main() -> None:
     breakdown = {}
     breakdown["activity_ranking_ms"], cand = timed(lambda: activity_candidates(mean_activity(act, cnt), 5e-5, 10_000))
     breakdown["normals_ms"], _ = timed(lambda: normals(q4, params["scales"].detach().exp()))
-    from garo_ns.knn import knn_brute, knn_grid
+    from garo_ns.redundancy.knn import knn_brute, knn_grid
 
     def kth_dists(nb):  # compare answers by distances: equal-distance neighbours may come in any order
         return ((pts[nb] - pts[cand][:, None, :]) ** 2).sum(-1).sort(1).values

@@ -14,8 +14,8 @@ import time
 
 import torch
 
-from garo_ns.benchmark import environment
-from garo_ns.rendering import rasterize
+from garo_ns.bench.benchmark import environment
+from garo_ns.render.backend import rasterize
 
 
 def frame_ms(fn, frames: int) -> float:

@@ -4,7 +4,7 @@
         --official benchmarks/results/official_d3dgs_H200.json \
         --output benchmarks/results/baseline_vs_official_H200.json
 
-`--ours` are result files of `python -m garo_ns.benchmark` (variant `deform-splatfacto`);
+`--ours` are result files of `python -m garo_ns.bench.benchmark` (variant `deform-splatfacto`);
 `--official` is what `benchmarks/official_score.py` wrote for the official code's runs. A pair is
 reported only when both arms ran the same number of steps on the same split with the same
 background: anything else is refused with the reason, never averaged in. Writes the JSON and a
@@ -35,7 +35,7 @@ def scene_name(path_or_name: str) -> str:
 
 
 def our_arm(result: Dict[str, Any], variant: str = BASELINE) -> Dict[str, Any]:
-    """Our side of a pair from a garo_ns.benchmark result."""
+    """Our side of a pair from a garo_ns.bench.benchmark result."""
     row = (result.get("variants") or {}).get(variant)
     if row is None or "psnr" not in row:
         raise PairMismatch(f"{scene_name(result.get('scene', '?'))}: no scored '{variant}' arm in our result")

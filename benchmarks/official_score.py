@@ -1,5 +1,5 @@
 """Score runs of the OFFICIAL D-3DGS code (ingra14m/Deformable-3D-Gaussians, branch `paper`) the way
-`garo-eval` scores our models, and time them with the FPS protocol of `garo_ns.timing`.
+`garo-eval` scores our models, and time them with the FPS protocol of `garo_ns.bench.timing`.
 
 Runs on the GPU machine, with the official code (built, see benchmarks/official_d3dgs.sh) importable
 from `--code`. Nothing of the official code is copied here: its own classes load and render.
@@ -13,14 +13,14 @@ Per scene (`--work W`: data in W/data/SCENE, the run in W/out/SCENE, its log in 
   `cameraList_from_camInfos`, in transforms order), as the official code renders: under no_grad,
   `deform.step(xyz.detach(), fid expanded)` then the official `render` on a black background,
   clamped to [0, 1].
-* Ground truth and metrics exactly as `garo_ns.eval.evaluate`: images from
-  `garo_ns.eval.load_split` (RGBA PNG -> float / 255, composited on black in float), PSNR per view
+* Ground truth and metrics exactly as `garo_ns.tools.eval.evaluate`: images from
+  `garo_ns.tools.eval.load_split` (RGBA PNG -> float / 255, composited on black in float), PSNR per view
   from the MSE (averaged over views), SSIM = nerfstudio's `SSIM(data_range=1.0, size_average=True,
   channel=3)` as `GaroModel.ssim`, LPIPS = `garo_ns.metrics.make_lpips()` (torchmetrics AlexNet,
   normalize=True). `psnr_official_gt` scores the same renders against the official loader's own
   ground truth (composited, then truncated to 8 bits), for comparison with the PSNR that the
   official training script printed (`official_reported_psnr`, parsed from its log).
-* FPS as `garo_ns.timing.measure_fps`: per view, deformation MLP + rasterization only; the
+* FPS as `garo_ns.bench.timing.measure_fps`: per view, deformation MLP + rasterization only; the
   cameras are prepared (on the GPU) before timing, as the official loader does; CUDA synchronize
   before and after each view; the first 5 views rendered and dropped; 3 passes over all views;
   FPS = 1 / mean seconds; then one more pass timing the MLP and the rasterization apart.
@@ -36,7 +36,6 @@ import math
 import os
 import re
 import sys
-import time
 from argparse import Namespace
 from pathlib import Path
 from types import SimpleNamespace
@@ -89,10 +88,6 @@ def read_float(path: Path) -> Optional[float]:
         return None
 
 
-def sync() -> None:
-    torch.cuda.synchronize()
-
-
 class OfficialRun:
     """An official D-3DGS run loaded through the official classes."""
 
@@ -136,9 +131,9 @@ class OfficialRun:
 
 @torch.no_grad()
 def score(model: OfficialRun, data: Path, ssim: Any, lpips: Any) -> Dict[str, Any]:
-    """Metrics as garo_ns.eval.evaluate, on renders made as the official code makes them."""
+    """Metrics as garo_ns.tools.eval.evaluate, on renders made as the official code makes them."""
     from garo_ns.data.dnerf import read_split
-    from garo_ns.eval import load_split
+    from garo_ns.tools.eval import load_split
 
     paths = read_split(data, "test")[0]
     _, images = load_split(data, "test", torch.zeros(3))
@@ -169,42 +164,14 @@ def score(model: OfficialRun, data: Path, ssim: Any, lpips: Any) -> Dict[str, An
     }
 
 
-@torch.no_grad()
 def measure_fps(model: OfficialRun) -> Dict[str, Any]:
-    """garo_ns.timing.measure_fps's protocol on the official renderer."""
-    views = model.views  # cameras already prepared on the GPU by the official loader
-    for i in range(WARMUP):
-        model.frame(views[i % len(views)])
-    sync()
-    torch.cuda.reset_peak_memory_stats()
-    totals, mlps, rasters = [], [], []
-    for _ in range(REPEATS):
-        for view in views:
-            sync()
-            t0 = time.perf_counter()
-            model.frame(view)
-            sync()
-            totals.append(time.perf_counter() - t0)
-    for view in views:
-        sync()
-        t0 = time.perf_counter()
-        d = model.deformation(view)
-        sync()
-        t1 = time.perf_counter()
-        model.raster(view, d)
-        sync()
-        mlps.append(t1 - t0)
-        rasters.append(time.perf_counter() - t1)
-    mean = sum(totals) / len(totals)
-    return {
-        "fps": 1.0 / mean,
-        "ms_per_view": 1000.0 * mean,
-        "ms_deformation": 1000.0 * sum(mlps) / len(mlps),
-        "ms_rasterization": 1000.0 * sum(rasters) / len(rasters),
-        "views": len(views),
-        "repeats": REPEATS,
-        "render_peak_memory_mb": torch.cuda.max_memory_allocated() / 2**20,
-    }
+    """garo_ns.bench.timing's FPS protocol on the official renderer."""
+    from garo_ns.bench.timing import fps_protocol
+
+    # The official loader's cameras are already prepared on the GPU.
+    return fps_protocol(
+        model.views, model.frame, model.deformation, model.raster, torch.device("cuda"), WARMUP, REPEATS
+    )
 
 
 def main() -> None:
@@ -297,12 +264,12 @@ def main() -> None:
         "train_args": "--eval --is_blender (black background), 40000 iterations, official defaults otherwise; "
         "the three scenes trained at the same time on the one GPU",
         "protocol": {
-            "metrics": "garo_ns.eval.evaluate: GT via garo_ns.eval.load_split (RGBA/255 composited on black in "
-            "float), PSNR from per-view MSE averaged over views, SSIM nerfstudio SSIM(data_range=1, "
+            "metrics": "garo_ns.tools.eval.evaluate: GT via garo_ns.tools.eval.load_split (RGBA/255 composited on "
+            "black in float), PSNR from per-view MSE averaged over views, SSIM nerfstudio SSIM(data_range=1, "
             "size_average=True, channel=3), LPIPS garo_ns.metrics.make_lpips() (AlexNet, normalize=True)",
             "render": "official: no_grad, deform.step(xyz.detach(), fid) then gaussian_renderer.render, black bg, "
             "clamp [0, 1], full resolution",
-            "fps": f"garo_ns.timing protocol: MLP + rasterization per view, cameras prepared before timing, "
+            "fps": f"garo_ns.bench.timing protocol: MLP + rasterization per view, cameras prepared before timing, "
             f"synchronize around each view, {WARMUP} warm-up views dropped, {REPEATS} passes, FPS = 1 / mean s",
         },
         "rows": rows,

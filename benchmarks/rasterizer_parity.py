@@ -31,9 +31,9 @@ from pathlib import Path
 import torch
 
 from garo_ns.data.dnerf import read_split
-from garo_ns.garo_model import viewmat_from_c2w
-from garo_ns.rasterizer import ALPHA_MIN
-from garo_ns.rasterizer import rasterize as reference
+from garo_ns.render.reference import ALPHA_MIN
+from garo_ns.render.reference import rasterize as reference
+from garo_ns.render.view import viewmat_from_c2w
 
 
 def main() -> None:

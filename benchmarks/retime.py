@@ -17,7 +17,7 @@ from typing import List, Literal
 
 import tyro
 
-from garo_ns.benchmark import BenchArgs, environment, evaluate_variant
+from garo_ns.bench.benchmark import BenchArgs, environment, evaluate_variant
 
 
 @dataclass

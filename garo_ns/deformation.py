@@ -36,7 +36,7 @@ def precision(mode: Precision, device: torch.device) -> Iterator[None]:
             torch.backends.cuda.matmul.allow_tf32 = previous
     elif mode == "bf16":
         # No cast cache: it saves nothing with one forward per context, and a cached cast must not
-        # be captured into a CUDA graph (garo_ns.graphs), which would replay a freed weight copy.
+        # be captured into a CUDA graph (garo_ns.render.graphs), which would replay a freed weight copy.
         with torch.autocast(device_type=device.type, dtype=torch.bfloat16, cache_enabled=False):
             yield
     else:
@@ -166,3 +166,18 @@ def field_health(field: DeformationField, xyz: Tensor, times: Tensor) -> Dict[st
         "mean_offset": float(d.norm(dim=-1).mean()),
         "dead_fraction": [round(float(1 - a.float().mean()), 4) for a in alive],
     }
+
+
+@torch.no_grad()
+def health_check(field: DeformationField, means: Tensor, times: Tensor, extent: float, step: int) -> Dict[str, object]:
+    """`field_health` on up to 4096 of the Gaussians (a sample seeded by `step`) at up to 8 of
+    `times`, with the step and whether the field has `collapsed`: a hidden layer all dead, or
+    offsets that no longer change with time (relative to the scene `extent`)."""
+    times = times[torch.linspace(0, times.numel() - 1, min(8, times.numel())).round().long()]
+    pick = torch.randperm(means.shape[0], generator=torch.Generator().manual_seed(step))[:4096]
+    health = field_health(field, means.detach()[pick.to(means.device)], times)
+    health["step"] = int(step)
+    health["collapsed"] = bool(
+        max(health["dead_fraction"]) >= 1.0 or health["time_sensitivity"] <= 1e-6 * extent  # type: ignore[operator]
+    )
+    return health

@@ -1,16 +1,15 @@
-"""Deformable Gaussian splatting model: splatfacto plus D-3DGS's deformation field.
+"""Deformable Gaussian splatting model: splatfacto plus D-3DGS's deformation field (nerfstudio glue).
 
-Canonical Gaussians live in `gauss_params` as in splatfacto; at render time the deformation
-field moves them to the camera's time. Rendering goes through gsplat's CUDA kernels when they
-can run and through the pure-torch reference otherwise, so everything runs on a CPU machine.
+Canonical Gaussians live in `gauss_params` as in splatfacto; the deformation field moves them to
+each camera's time (`gaussians_at`, the one way to get the Gaussians at a time). What happens
+elsewhere: densification, GARO and every other change of the Gaussian count in `GaroStrategy`;
+rendering in `garo_ns.render` (the fast frame path outside training in `render.frame`); the static
+classification in `static`; the field's health check in `deformation`.
 
-Changes to splatfacto that a user may notice (each documented on its config field):
-* the densification defaults are D-3DGS's (see `config.py`), and the strategy's scene scale is
-  the 3DGS camera extent passed by the dataparser;
-* the background is the dataset's alpha colour when the dataparser reports it;
-* LPIPS is computed only when its backbone weights are available offline;
-* checkpoints keep the real step, the strategy's state, and the optimizers stay bound to the
-  loaded Gaussians.
+Changes to splatfacto that a user may notice (each documented on its config field): D-3DGS's
+densification defaults, scaled by the 3DGS camera extent from the dataparser; the background is
+the data's alpha colour; LPIPS only when its weights are available offline; checkpoints keep the
+real step and the strategy's state, and optimizers stay bound to the loaded Gaussians.
 """
 
 from __future__ import annotations
@@ -20,40 +19,29 @@ from dataclasses import dataclass, field
 from typing import Any, Dict, List, Literal, Optional, Tuple, Type, Union
 
 import torch
-import torch.nn.functional as F
-from gsplat.strategy import DefaultStrategy
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.engine.optimizers import Optimizers
 from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
+from nerfstudio.utils import writer
 from nerfstudio.utils.colors import get_color
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 from torch.nn import Parameter
 
-from garo_ns.deformation import DeformationField, Precision, field_health, precision
+from garo_ns.data.dnerf import camera_extent
+from garo_ns.deformation import DeformationField, Precision, health_check
 from garo_ns.errors import GaroTrainingError
 from garo_ns.garo_strategy import GaroStrategy
-from garo_ns.graphs import InputGraph, TimeGraph, graphs_available
-from garo_ns.importance import least_contributing, view_contribution
 from garo_ns.metrics import make_lpips
-from garo_ns.rendering import Backend, RenderView, lean_front, rasterize
-from garo_ns.sh import num_sh_bases
-from garo_ns.static import classify_static, motion_statistics
+from garo_ns.render.backend import Backend
+from garo_ns.render.contribution import view_contribution
+from garo_ns.render.frame import Canonical, FramePath, FrameSettings, Splats, activate, compose, render_splats
+from garo_ns.render.sh import num_sh_bases
+from garo_ns.render.view import RenderView, viewmat_from_c2w
+from garo_ns.static import classify, sample_times
 
 GAUSSIAN_KEYS = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
-
-
-def viewmat_from_c2w(c2w: Tensor) -> Tensor:
-    """World-to-camera [C, 4, 4] in gsplat's convention (OpenCV axes) from nerfstudio's c2w [C, 3, 4]."""
-    # Flip the y and z axes (OpenGL to OpenCV) without a host-to-device copy of a sign vector.
-    rot = torch.cat([c2w[:, :3, :1], -c2w[:, :3, 1:3]], dim=-1)
-    rot_inv = rot.transpose(1, 2)
-    view = torch.zeros(c2w.shape[0], 4, 4, device=c2w.device, dtype=c2w.dtype)
-    view[:, :3, :3] = rot_inv
-    view[:, :3, 3:4] = -rot_inv @ c2w[:, :3, 3:4]
-    view[:, 3, 3] = 1.0
-    return view
 
 
 @dataclass
@@ -169,7 +157,7 @@ class GaroModelConfig(SplatfactoModelConfig):
     second graph, fed the camera's matrices."""
     lean_raster: bool = False
     """When not training on CUDA, call gsplat's kernels directly instead of its general Python
-    wrapper (garo_ns.rendering.rasterize_lean): same kernels and pixels, less Python per frame."""
+    wrapper (garo_ns.render.backend.rasterize_lean): same kernels and pixels, less Python per frame."""
     prune_contribution_ratio: float = 0.0
     """At each of `prune_contribution_steps`, prune this fraction of the Gaussians with the smallest
     summed blending weight over the training views (0: off)."""
@@ -181,15 +169,15 @@ class GaroModelConfig(SplatfactoModelConfig):
     """off: plain densification (the D-3DGS baseline); oaa: activity only (the paper's "w/o GCA");
     gca: curvature only, every visible Gaussian a candidate (the paper's "w/o OAA"); full: activity
     candidates filtered by curvature (the paper's method)."""
-    tau_activity: float = 5e-5
+    tau_activity: float = GaroStrategy.tau_activity
     """Candidates are Gaussians whose mean view-space gradient norm is below this (the paper's)."""
-    n_max: int = 10_000
+    n_max: int = GaroStrategy.n_max
     """At most this many candidates (the least active) per GARO step (the paper's)."""
-    tau_curvature: float = 0.5
+    tau_curvature: float = GaroStrategy.tau_curvature
     """Candidates whose curvature is below this are redundant (the paper's)."""
-    rho_max: float = 0.02
+    rho_max: float = GaroStrategy.rho_max
     """At most floor(rho_max * N) Gaussians are pruned per GARO step (the paper's default)."""
-    k_neighbors: int = 10
+    k_neighbors: int = GaroStrategy.k_neighbors
     """Neighbours for the curvature estimate (the paper's K)."""
     garo_start: Optional[int] = None
     """First step at which GARO may prune; None: the first refinement step (after `warmup_length`)."""
@@ -197,7 +185,7 @@ class GaroModelConfig(SplatfactoModelConfig):
     """GARO prunes up to (not including) this step; None: `stop_split_at`, where densification ends."""
     garo_every: Optional[int] = None
     """GARO prunes every this many steps; None: `refine_every` (every densification step, as the paper)."""
-    garo_activity_window: Literal["training", "garo_step"] = "training"
+    garo_activity_window: Literal["training", "garo_step"] = GaroStrategy.activity_window
     """training: g_i is the mean over every iteration of training in which Gaussian i was visible
     (the paper's equation); garo_step: the mean since the previous GARO step only."""
 
@@ -215,41 +203,7 @@ class GaroModel(SplatfactoModel):
         if not (isinstance(extent, (int, float)) and math.isfinite(extent) and extent > 0):
             raise ValueError(f"scene extent must be a positive number, got {extent!r}")
         self.scene_extent = float(extent)
-
-        if self.seed_points is not None and not cfg.random_init and len(self.seed_points[0]) > 0:
-            means = self.seed_points[0].float()
-            colors = self.seed_points[1].float() / 255.0 if self.seed_points[1].shape[0] > 0 else None
-        else:
-            gen = torch.Generator().manual_seed(0)
-            means = (torch.rand((cfg.num_random, 3), generator=gen) - 0.5) * cfg.random_scale
-            colors = None
-        n = means.shape[0]
-        if n < 4:
-            raise ValueError(f"need at least 4 initial Gaussians, got {n}")
-        # As 3DGS/D-3DGS: scale from the RMS distance to the 3 nearest neighbours, identity
-        # rotation, and random points start nearly grey (SH DC of random / 255).
-        dists, _ = self.k_nearest_sklearn(means, 3)
-        rms = torch.from_numpy(dists).float().pow(2).mean(-1, keepdim=True).sqrt()
-        scales = torch.log(rms.clamp_min(1e-7)).repeat(1, 3)
-        quats = torch.zeros(n, 4)
-        quats[:, 0] = 1.0
-        dim_sh = num_sh_bases(cfg.sh_degree)
-        if colors is not None:
-            features_dc = (colors - 0.5) / 0.28209479177387814
-        else:
-            features_dc = torch.rand(n, 3, generator=torch.Generator().manual_seed(1)) / 255.0
-        features_rest = torch.zeros(n, dim_sh - 1, 3)
-        opacities = torch.logit(torch.full((n, 1), 0.1))
-        self.gauss_params = torch.nn.ParameterDict(
-            {
-                "means": Parameter(means),
-                "scales": Parameter(scales),
-                "quats": Parameter(quats),
-                "features_dc": Parameter(features_dc),
-                "features_rest": Parameter(features_rest),
-                "opacities": Parameter(opacities),
-            }
-        )
+        self.gauss_params = torch.nn.ParameterDict({k: Parameter(v) for k, v in self._initial_gaussians().items()})
         self.deformation = self._make_deformation()
         self.camera_optimizer = cfg.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu")
 
@@ -258,26 +212,20 @@ class GaroModel(SplatfactoModel):
 
         self.psnr = PeakSignalNoiseRatio(data_range=1.0)
         self.ssim = SSIM(data_range=1.0, size_average=True, channel=3)
-        # Kept out of the module tree: LPIPS may be absent, and checkpoints must not depend on it.
-        self._lpips = [make_lpips()]
+        self._lpips = [make_lpips()]  # out of the module tree: LPIPS may be absent, checkpoints must not need it
         self.step = 0
         self.crop_box = None
         self._warned_no_time = False
-
         alpha = metadata.get("alpha_color")
-        if alpha is not None:
-            background = torch.as_tensor(alpha, dtype=torch.float32).reshape(3)
-        elif cfg.background_color == "random":
+        if alpha is None and cfg.background_color == "random":
             raise ValueError(
                 "background_color 'random' is not supported: set it to the dataset's alpha colour (black or white)"
             )
-        else:
-            background = get_color(cfg.background_color)
+        background = get_color(cfg.background_color) if alpha is None else torch.as_tensor(alpha).reshape(3)
         # A buffer, so the background the model was trained on travels with its checkpoints.
         self.register_buffer("background_rgb", background.clone().float())
         self._extent_from_data = cfg.scene_extent is None and "camera_extent" in metadata
-
-        common = dict(
+        self.strategy = GaroStrategy(
             prune_opa=cfg.cull_alpha_thresh,
             grow_grad2d=cfg.densify_grad_thresh,
             grow_scale3d=cfg.densify_size_thresh,
@@ -293,35 +241,55 @@ class GaroModel(SplatfactoModel):
             absgrad=cfg.use_absgrad,
             revised_opacity=False,
             verbose=False,
+            mode=cfg.garo_mode,
+            tau_activity=cfg.tau_activity,
+            n_max=cfg.n_max,
+            tau_curvature=cfg.tau_curvature,
+            rho_max=cfg.rho_max,
+            k_neighbors=cfg.k_neighbors,
+            garo_start_iter=cfg.garo_start,
+            garo_stop_iter=cfg.garo_stop,
+            garo_every=cfg.garo_every,
+            activity_window=cfg.garo_activity_window,
         )
-        if cfg.garo_mode == "off":
-            self.strategy = DefaultStrategy(**common)
-        else:
-            self.strategy = GaroStrategy(
-                **common,
-                mode=cfg.garo_mode,
-                tau_activity=cfg.tau_activity,
-                n_max=cfg.n_max,
-                tau_curvature=cfg.tau_curvature,
-                rho_max=cfg.rho_max,
-                k_neighbors=cfg.k_neighbors,
-                garo_start_iter=cfg.garo_start,
-                garo_stop_iter=cfg.garo_stop,
-                garo_every=cfg.garo_every,
-                activity_window=cfg.garo_activity_window,
-            )
         self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene_extent)
-        # Static classification lives in the strategy state: densification and pruning keep it
-        # aligned with the Gaussians, and it travels with checkpoints (get_extra_state).
-        self.strategy_state.update({"static": None, "static_offset": None, "static_step": -1})
-        self._train_times: Optional[Tensor] = None
-        self._train_cameras: Optional[Cameras] = None
+        self.train_times: Optional[Tensor] = None
+        self.train_cameras: Optional[Cameras] = None
         self._last_step: Optional[int] = None
-        self._deform_cache: Optional[Tuple[Any, Tuple[Tensor, Tensor, Tensor]]] = None
-        self._static_cache: Optional[Tuple[Any, Tensor, Tuple[Tensor, ...], Tuple[Tensor, ...]]] = None
-        self._graph = TimeGraph()
-        self._camera_graph = InputGraph()
+        self.frame = FramePath()
         self.health_log: List[Dict[str, Any]] = []
+
+    def _initial_gaussians(self) -> Dict[str, Tensor]:
+        """As 3DGS/D-3DGS: the seed points (or random ones in a cube), scale from the RMS distance to
+        the 3 nearest neighbours, identity rotation, opacity 0.1; random points start nearly grey."""
+        cfg = self.config
+        if self.seed_points is not None and not cfg.random_init and len(self.seed_points[0]) > 0:
+            means = self.seed_points[0].float()
+            colors = self.seed_points[1].float() / 255.0 if self.seed_points[1].shape[0] > 0 else None
+        else:
+            means = (
+                torch.rand((cfg.num_random, 3), generator=torch.Generator().manual_seed(0)) - 0.5
+            ) * cfg.random_scale
+            colors = None
+        n = means.shape[0]
+        if n < 4:
+            raise ValueError(f"need at least 4 initial Gaussians, got {n}")
+        dists, _ = self.k_nearest_sklearn(means, 3)
+        rms = torch.from_numpy(dists).float().pow(2).mean(-1, keepdim=True).sqrt()
+        quats = torch.zeros(n, 4)
+        quats[:, 0] = 1.0
+        if colors is not None:
+            features_dc = (colors - 0.5) / 0.28209479177387814  # RGB to the SH DC coefficient
+        else:
+            features_dc = torch.rand(n, 3, generator=torch.Generator().manual_seed(1)) / 255.0
+        return {
+            "means": means,
+            "scales": torch.log(rms.clamp_min(1e-7)).repeat(1, 3),
+            "quats": quats,
+            "features_dc": features_dc,
+            "features_rest": torch.zeros(n, num_sh_bases(cfg.sh_degree) - 1, 3),
+            "opacities": torch.logit(torch.full((n, 1), 0.1)),
+        }
 
     def _make_deformation(self) -> DeformationField:
         cfg = self.config
@@ -335,7 +303,6 @@ class GaroModel(SplatfactoModel):
             time_net=cfg.deform_time_net,
         )
 
-    # ------------------------------------------------------------------ parameters
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         groups = self.get_gaussian_param_groups()
         groups["deformation"] = list(self.deformation.parameters())
@@ -357,21 +324,18 @@ class GaroModel(SplatfactoModel):
         outputs = getattr(getattr(pipeline, "datamanager", None), "train_dataparser_outputs", None)
         if outputs is None:
             return
-        cameras = outputs.cameras
-        self._train_cameras = cameras
-        if cameras.times is not None:
-            self._train_times = torch.unique(cameras.times.detach().reshape(-1).float().cpu())
+        self.train_cameras = outputs.cameras
+        if outputs.cameras.times is not None:
+            self.train_times = torch.unique(outputs.cameras.times.detach().reshape(-1).float().cpu())
         alpha = outputs.alpha_color
         if alpha is not None and not torch.allclose(alpha.float().cpu(), self.background_rgb.cpu()):
             CONSOLE.print(f"[yellow]Background set to the data's alpha colour {alpha.tolist()}[/yellow]")
             self.background_color = alpha
         if self.config.scene_extent is None and not self._extent_from_data:
-            from garo_ns.data.dnerf import camera_extent
-
-            c2w = outputs.cameras.camera_to_worlds.detach().cpu().numpy()
-            self.scene_extent = camera_extent(c2w)
+            self.scene_extent = camera_extent(outputs.cameras.camera_to_worlds.detach().cpu().numpy())
             self.strategy_state["scene_scale"] = self.scene_extent
 
+    # ------------------------------------------------------------------ training callbacks
     def get_training_callbacks(
         self, training_callback_attributes: TrainingCallbackAttributes
     ) -> List[TrainingCallback]:
@@ -385,29 +349,62 @@ class GaroModel(SplatfactoModel):
                 self.step_cb,
                 args=[training_callback_attributes.optimizers],
             ),
-            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.step_post_backward),
-            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.prune_by_contribution),
-            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.update_static),
-            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.check_health),
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.after_iteration),
         ]
 
     def step_cb(self, optimizers: Optimizers, step: int) -> None:
         self.step = step
         self.optimizers = optimizers.optimizers
 
-    def step_post_backward(self, step: int) -> None:
-        self.strategy.step_post_backward(
-            params=self.gauss_params,
-            optimizers=self.optimizers,
-            state=self.strategy_state,
-            step=step,
-            info=self.info,
-            packed=False,
-        )
-        if isinstance(self.strategy, GaroStrategy):
-            self.strategy.log(self.strategy_state, step)
+    def after_iteration(self, step: int) -> None:
+        """The strategy (densification, GARO, contribution pruning), then the static classification,
+        then the deformation field's health check."""
+        cfg = self.config
+        self.strategy.step_post_backward(self.gauss_params, self.optimizers, self.strategy_state, step, self.info)
+        last = self.strategy_state.get("garo_last") or {}
+        if last.get("step") == step:
+            for key in ("candidates", "redundant", "pruned", "seconds", "num_gaussians"):
+                writer.put_scalar(name=f"garo/{key}", scalar=float(last[key]), step=step)
+        ratio = cfg.prune_contribution_ratio
+        if ratio > 0 and step in cfg.prune_contribution_steps and self.train_cameras is not None:
+            contribution = self.contribution(self.train_cameras)
+            n = self.strategy.prune_by_contribution(
+                self.gauss_params, self.optimizers, self.strategy_state, contribution, ratio
+            )
+            CONSOLE.print(f"step {step}: pruned {n} least contributing Gaussians, {self.num_points} left")
+        active = self.deformation_active()
+        if active and cfg.static_every > 0:
+            if (step - cfg.deform_warmup) % cfg.static_every == 0 or step == self._last_step:
+                self.refresh_static()
+                fraction = self.static_fraction()
+                if fraction is not None:
+                    writer.put_scalar("garo/static_fraction", fraction, step)
+        self.check_health(step)
 
-    # ------------------------------------------------------------------ deformation
+    def check_health(self, step: int) -> None:
+        """Every `health_every` steps after the warm-up, measure whether the deformation field
+        still models motion; warn once when it has collapsed (no later step can undo it)."""
+        cfg = self.config
+        # Not at the switch-on itself: zero heads give no motion there by design.
+        if cfg.health_every <= 0 or step <= cfg.deform_warmup or self.num_points == 0:
+            return
+        if (step - cfg.deform_warmup) % cfg.health_every != 0:
+            return
+        times = self.train_times if self.train_times is not None else torch.linspace(0.0, 1.0, 8)
+        health = health_check(self.deformation, self.means, times, self.scene_extent, step)
+        self.health_log.append(health)
+        writer.put_scalar("garo/deform_time_sensitivity", health["time_sensitivity"], step)
+        writer.put_scalar("garo/deform_dead_fraction_max", max(health["dead_fraction"]), step)
+        if health["collapsed"] and not any(h["collapsed"] for h in self.health_log[:-1]):
+            CONSOLE.print(
+                f"[bold red]Step {step}: the deformation field has collapsed (time sensitivity "
+                f"{health['time_sensitivity']:.2e}, dead units per layer {health['dead_fraction']}); "
+                "the scene will render as static. Retrain with another seed"
+                + (" or --pipeline.model.deform-head-init default" if cfg.deform_head_init == "zero" else "")
+                + ".[/bold red]"
+            )
+
+    # ------------------------------------------------------------------ the Gaussians at a time
     def deformation_active(self) -> bool:
         """Whether the deformation field is applied at the current step (after the static warm-up)."""
         return self.step >= self.config.deform_warmup
@@ -423,113 +420,36 @@ class GaroModel(SplatfactoModel):
             self._warned_no_time = True
         return float(self.config.default_time)
 
-    def deformed_gaussians(self, time: float, cache: bool = False) -> Tuple[Tensor, Tensor, Tensor]:
-        """Means, quaternions (unnormalised) and log-scales of all Gaussians at `time`.
+    def canonical(self) -> Canonical:
+        """The parameters as stored (canonical geometry, log-scales, opacity logits, SH)."""
+        return Canonical(self.means, self.quats, self.scales, self.opacities, self.features_dc, self.features_rest)
 
-        Follows D-3DGS: the MLP reads detached canonical positions, offsets are added to the
-        positions and to the normalised quaternions; the scale offset is added in log space
-        (D-3DGS adds it to the activated scale), which keeps scales positive. When not training,
-        the MLP runs in `render_precision` and, with `static_skip`, only on dynamic Gaussians;
-        `cache` reuses the previous result for the same time while no parameter has changed.
-        """
+    def gaussians_at(self, time: float, exact: bool = False) -> Splats:
+        """The Gaussians at `time`, as the rasterizer takes them: the one way to get them (training,
+        rendering, export, timing). Training: the D-3DGS composition in fp32 (with the time noise, if
+        set). Otherwise the frame path with the render switches, or with `exact` the field as trained
+        (fp32, every Gaussian), whatever the switches."""
+        canonical = self.canonical()
         if not self.deformation_active():
-            return self.means, self.quats, self.scales
-        if self.training:
-            return self._apply_field(time + self.time_noise())
-        versions = self._param_versions()
-        key = (float(time), self.config.render_precision, self.config.static_skip, versions)
-        if cache and self._deform_cache is not None and self._deform_cache[0] == key:
-            return self._deform_cache[1]
-        out = self._render_field(time, versions)
-        self._deform_cache = (key, out) if cache else None
-        return out
-
-    def _render_field(
-        self, time: Union[float, Tensor], versions: Tuple[Any, ...], in_place: bool = False
-    ) -> Tuple[Tensor, Tensor, Tensor]:
-        """The deformed Gaussians as rendered outside training: `render_precision`, and with
-        `static_skip` the MLP only on dynamic Gaussians. `time` may be a device scalar (graphs).
-        `in_place` writes the dynamic rows into the cached frozen tensors and returns those (for a
-        CUDA graph, whose outputs are overwritten by each replay anyway; their static rows never
-        change, and the copying path overwrites every dynamic row it reads from them)."""
-        with precision(self.config.render_precision, self.means.device):
-            split = self._static_split(versions) if self.config.static_skip else None
-            if split is None:
-                return self._apply_field(time)
-            dynamic, frozen, canonical = split
-            d_xyz, d_rot, d_scale = self.deformation(canonical[0], time)
-            moved = (canonical[0] + d_xyz, canonical[1] + d_rot, canonical[2] + d_scale)
-            if in_place:
-                return tuple(f.index_copy_(0, dynamic, m) for f, m in zip(frozen, moved))  # type: ignore[return-value]
-            return tuple(f.index_copy(0, dynamic, m) for f, m in zip(frozen, moved))  # type: ignore[return-value]
-
-    def splat_inputs(self, time: float, cache: bool = False) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-        """What the rasterizer takes at `time`: means, quaternions, scales, opacities [N] and SH
-        coefficients [N, K, 3], activated. Outside training with `cuda_graph` on a CUDA device (and
-        no autograd), all of it is one graph replay; its outputs are overwritten by the next call."""
-        if (
-            not self.training
-            and self.config.cuda_graph
-            and graphs_available(self.device)
-            and not torch.is_grad_enabled()
-        ):
-            versions = self._param_versions()
-            active = self.deformation_active()
-            key = (self.config.render_precision, self.config.static_skip, active, versions)
-
-            def step(t: Tensor) -> Tuple[Tensor, ...]:
-                if not active:
-                    return self._activated(self.means, self.quats, self.scales)
-                return self._activated(*self._render_field(t, versions, in_place=True))
-
-            return self._graph(key, step, time, self.device, reuse=cache)  # type: ignore[return-value]
-        return self._activated(*self.deformed_gaussians(time, cache=cache))
-
-    def _activated(self, means: Tensor, quats: Tensor, log_scales: Tensor) -> Tuple[Tensor, ...]:
-        colors = torch.cat([self.features_dc[:, None, :], self.features_rest], dim=1)
-        return means, quats, torch.exp(log_scales), torch.sigmoid(self.opacities).squeeze(-1), colors
-
-    def _apply_field(self, time: float) -> Tuple[Tensor, Tensor, Tensor]:
-        """Every Gaussian moved by the deformation field at `time` (D-3DGS's composition)."""
-        d_xyz, d_rot, d_scale = self.deformation(self.means.detach(), time)
-        return self.means + d_xyz, F.normalize(self.quats, dim=-1) + d_rot, self.scales + d_scale
+            return activate(canonical, (canonical.means, canonical.quats, canonical.log_scales))
+        if self.training or exact:
+            return activate(canonical, compose(self.deformation, canonical, time + self.time_noise()))
+        settings = FrameSettings(
+            **{k: getattr(self.config, k) for k in FrameSettings.__dataclass_fields__}  # type: ignore[arg-type]
+        )
+        state = self.strategy_state
+        return self.frame.splats(self.deformation, canonical, state["static"], state["static_offset"], time, settings)
 
     def time_noise(self) -> float:
-        """This step's perturbation of the MLP's time input (0 unless `time_noise` is set)."""
+        """This step's perturbation of the MLP's time input (0 unless training with `time_noise`)."""
         cfg = self.config
-        if cfg.time_noise <= 0 or self.step >= cfg.time_noise_steps:
+        if not self.training or cfg.time_noise <= 0 or self.step >= cfg.time_noise_steps:
             return 0.0
-        frames = len(self._train_times) if self._train_times is not None else 1
+        frames = len(self.train_times) if self.train_times is not None else 1
         std = cfg.time_noise * (1.0 - self.step / cfg.time_noise_steps) / max(frames, 1)
         return float(torch.randn(()) * std)
 
-    def _param_versions(self) -> Tuple[Any, ...]:
-        """Identity and in-place version of every tensor the deformed Gaussians depend on."""
-        tensors = list(self.gauss_params.values()) + list(self.deformation.parameters())
-        static = self.strategy_state.get("static_offset")
-        if isinstance(static, Tensor):
-            tensors.append(static)
-        # Storage pointer too: assigning `.data` (checkpoint loading) keeps identity and version.
-        return tuple((id(t), t._version, t.data_ptr()) for t in tensors)
-
-    def _static_split(self, key: Tuple[Any, ...]) -> Optional[Tuple[Tensor, Tuple[Tensor, ...], Tuple[Tensor, ...]]]:
-        """Indices of the dynamic Gaussians, every Gaussian with its frozen offsets applied (means,
-        normalised quaternions, log-scales) and the dynamic Gaussians' canonical values (same
-        three, what the MLP and its offsets start from), or None when no valid classification
-        exists (e.g. a checkpoint from before it was added). Recomputed only when `key` (the
-        parameters' versions) changes, so a frame gathers nothing."""
-        static, offset = self.strategy_state.get("static"), self.strategy_state.get("static_offset")
-        if not isinstance(static, Tensor) or not isinstance(offset, Tensor) or static.shape[0] != self.num_points:
-            return None
-        if self._static_cache is None or self._static_cache[0] != key:
-            dynamic = torch.nonzero(~static.to(self.device)).squeeze(-1)
-            off = offset.to(self.device)
-            quats = F.normalize(self.quats, dim=-1)
-            frozen = (self.means + off[:, :3], quats + off[:, 3:7], self.scales + off[:, 7:])
-            canonical = (self.means.detach()[dynamic], quats[dynamic], self.scales[dynamic])
-            self._static_cache = (key, dynamic, frozen, canonical)
-        return self._static_cache[1:]
-
+    # ------------------------------------------------------------------ static classification
     def static_fraction(self) -> Optional[float]:
         """Share of Gaussians currently classified static, or None before any classification."""
         static = self.strategy_state.get("static")
@@ -539,112 +459,25 @@ class GaroModel(SplatfactoModel):
 
     @torch.no_grad()
     def refresh_static(self, times: Optional[Tensor] = None) -> None:
-        """Re-decide which Gaussians are static from the current deformation field.
-
-        Args:
-            times: times to sample; default: up to `static_times` of the training times (evenly
-                spread), or an even grid over [0, 1] when the training times are unknown.
-        """
-        if times is None:
-            times = self._train_times
-            if times is None or times.numel() == 0:
-                times = torch.linspace(0.0, 1.0, self.config.static_times)
-            elif times.numel() > self.config.static_times:
-                pick = torch.linspace(0, times.numel() - 1, self.config.static_times).round().long()
-                times = times[pick]
-        deviation, mean = motion_statistics(self.deformation, self.means.detach(), times.reshape(-1))
-        size = torch.exp(self.scales.detach() + mean[:, 7:]).amax(dim=-1)
-        threshold = self.config.static_threshold * self.scene_extent
-        self.strategy_state["static"] = classify_static(deviation, size, threshold)
-        self.strategy_state["static_offset"] = mean
-        self.strategy_state["static_step"] = int(self.step)
-        self._static_cache = None
-
-    def update_static(self, step: int) -> None:
-        """Training callback: re-classify every `static_every` steps after the warm-up and at the last step."""
-        cfg = self.config
-        if not self.deformation_active() or cfg.static_every <= 0:
-            return
-        if (step - cfg.deform_warmup) % cfg.static_every == 0 or step == self._last_step:
-            self.refresh_static()
-            fraction = self.static_fraction()
-            if fraction is not None:
-                from nerfstudio.utils import writer
-
-                writer.put_scalar("garo/static_fraction", fraction, step)
-
-    def check_health(self, step: int) -> None:
-        """Training callback: every `health_every` steps after the warm-up, measure whether the
-        deformation field still models motion; warn once when it has collapsed (a hidden layer
-        all dead, or offsets that no longer change with time), which no later step can undo."""
-        cfg = self.config
-        # Not at the switch-on itself: zero heads give no motion there by design.
-        if cfg.health_every <= 0 or step <= cfg.deform_warmup or self.num_points == 0:
-            return
-        if (step - cfg.deform_warmup) % cfg.health_every != 0:
-            return
-        times = self._train_times if self._train_times is not None else torch.linspace(0.0, 1.0, 8)
-        times = times[torch.linspace(0, times.numel() - 1, min(8, times.numel())).round().long()]
-        pick = torch.randperm(self.num_points, generator=torch.Generator().manual_seed(step))[:4096]
-        health = field_health(self.deformation, self.means.detach()[pick.to(self.device)], times)
-        health["step"] = int(step)
-        health["collapsed"] = bool(
-            max(health["dead_fraction"]) >= 1.0 or health["time_sensitivity"] <= 1e-6 * self.scene_extent
+        """Re-decide which Gaussians are static from the current deformation field, at `times`
+        (default: up to `static_times` of the training times, evenly spread)."""
+        times = sample_times(self.train_times, self.config.static_times) if times is None else times
+        static, offset = classify(
+            self.deformation, self.means, self.scales, times, self.config.static_threshold * self.scene_extent
         )
-        self.health_log.append(health)
-        from nerfstudio.utils import writer
-
-        writer.put_scalar("garo/deform_time_sensitivity", health["time_sensitivity"], step)
-        writer.put_scalar("garo/deform_dead_fraction_max", max(health["dead_fraction"]), step)
-        if health["collapsed"] and not any(h["collapsed"] for h in self.health_log[:-1]):
-            CONSOLE.print(
-                f"[bold red]Step {step}: the deformation field has collapsed (time sensitivity "
-                f"{health['time_sensitivity']:.2e}, dead units per layer {health['dead_fraction']}); "
-                "the scene will render as static. Retrain with another seed"
-                + (" or --pipeline.model.deform-head-init default" if cfg.deform_head_init == "zero" else "")
-                + ".[/bold red]"
-            )
+        self.strategy_state.update({"static": static, "static_offset": offset, "static_step": int(self.step)})
 
     @torch.no_grad()
     def contribution(self, cameras: Cameras) -> Tensor:
         """Summed blending weight of every Gaussian over `cameras`, each at its own time [N]."""
         total = torch.zeros(self.num_points, device=self.device)
         for i in range(cameras.shape[0]):
-            cam = cameras[i : i + 1].to(self.device)
-            # The field as trained (fp32, every Gaussian, no time noise), whatever the render switches.
-            means, quats, log_scales = (
-                self._apply_field(self.camera_time(cam))
-                if self.deformation_active()
-                else (
-                    self.means,
-                    self.quats,
-                    self.scales,
-                )
-            )
+            view = self.camera_view(cameras[i : i + 1].to(self.device))
+            splats = self.gaussians_at(view.time, exact=True)
             total += view_contribution(
-                means,
-                quats,
-                torch.exp(log_scales),
-                torch.sigmoid(self.opacities).squeeze(-1),
-                viewmat_from_c2w(cam.camera_to_worlds),
-                cam.get_intrinsics_matrices().to(self.device),
-                int(cam.width.item()),
-                int(cam.height.item()),
-                backend=self.config.rasterizer,
+                *splats[:3], splats.opacities, view.viewmat, view.K, view.width, view.height, self.config.rasterizer
             )
         return total
-
-    def prune_by_contribution(self, step: int) -> None:
-        """Training callback: at the configured steps, prune the least contributing Gaussians."""
-        ratio = self.config.prune_contribution_ratio
-        if ratio <= 0 or step not in self.config.prune_contribution_steps or self._train_cameras is None:
-            return
-        from gsplat.strategy.ops import remove
-
-        mask = least_contributing(self.contribution(self._train_cameras), ratio)
-        if bool(mask.any()):
-            remove(self.gauss_params, self.optimizers, self.strategy_state, mask)
-            CONSOLE.print(f"step {step}: pruned {int(mask.sum())} least contributing Gaussians, {self.num_points} left")
 
     # ------------------------------------------------------------------ rendering
     def camera_view(self, camera: Cameras, c2w: Optional[Tensor] = None) -> RenderView:
@@ -663,81 +496,43 @@ class GaroModel(SplatfactoModel):
         view: RenderView,
         render_mode: str = "RGB",
         backgrounds: Optional[Tensor] = None,
-        inputs: Optional[Tuple[Tensor, ...]] = None,
+        splats: Optional[Splats] = None,
     ) -> Tuple[Tensor, Tensor, Dict[str, Any]]:
-        """Deform to `view.time` (or take `inputs`, `splat_inputs`'s outputs) and rasterize:
-        render [1, H, W, C], alpha [1, H, W, 1] and the rasterizer's info. Outside training with
-        `cuda_graph` and `lean_raster` on CUDA, the projection of the graph-deformed Gaussians
-        replays as a second CUDA graph."""
-        if inputs is None:
-            inputs = self.splat_inputs(view.time, cache=self.config.cache_deformation)
-        means, quats, scales, opacities, colors = inputs
-        sh_degree = min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
-        lean = self.config.lean_raster and not self.training
-        front = None
-        graphed = self._graph.outputs is not None and means is self._graph.outputs[0]
-        if lean and graphed and render_mode in ("RGB", "RGB+ED") and not torch.is_grad_enabled():
-            # The field graph's buffers are fixed until it is captured again (its capture count).
-            key = (self._graph.captures, view.width, view.height)
-            front = self._camera_graph(
-                key,
-                lambda viewmat, K: lean_front(means, quats, scales, viewmat, K, view.width, view.height, True),
-                view.viewmat,
-                view.K,
-            )
-        return rasterize(
-            means=means,
-            quats=quats,
-            scales=scales,
-            opacities=opacities,
-            colors=colors,
-            viewmats=view.viewmat,
-            Ks=view.K,
-            width=view.width,
-            height=view.height,
-            sh_degree=sh_degree,
-            backgrounds=backgrounds,
-            render_mode=render_mode,  # type: ignore[arg-type]
-            backend=self.config.rasterizer,
-            lean=lean,
-            front=front,
-        )
+        """Rasterize `splats` (default: the Gaussians at `view.time`): render [1, H, W, C], alpha
+        [1, H, W, 1] and the rasterizer's info. Outside training through the frame path."""
+        splats = self.gaussians_at(view.time) if splats is None else splats
+        degree = min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
+        backend: Backend = self.config.rasterizer
+        if self.training:
+            return render_splats(splats, view, degree, backgrounds, render_mode, backend)
+        return self.frame.rasterize(splats, view, degree, backgrounds, render_mode, backend, self.config.lean_raster)
 
     def get_outputs(self, camera: Cameras) -> Dict[str, Union[Tensor, List]]:
         if not isinstance(camera, Cameras):
             raise TypeError(f"get_outputs needs a Cameras object, got {type(camera).__name__}")
         if camera.shape[0] != 1:
             raise ValueError(f"renders one camera at a time, got {camera.shape[0]}")
-        if self.training:
-            c2w = self.camera_optimizer.apply_to_camera(camera)
-        else:
-            c2w = camera.camera_to_worlds
+        c2w = self.camera_optimizer.apply_to_camera(camera) if self.training else camera.camera_to_worlds
         view = self.camera_view(camera, c2w)
-        inputs = self.splat_inputs(view.time, cache=self.config.cache_deformation)
-
+        splats = self.gaussians_at(view.time)
         if self.crop_box is not None and not self.training:
-            keep = self.crop_box.within(inputs[0]).squeeze()
+            keep = self.crop_box.within(splats.means).squeeze()
             if keep.sum() == 0:
                 return self.get_empty_outputs(view.width, view.height, self.background_color)
-            inputs = tuple(x[keep] for x in inputs)
-        means, quats, scales = inputs[:3]
+            splats = splats.select(keep)
         W, H = view.width, view.height
         self.last_size = (H, W)
-
         render_mode = "RGB+ED" if (self.config.output_depth_during_training or not self.training) else "RGB"
-        render, alpha, info = self.render(view, render_mode, inputs=inputs)
-        # What the strategy may read without knowing the model (no copies: detached views).
-        info["means3d"] = means.detach()
-        info["quats3d"] = quats.detach()
-        info["scales3d"] = scales.detach()
+        render, alpha, info = self.render(view, render_mode, splats=splats)
+        # The geometry GARO measures, for the strategy (no copies: detached views).
+        info.update(means3d=splats.means.detach(), quats3d=splats.quats.detach(), scales3d=splats.scales.detach())
         self.info = info
         if self.training:
             self.strategy.step_pre_backward(self.gauss_params, self.optimizers, self.strategy_state, self.step, info)
-
         background = self.background_color.to(self.device)
         rgb = render[..., :3] + (1 - alpha) * background
-        # The training loss sees the render unclamped, as D-3DGS's does: a clamp would stop the
-        # gradient of every over-bright pixel (and with it part of the densification signal).
+        # The loss sees the render unclamped, as D-3DGS's does: a clamp would stop the gradient of
+        # every over-bright pixel (and with it part of the densification signal).
         rgb = rgb if self.training else torch.clamp(rgb, 0.0, 1.0)
         depth = None
         if render_mode == "RGB+ED":
@@ -791,8 +586,7 @@ class GaroModel(SplatfactoModel):
             # so the run renders as it was trained (an optimizer built earlier is not bound to it).
             CONSOLE.print("[yellow]Checkpoint has no deformation time network: loading the field without it[/yellow]")
             self.config.deform_time_net = 0
-            device = self.background_rgb.device
-            self.deformation = self._make_deformation().to(device)
+            self.deformation = self._make_deformation().to(self.background_rgb.device)
         return torch.nn.Module.load_state_dict(self, state_dict, strict=strict)
 
     def get_extra_state(self) -> Dict[str, Any]:

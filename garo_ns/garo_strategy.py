@@ -16,11 +16,15 @@ per-Gaussian state row. `activity_window="garo_step"` restarts the mean after ea
 Geometry is read at the time of the GARO step's training camera: the model puts deformed
 positions (`means3d`) and rotations (`quats3d`) into the rasterizer's `info`; the canonical scales
 that choose the normal's axis are the strategy's own `params["scales"]`.
+
+This strategy is the one place where the number of Gaussians changes: densification (gsplat's),
+GARO (mode "off" turns it off: the D-3DGS baseline) and pruning by contribution, whose per-Gaussian
+contribution the model passes in (as gsplat's MCMC strategy takes the learning rate). It reports
+what it did in `state["garo_last"]` and return values; logging is the caller's.
 """
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 from typing import Any, Dict, Literal, Optional, Tuple, Union
@@ -30,47 +34,11 @@ from gsplat.strategy import DefaultStrategy
 from gsplat.strategy.ops import remove
 from torch import Tensor
 
-from garo_ns.activity import accumulate, activity_candidates, mean_activity, visible_gradient_norms
-from garo_ns.curvature import curvature
-from garo_ns.normals import normals
+from garo_ns.redundancy.activity import mean_activity, record
+from garo_ns.redundancy.normals import normals
+from garo_ns.redundancy.select import least_contributing, select_redundant
 
 Params = Union[Dict[str, torch.nn.Parameter], torch.nn.ParameterDict]
-
-
-def select_redundant(
-    activity: Tensor,
-    counts: Tensor,
-    points: Tensor,
-    unit_normals: Tensor,
-    mode: Literal["oaa", "gca", "full"],
-    tau_activity: float,
-    n_max: int,
-    tau_curvature: float,
-    rho_max: float,
-    k: int,
-) -> Dict[str, Any]:
-    """GARO's joint measurement: which Gaussians to prune now.
-
-    Modes: "full" (the paper: activity candidates, then curvature), "oaa" (activity only, least
-    active first), "gca" (curvature only: every visible Gaussian is a candidate, flattest first).
-
-    Returns a dict with `prune` (indices, at most floor(rho_max * N)), and the counts
-    `candidates` and `redundant` for logging.
-    """
-    n = points.shape[0]
-    cap = int(math.floor(max(0.0, min(1.0, rho_max)) * n))
-    if mode == "gca":
-        cand = torch.nonzero(counts > 0).squeeze(1)
-    else:
-        cand = activity_candidates(activity, tau_activity, n_max)
-    if mode == "oaa":
-        # Lowest activity first (activity_candidates returns them in that order).
-        return {"prune": cand[:cap], "candidates": cand.numel(), "redundant": cand.numel()}
-    curv = curvature(points, unit_normals, cand, k)
-    flat = curv < tau_curvature
-    red, red_curv = cand[flat], curv[flat]
-    order = torch.argsort(red_curv, stable=True)
-    return {"prune": red[order[:cap]], "candidates": cand.numel(), "redundant": red.numel()}
 
 
 @dataclass
@@ -79,7 +47,7 @@ class GaroStrategy(DefaultStrategy):
 
     Args (beyond DefaultStrategy's):
         mode: "full" (activity then curvature), "oaa" (activity only), "gca" (curvature only,
-            every visible Gaussian a candidate).
+            every visible Gaussian a candidate), "off" (no GARO: plain densification).
         tau_activity, n_max, tau_curvature, rho_max, k_neighbors: see the module docstring.
         garo_start_iter, garo_stop_iter, garo_every: GARO prunes at steps s with
             start <= s < stop and s % every == 0. None (the default) follows densification:
@@ -88,7 +56,7 @@ class GaroStrategy(DefaultStrategy):
             "garo_step" (mean since the last GARO step).
     """
 
-    mode: Literal["oaa", "gca", "full"] = "full"
+    mode: Literal["off", "oaa", "gca", "full"] = "full"
     tau_activity: float = 5e-5
     n_max: int = 10_000
     tau_curvature: float = 0.5
@@ -100,9 +68,15 @@ class GaroStrategy(DefaultStrategy):
     activity_window: Literal["training", "garo_step"] = "training"
 
     def initialize_state(self, scene_scale: float = 1.0) -> Dict[str, Any]:
+        """gsplat's state plus the keys this strategy owns. Per-Gaussian rows (None until first
+        filled) are kept aligned with the Gaussians by every clone, split and removal:
+        `garo_grad`/`garo_count` (activity record), `static`/`static_offset` (the static
+        classification, filled by the model; `static_step` is when). `garo_last`: the counts of
+        the last GARO step."""
         state = super().initialize_state(scene_scale)
-        # N-sized tensors in the state are kept aligned by gsplat's duplicate/split/remove.
-        state.update({"garo_grad": None, "garo_count": None, "garo_last": {}})
+        if self.mode != "off":
+            state.update({"garo_grad": None, "garo_count": None, "garo_last": {}})
+        state.update({"static": None, "static_offset": None, "static_step": -1})
         return state
 
     def garo_schedule(self) -> Tuple[int, int, int]:
@@ -114,6 +88,8 @@ class GaroStrategy(DefaultStrategy):
 
     def is_garo_step(self, step: int) -> bool:
         """Whether GARO prunes at this step."""
+        if self.mode == "off":
+            return False
         start, stop, every = self.garo_schedule()
         return start <= step < stop and step % every == 0
 
@@ -126,23 +102,33 @@ class GaroStrategy(DefaultStrategy):
         info: Dict[str, Any],
         packed: bool = False,
     ) -> None:
-        if step < self.garo_schedule()[1]:
+        """GARO's activity and (at GARO steps) pruning, then gsplat's densification step."""
+        if self.mode != "off" and step < self.garo_schedule()[1]:
             self.update_activity(params, state, info, packed)
         if self.is_garo_step(step):
             keep = self.prune_redundant(params, optimizers, state, step, info)
             if keep is not None:
-                info = _filter_info(info, keep)
+                info = restrict_info(info, keep)
         super().step_post_backward(params, optimizers, state, step, info, packed)
 
+    def gradient_norms(self, params: Params, info: Dict[str, Any], packed: bool = False) -> Tuple[Tensor, Tensor]:
+        """This iteration's NDC view-space gradient norm of each Gaussian, summed over the cameras
+        that see it, and how many saw it ([N] each): gsplat's own densification update, run on a
+        scratch state, so the normalisation is gsplat's and exists once."""
+        if getattr(info["means2d"], "absgrad" if self.absgrad else "grad", None) is None:
+            raise ValueError("info['means2d'] has no gradient: call retain_grad() before backward")
+        scratch: Dict[str, Any] = {"grad2d": None, "count": None, "radii": None}
+        super()._update_state(params, scratch, info, packed)
+        return scratch["grad2d"], scratch["count"]
+
     def update_activity(self, params: Params, state: Dict[str, Any], info: Dict[str, Any], packed: bool) -> None:
-        """Add this iteration's view-space gradient norms of the visible Gaussians."""
+        """Add this iteration's gradient norms of the visible Gaussians to the activity record."""
         n = len(params["means"])
         dev = params["means"].device
         if state["garo_grad"] is None or state["garo_grad"].shape[0] != n:
             state["garo_grad"] = torch.zeros(n, device=dev)
             state["garo_count"] = torch.zeros(n, device=dev)
-        ids, norms = visible_gradient_norms(info, packed)
-        accumulate(state["garo_grad"], state["garo_count"], ids, norms)
+        record(state["garo_grad"], state["garo_count"], *self.gradient_norms(params, info, packed))
 
     def prune_redundant(
         self,
@@ -198,18 +184,24 @@ class GaroStrategy(DefaultStrategy):
             }
             return keep
 
-    def log(self, state: Dict[str, Any], step: int) -> None:
-        """Send the last GARO step's counts and wall time to nerfstudio's writer (once per GARO step)."""
-        last = state.get("garo_last") or {}
-        if last.get("step") != step:
-            return
-        from nerfstudio.utils import writer
+    @torch.no_grad()
+    def prune_by_contribution(
+        self,
+        params: Params,
+        optimizers: Dict[str, torch.optim.Optimizer],
+        state: Dict[str, Any],
+        contribution: Tensor,
+        ratio: float,
+    ) -> int:
+        """Remove the floor(ratio * N) Gaussians with the smallest `contribution` [N] (e.g. their
+        summed blending weight over the training views); returns how many were removed."""
+        mask = least_contributing(contribution, ratio)
+        if bool(mask.any()):
+            remove(params=params, optimizers=optimizers, state=state, mask=mask)
+        return int(mask.sum())
 
-        for key in ("candidates", "redundant", "pruned", "seconds", "num_gaussians"):
-            writer.put_scalar(name=f"garo/{key}", scalar=float(last[key]), step=step)
 
-
-def _filter_info(info: Dict[str, Any], keep: Tensor) -> Dict[str, Any]:
+def restrict_info(info: Dict[str, Any], keep: Tensor) -> Dict[str, Any]:
     """The rasterizer's per-camera, per-Gaussian info restricted to the kept Gaussians, so that
     DefaultStrategy's bookkeeping after GARO sees consistent sizes (unpacked info only)."""
     out = dict(info)

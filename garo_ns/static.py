@@ -10,7 +10,7 @@ that starts to move becomes dynamic again at the next decision.
 
 from __future__ import annotations
 
-from typing import Callable, Tuple
+from typing import Callable, Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -64,3 +64,23 @@ def classify_static(deviation: Tensor, size: Tensor, threshold: float) -> Tensor
         raise ValueError(f"static threshold must be >= 0, got {threshold}")
     move = displacement(deviation, torch.nan_to_num(size.float(), nan=float("inf")))
     return move < threshold
+
+
+def sample_times(times: Optional[Tensor], n: int) -> Tensor:
+    """Up to `n` of `times`, evenly spread; an even grid of `n` over [0, 1] when no times are known."""
+    if times is None or times.numel() == 0:
+        return torch.linspace(0.0, 1.0, n)
+    if times.numel() > n:
+        return times[torch.linspace(0, times.numel() - 1, n).round().long()]
+    return times
+
+
+@torch.no_grad()
+def classify(
+    offsets: OffsetFn, means: Tensor, log_scales: Tensor, times: Tensor, threshold: float
+) -> Tuple[Tensor, Tensor]:
+    """Which Gaussians are static [N] (bool) and their time-averaged offsets [N, 10], from the field
+    `offsets` sampled at `times`; `threshold` in scene units (see `classify_static`)."""
+    deviation, mean = motion_statistics(offsets, means.detach(), times.reshape(-1))
+    size = torch.exp(log_scales.detach() + mean[:, 7:]).amax(dim=-1)
+    return classify_static(deviation, size, threshold), mean

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Mutation testing of GARO's stages and strategy with mutmut: activity, normals, curvature, knn and
-# garo_strategy (the joint selection and GaroStrategy's own logic). Each mutant is run against the
+# Mutation testing of GARO's stages and strategy with mutmut: activity, normals, curvature, knn, select
+# (the joint selection) and garo_strategy (GaroStrategy's own logic). Each mutant is run against the
 # fast unit tests only (tests/test_redundancy_*.py, tests/test_garo_strategy.py: seconds, no training).
 #
 #   bash scripts/mutation.sh            # about 30-60 minutes on 2 CPU cores
@@ -29,10 +29,11 @@ cat > "$work/setup.cfg" << EOF
 [mutmut]
 source_paths = garo_ns
 only_mutate =
-    garo_ns/activity.py
-    garo_ns/normals.py
-    garo_ns/curvature.py
-    garo_ns/knn.py
+    garo_ns/redundancy/activity.py
+    garo_ns/redundancy/normals.py
+    garo_ns/redundancy/curvature.py
+    garo_ns/redundancy/knn.py
+    garo_ns/redundancy/select.py
     garo_ns/garo_strategy.py
 pytest_add_cli_args_test_selection =
 $(printf '    %s\n' "${tests[@]}")
@@ -46,8 +47,8 @@ cd "$work"
 export TORCHDYNAMO_DISABLE=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
 export GARO_PROPERTY_EXAMPLES=${GARO_PROPERTY_EXAMPLES:-25}
 # Two passes (the stages and the strategy, then kNN): the first one's results are there sooner.
-# MUTATION_NAMES (mutmut name globs, e.g. "garo_ns.curvature.*") runs those mutants only.
-passes=("garo_ns.activity.* garo_ns.normals.* garo_ns.curvature.* garo_ns.garo_strategy.*" "garo_ns.knn.*")
+# MUTATION_NAMES (mutmut name globs, e.g. "garo_ns.redundancy.curvature.*") runs those mutants only.
+passes=("garo_ns.redundancy.activity.* garo_ns.redundancy.normals.* garo_ns.redundancy.curvature.* garo_ns.redundancy.select.* garo_ns.garo_strategy.*" "garo_ns.redundancy.knn.*")
 if [ -n "${MUTATION_NAMES:-}" ]; then passes=("$MUTATION_NAMES"); fi
 for names in "${passes[@]}"; do
   # shellcheck disable=SC2086

@@ -17,7 +17,7 @@ RESOLUTION = 64
 
 @pytest.fixture(scope="session")
 def scene_dir(tmp_path_factory) -> Path:
-    from garo_ns.scene import SceneSpec, generate_scene
+    from garo_ns.tools.scene import SceneSpec, generate_scene
 
     return generate_scene(
         tmp_path_factory.mktemp("scene"), SceneSpec(resolution=RESOLUTION, n_train=30, n_val=4, n_test=6)
@@ -43,8 +43,8 @@ def train_views_l1(pipeline: Any, n: int = 6) -> float:
 
 
 def _train(method: str, scene: Path, out: Path) -> Dict[str, Any]:
-    from garo_ns.eval import evaluate
-    from garo_ns.train import QuickSchedule, make_config, seed_everything
+    from garo_ns.tools.eval import evaluate
+    from garo_ns.tools.train import QuickSchedule, make_config, seed_everything
 
     config = make_config(
         method,  # type: ignore[arg-type]

@@ -7,8 +7,8 @@ import json
 import pytest
 import torch
 
-from garo_ns.benchmark import SPEED_ROWS, BenchArgs, run
-from garo_ns.scene import SceneSpec, generate_scene
+from garo_ns.bench.benchmark import SPEED_ROWS, BenchArgs, run
+from garo_ns.tools.scene import SceneSpec, generate_scene
 
 
 @pytest.mark.slow
@@ -30,7 +30,7 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
     )
     run(args)
     result = json.loads(out.read_text())
-    from garo_ns.eval import load_split
+    from garo_ns.tools.eval import load_split
 
     _, images = load_split(scene, "val", torch.zeros(3))  # what a model that draws nothing scores
     blank_psnr = sum(float(-10 * torch.log10((img**2).mean())) for img in images) / len(images)

@@ -82,7 +82,7 @@ TRAIN_SCRIPT = textwrap.dedent(
     """
     import sys
     from pathlib import Path
-    from garo_ns.train import QuickSchedule, make_config, train
+    from garo_ns.tools.train import QuickSchedule, make_config, train
 
     config = make_config(
         "garo-deform", Path(sys.argv[1]), Path(sys.argv[2]), experiment_name="killed",

@@ -10,7 +10,7 @@ from PIL import Image
 
 @pytest.mark.slow
 def test_demo_writes_side_by_side_figures_strip_and_plot(tmp_path, capsys):
-    from garo_ns.demo import DemoArgs, run
+    from garo_ns.tools.demo import DemoArgs, run
 
     args = DemoArgs(output_dir=tmp_path, steps=30, resolution=24, n_train=6, n_test=3, strip_frames=3, num_random=800)
     summary = run(args)

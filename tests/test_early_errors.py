@@ -11,7 +11,7 @@ import pytest
 
 import garo_ns.config  # noqa: F401  (registers the methods and installs the plugin's nerfstudio hooks)
 from garo_ns.errors import GaroInputError
-from garo_ns.scene import SceneSpec, generate_scene
+from garo_ns.tools.scene import SceneSpec, generate_scene
 
 
 @pytest.fixture()
@@ -62,7 +62,7 @@ def test_ns_train_on_a_bad_nerfds_capture(tmp_path):
 
 def test_a_bad_dataset_found_during_setup_leaves_no_run_folder(small_scene, tmp_path):
     """In-process training (no ns-train, so no early check): the dataparser's error still leaves no folder."""
-    from garo_ns.train import make_config
+    from garo_ns.tools.train import make_config
 
     out = tmp_path / "outputs"
     config = make_config("garo-deform", small_scene, out, experiment_name="bad")
@@ -77,7 +77,7 @@ def test_a_bad_dataset_found_during_setup_leaves_no_run_folder(small_scene, tmp_
 
 
 def test_a_run_folder_with_results_is_never_removed(small_scene, tmp_path):
-    from garo_ns.train import make_config
+    from garo_ns.tools.train import make_config
 
     out = tmp_path / "outputs"
     config = make_config("garo-deform", small_scene, out, experiment_name="bad")

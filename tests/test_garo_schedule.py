@@ -15,7 +15,7 @@ TAU_ACTIVITY = 1e-3
 
 
 def _train(scene, out, name: str, **model) -> Dict[str, object]:
-    from garo_ns.train import QuickSchedule, make_config, train
+    from garo_ns.tools.train import QuickSchedule, make_config, train
 
     config = make_config(
         "garo-deform",

@@ -11,11 +11,12 @@ import pytest
 import torch
 from gsplat.strategy.ops import duplicate, remove, split
 
-from garo_ns.activity import accumulate, activity_candidates, mean_activity, visible_gradient_norms
-from garo_ns.curvature import curvature
-from garo_ns.garo_strategy import GaroStrategy, select_redundant
-from garo_ns.knn import knn_brute, knn_grid
-from garo_ns.normals import normals
+from garo_ns.garo_strategy import GaroStrategy
+from garo_ns.redundancy.activity import activity_candidates, mean_activity, record
+from garo_ns.redundancy.curvature import curvature
+from garo_ns.redundancy.knn import knn_brute, knn_grid
+from garo_ns.redundancy.normals import normals
+from garo_ns.redundancy.select import select_redundant
 
 # A quaternion (w, x, y, z) is the identity here, so a Gaussian's smallest axis is its normal.
 
@@ -150,12 +151,12 @@ def test_activity_accounting_ignores_invisible_iterations_and_nan():
     m2d = torch.zeros(1, 4, 2, requires_grad=True)
     (m2d * torch.tensor([[[1.0, 0.0], [0.0, 2.0], [3.0, 0.0], [float("nan"), 0.0]]])).sum().backward()
     info = {"means2d": m2d, "radii": torch.tensor([[1, 1, 0, 1]]), "width": 2, "height": 2, "n_cameras": 1}
+    info["gaussian_ids"] = None
+    strategy, params = GaroStrategy(), {"means": torch.zeros(4, 3)}
     for _ in range(3):
-        ids, norms = visible_gradient_norms(info)
-        accumulate(sums, counts, ids, norms)
+        record(sums, counts, *strategy.gradient_norms(params, info))
     info["radii"] = torch.tensor([[1, 0, 0, 0]])
-    ids, norms = visible_gradient_norms(info)
-    accumulate(sums, counts, ids, norms)
+    record(sums, counts, *strategy.gradient_norms(params, info))
     g = mean_activity(sums, counts)
     assert torch.equal(counts, torch.tensor([4.0, 3.0, 0.0, 0.0]))
     torch.testing.assert_close(g[:2], torch.tensor([1.0, 2.0]))  # invisible steps do not dilute the mean

@@ -1,4 +1,4 @@
-"""CUDA-graph replay of the render-time deformation (garo_ns.graphs): exact against eager
+"""CUDA-graph replay of the render-time deformation (garo_ns.render.graphs): exact against eager
 kernels, captured again when the key changes. Needs a CUDA device (run on the GPU machine)."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from garo_ns.deformation import DeformationField, precision
-from garo_ns.graphs import InputGraph, TimeGraph
+from garo_ns.render.graphs import InputGraph, TimeGraph
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
 

@@ -11,7 +11,7 @@ import pytest
 
 from garo_ns.data.dnerf import GaroDNeRFDataParserConfig
 from garo_ns.errors import GaroInputError, GaroTrainingError
-from garo_ns.scene import SceneSpec, generate_scene
+from garo_ns.tools.scene import SceneSpec, generate_scene
 
 
 @pytest.fixture()
@@ -106,7 +106,7 @@ def test_static_dataset_error_through_ns_train_is_one_line(small_scene, tmp_path
 def test_non_finite_loss_stops_with_the_step_and_keeps_checkpoints(small_scene, tmp_path):
     import torch
 
-    from garo_ns.train import QuickSchedule, make_config
+    from garo_ns.tools.train import QuickSchedule, make_config
 
     config = make_config(
         "garo-deform",
@@ -146,7 +146,7 @@ def test_nerfstudio_dnerf_parser_background_extent_and_ns_eval(small_scene, tmp_
     from nerfstudio.data.dataparsers.dnerf_dataparser import DNeRFDataParserConfig
 
     from garo_ns.data.dnerf import camera_extent, read_split
-    from garo_ns.train import QuickSchedule, make_config, train
+    from garo_ns.tools.train import QuickSchedule, make_config, train
 
     config = make_config(
         "garo-deform",

@@ -14,7 +14,7 @@ import torch
 from garo_ns.data.dnerf import GaroDNeRFDataParserConfig
 from garo_ns.data.nerfds import NerfDSDataParserConfig, read_capture
 from garo_ns.errors import GaroInputError
-from garo_ns.scene import SceneSpec, generate_scene
+from garo_ns.tools.scene import SceneSpec, generate_scene
 
 SPEC = SceneSpec(resolution=32, n_train=6, n_val=3, n_test=2, seed=3)
 
@@ -66,7 +66,7 @@ def test_downscale_scales_intrinsics_and_points_are_normalised(both_layouts):
     pts = full.metadata["points3D_xyz"]
     assert pts.shape == (2000, 3)
     # Points were written around the un-normalised frame; normalised, the ground sits at its height.
-    from garo_ns.scene import GROUND_Z
+    from garo_ns.tools.scene import GROUND_Z
 
     assert torch.isclose(pts[:1000, 2], torch.tensor(GROUND_Z), atol=1e-5).all()
     assert full.metadata["points3D_rgb"].shape == (0, 3)
@@ -158,7 +158,7 @@ def test_missing_data_directory(tmp_path):
 @pytest.mark.slow
 def test_real_recipe_trains_from_points_on_cpu(tmp_path, both_layouts):
     """The real-scene preset: seeded from points.npy (no .cuda()), 10 time frequencies, time noise."""
-    from garo_ns.train import QuickSchedule, make_config, seed_everything
+    from garo_ns.tools.train import QuickSchedule, make_config, seed_everything
 
     config = make_config(
         "garo-deform-real",
@@ -198,8 +198,9 @@ def test_time_noise_is_annealed_and_off_by_default():
 
     class Stub:
         config = GaroModelConfig(time_noise=0.1, time_noise_steps=1000)
-        _train_times = torch.linspace(0, 1, 50)
+        train_times = torch.linspace(0, 1, 50)
         step = 0
+        training = True
 
     from garo_ns.garo_model import GaroModel
 
@@ -212,3 +213,5 @@ def test_time_noise_is_annealed_and_off_by_default():
     assert half.std() == pytest.approx(0.05 / 50, rel=0.05)
     stub.step = 1000
     assert GaroModel.time_noise(stub) == 0.0
+    stub.step, stub.training = 0, False
+    assert GaroModel.time_noise(stub) == 0.0  # renders outside training are never perturbed

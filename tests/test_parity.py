@@ -17,8 +17,8 @@ from typing import Any, Dict
 import pytest
 import torch
 
-from garo_ns.scene import SceneSpec, generate_scene
-from garo_ns.train import QuickSchedule, make_config, seed_everything, train
+from garo_ns.tools.scene import SceneSpec, generate_scene
+from garo_ns.tools.train import QuickSchedule, make_config, seed_everything, train
 
 FIXTURE = Path(__file__).parent / "data" / "parity.pt"
 STEPS = 120

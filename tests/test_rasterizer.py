@@ -9,8 +9,8 @@ import pytest
 import torch
 from gsplat.cuda import _torch_impl as gs
 
-from garo_ns.rasterizer import composite, covariance, intersect_tiles, project, rasterize
-from garo_ns.sh import eval_sh
+from garo_ns.render.reference import composite, covariance, intersect_tiles, project, rasterize
+from garo_ns.render.sh import eval_sh
 
 
 def camera(width=64, height=48, distance=4.0, n=1, seed=0):
@@ -286,7 +286,7 @@ def test_bad_inputs_raise_value_errors_naming_the_argument():
 
 
 def test_viewmat_inverts_the_pose_with_opencv_axes():
-    from garo_ns.garo_model import viewmat_from_c2w
+    from garo_ns.render.view import viewmat_from_c2w
 
     torch.manual_seed(0)
     rot, _ = torch.linalg.qr(torch.randn(2, 3, 3))

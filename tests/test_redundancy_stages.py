@@ -16,10 +16,11 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from garo_ns.activity import accumulate, activity_candidates, mean_activity, visible_gradient_norms
-from garo_ns.curvature import curvature
-from garo_ns.knn import knn, knn_brute, knn_grid
-from garo_ns.normals import normals, shortest_axis
+from garo_ns.garo_strategy import GaroStrategy
+from garo_ns.redundancy.activity import activity_candidates, mean_activity, record
+from garo_ns.redundancy.curvature import curvature
+from garo_ns.redundancy.knn import knn, knn_brute, knn_grid
+from garo_ns.redundancy.normals import normals, shortest_axis
 
 W, H, C = 800, 600, 3  # a real image size, not square, seen by three cameras at once
 NAN, INF = float("nan"), float("inf")
@@ -41,22 +42,33 @@ def info_for(grad: torch.Tensor, radii: torch.Tensor, packed_ids=None) -> dict:
     return {"means2d": m2d, "radii": radii, "width": W, "height": H, "n_cameras": C, "gaussian_ids": packed_ids}
 
 
+def gradient_norms(info: dict, n: int, packed: bool = False):
+    """This iteration's per-Gaussian norm sums and counts, as the strategy reads them from gsplat."""
+    return GaroStrategy().gradient_norms({"means": torch.zeros(n, 3)}, info, packed)
+
+
 def test_activity_is_the_ndc_gradient_on_an_800x600_image_seen_by_three_cameras():
     # NDC gradients (3, 4), (6, 8), (5, 12), (8, 15): norms 5, 10, 13, 17 exactly. In pixels the x
     # and y parts differ (width and height differ), so a swapped or missing scale changes the norm.
-    ndc = torch.tensor([[[3.0, 4.0], [6.0, 8.0]], [[5.0, 12.0], [8.0, 15.0]], [[0.0, 1.0], [1.0, 0.0]]])
-    radii = torch.tensor([[2, 1], [0, 3], [4, 0]], dtype=torch.int32)  # camera 1 misses 0, camera 2 misses 1
+    ndc = torch.tensor(
+        [
+            [[3.0, 4.0], [6.0, 8.0], [1.0, 1.0]],
+            [[5.0, 12.0], [8.0, 15.0], [1.0, 1.0]],
+            [[0.0, 1.0], [1.0, 0.0], [1.0, 1.0]],
+        ]
+    )
+    radii = torch.tensor([[2, 1, 0], [0, 3, 0], [4, 0, 0]], dtype=torch.int32)  # camera 1 misses 0, 2 misses 1
     info = info_for(pixel_grad(ndc), radii)
     before = info["means2d"].grad.clone()
-    ids, norms = visible_gradient_norms(info)
-    assert ids.tolist() == [0, 1, 1, 0]
-    torch.testing.assert_close(norms, torch.tensor([5.0, 10.0, 17.0, 1.0]), rtol=1e-6, atol=0)
+    step_sums, step_counts = gradient_norms(info, 3)
+    torch.testing.assert_close(step_sums, torch.tensor([5.0 + 1.0, 10.0 + 17.0, 0.0]), rtol=1e-6, atol=0)
+    assert step_counts.tolist() == [2.0, 2.0, 0.0]  # one count per camera that sees it
     assert torch.equal(info["means2d"].grad, before)  # the model's gradient is left as it was
 
     sums, counts = torch.zeros(3), torch.zeros(3)
-    accumulate(sums, counts, ids, norms)
-    accumulate(sums, counts, ids, norms)
-    assert counts.tolist() == [4.0, 4.0, 0.0]  # one count per camera that sees it, per iteration
+    record(sums, counts, step_sums, step_counts)
+    record(sums, counts, step_sums, step_counts)
+    assert counts.tolist() == [4.0, 4.0, 0.0]
     g = mean_activity(sums, counts)
     torch.testing.assert_close(g[:2], torch.tensor([3.0, 13.5]), rtol=1e-6, atol=0)
     assert math.isnan(g[2])  # never seen: no estimate
@@ -66,25 +78,26 @@ def test_packed_activity_takes_the_ids_from_the_rasterizer():
     ndc = torch.tensor([[3.0, 4.0], [6.0, 8.0], [5.0, 12.0]])
     ids = torch.tensor([4, 0, 4])
     info = info_for(pixel_grad(ndc), torch.tensor([1, 1, 1]), packed_ids=ids)
-    got_ids, norms = visible_gradient_norms(info, packed=True)
-    assert got_ids.tolist() == [4, 0, 4]
-    torch.testing.assert_close(norms, torch.tensor([5.0, 10.0, 13.0]), rtol=1e-6, atol=0)
+    step_sums, step_counts = gradient_norms(info, 5, packed=True)
+    torch.testing.assert_close(step_sums, torch.tensor([10.0, 0.0, 0.0, 0.0, 18.0]), rtol=1e-6, atol=0)
+    assert step_counts.tolist() == [1.0, 0.0, 0.0, 0.0, 2.0]
 
 
 def test_non_finite_gradients_are_dropped_not_spread():
     ndc = torch.tensor([[[3.0, 4.0], [NAN, 1.0], [INF, 0.0], [0.0, 0.0]]])
     info = info_for(pixel_grad(ndc), torch.ones(1, 4, dtype=torch.int32))
     info["n_cameras"] = 1
-    ids, norms = visible_gradient_norms(info)
-    assert ids.tolist() == [0, 3]
-    torch.testing.assert_close(norms, torch.tensor([5.0 / C, 0.0]), rtol=1e-6, atol=0)
+    sums, counts = torch.zeros(4), torch.zeros(4)
+    record(sums, counts, *gradient_norms(info, 4))
+    torch.testing.assert_close(sums, torch.tensor([5.0 / C, 0.0, 0.0, 0.0]), rtol=1e-6, atol=0)
+    assert counts.tolist() == [1.0, 0.0, 0.0, 1.0]
 
 
 def test_activity_without_a_gradient_is_an_error():
     info = info_for(torch.zeros(1, 2, 2), torch.ones(1, 2))
     info["means2d"].grad = None
     with pytest.raises(ValueError, match=r"^info\['means2d'\] has no gradient: call retain_grad\(\) before backward$"):
-        visible_gradient_norms(info)
+        gradient_norms(info, 2)
 
 
 def test_mean_activity_divides_by_the_visible_count():
@@ -93,7 +106,7 @@ def test_mean_activity_divides_by_the_visible_count():
     g = mean_activity(sums, counts)
     assert g[:3].tolist() == [6.0, 2.0, 0.0] and math.isnan(g[3])
     sums, counts = torch.zeros(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64)
-    accumulate(sums, counts, torch.tensor([2, 2]), torch.tensor([0.5, 0.25]))  # float32 norms into float64
+    record(sums, counts, torch.tensor([0.0, 0.0, 0.75]), torch.tensor([0.0, 0.0, 2.0]))  # float32 into float64
     assert sums.tolist() == [0.0, 0.0, 0.75] and counts.tolist() == [0.0, 0.0, 2.0]
 
 

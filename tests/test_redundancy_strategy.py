@@ -16,9 +16,10 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from garo_ns.curvature import curvature
-from garo_ns.garo_strategy import GaroStrategy, select_redundant
-from garo_ns.normals import normals
+from garo_ns.garo_strategy import GaroStrategy, restrict_info
+from garo_ns.redundancy.curvature import curvature
+from garo_ns.redundancy.normals import normals
+from garo_ns.redundancy.select import select_redundant
 
 NAN, INF = float("nan"), float("inf")
 # Examples per property test; scripts/mutation.sh lowers it to keep each mutant's run short.
@@ -306,27 +307,18 @@ def test_garo_step_window_restarts_the_mean():
     assert state["garo_count"].tolist() == [1.0] * 20
 
 
-def test_log_sends_the_last_garo_step_once(monkeypatch):
-    from nerfstudio.configs import base_config  # noqa: F401  (imports writer without an import cycle)
-    from nerfstudio.utils import writer
-
-    sent = []
-    monkeypatch.setattr(writer, "put_scalar", lambda name, scalar, step: sent.append((name, scalar, step)))
+def test_the_last_garo_step_is_reported_in_the_state():
     params, optimizers = flat_plane_params(30)
     strategy = garo(rho_max=0.1, tau_curvature=0.01)
     state = run_step(strategy, params, optimizers, fake_info(30))
-    strategy.log(state, 2)
-    assert sent == []
-    strategy.log(state, 1)
-    assert [(n, v) for n, v, _ in sent[:3] + sent[4:]] == [
-        ("garo/candidates", 30.0),
-        ("garo/redundant", 30.0),
-        ("garo/pruned", 3.0),
-        ("garo/num_gaussians", 27.0),
-    ]
-    assert sent[3][0] == "garo/seconds" and {s for _, _, s in sent} == {1}
-    strategy.log({"garo_last": {}}, 1)
-    assert len(sent) == 5
+    last = state["garo_last"]
+    assert last["step"] == 1 and last["seconds"] >= 0.0
+    assert {k: last[k] for k in ("candidates", "redundant", "pruned", "num_gaussians")} == {
+        "candidates": 30,
+        "redundant": 30,
+        "pruned": 3,
+        "num_gaussians": 27,
+    }
 
 
 # --- hard cases, injected after the optimizer step ------------------------------------------------
@@ -504,8 +496,6 @@ def test_pruning_keeps_parameters_moments_and_state_rows_aligned(n, rho, seed, m
 
 
 def test_filtered_info_keeps_every_per_gaussian_entry_of_the_kept_rows():
-    from garo_ns.garo_strategy import _filter_info
-
     n, keep = 6, torch.tensor([True, False, True, True, False, True])
     rows = torch.arange(n, dtype=torch.float32)
     info = fake_info(n, radii=torch.arange(n)[None] + 1)
@@ -513,7 +503,7 @@ def test_filtered_info_keeps_every_per_gaussian_entry_of_the_kept_rows():
     per_camera = {"depths": rows[None], "conics": rows.view(1, n, 1).expand(1, n, 3), "opacities": rows[None]}
     geometry = {"means3d": rows[:, None].expand(n, 3), "quats3d": rows[:, None].expand(n, 4)}
     info.update(per_camera, **geometry, scales3d=rows[:, None].expand(n, 3), width=W)
-    out = _filter_info(info, keep)
+    out = restrict_info(info, keep)
     kept = rows[keep]
     assert torch.equal(out["radii"], (torch.arange(n)[None] + 1)[:, keep])
     assert torch.equal(out["means2d"].grad[0, :, 0], kept) and out["means2d"].shape == (1, 4, 2)
@@ -524,7 +514,7 @@ def test_filtered_info_keeps_every_per_gaussian_entry_of_the_kept_rows():
         assert torch.equal(out[key][:, 0], kept), key
     assert out["width"] == W and info["means2d"].shape == (1, n, 2)  # the original is left alone
     info["means2d"].grad = None
-    assert _filter_info(info, keep)["means2d"].grad is None
+    assert restrict_info(info, keep)["means2d"].grad is None
 
 
 def test_strategy_modes_oaa_and_gca_decide_as_their_names_say():

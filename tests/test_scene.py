@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from garo_ns.scene import SceneSpec, generate_scene, look_at_c2w, render_frame, sphere_center
+from garo_ns.tools.scene import SceneSpec, generate_scene, look_at_c2w, render_frame, sphere_center
 
 
 def test_deterministic_from_seed(tmp_path):

@@ -9,7 +9,9 @@ import pytest
 import torch
 
 from garo_ns.deformation import DeformationField, precision
-from garo_ns.importance import least_contributing, view_contribution
+from garo_ns.redundancy.select import least_contributing
+from garo_ns.render.contribution import view_contribution
+from garo_ns.render.frame import FrameSettings, versions
 from garo_ns.static import classify_static, displacement, motion_statistics
 
 
@@ -94,7 +96,7 @@ def test_contribution_sees_occlusion_and_the_frustum():
 
 def test_contribution_is_the_sum_of_blending_weights():
     """One Gaussian alone: its summed weight equals the rendered alpha summed over pixels."""
-    from garo_ns.rendering import rasterize
+    from garo_ns.render.backend import rasterize
 
     view, K = _camera()
     args = dict(
@@ -126,7 +128,7 @@ def test_static_gaussians_render_like_the_full_field(garo_run):
     # (about a third of a pixel at 64 px) to split the scene in two and test the mechanism.
     from garo_ns.static import motion_statistics as stats
 
-    times = model._train_times
+    times = model.train_times
     deviation, mean = stats(model.deformation, model.means.detach(), times)
     size = torch.exp(model.scales.detach() + mean[:, 7:]).amax(-1)
     move = displacement(deviation, size)
@@ -177,15 +179,22 @@ def test_in_place_static_composition_matches_the_copying_one(garo_run):
     model.config.static_skip = True
     try:
         with torch.no_grad():
-            versions = model._param_versions()
-            copied = [x.clone() for x in model._render_field(0.2, versions)]
-            placed = model._render_field(0.2, versions, in_place=True)
+            canonical = model.canonical()
+            offset = model.strategy_state["static_offset"]
+            key = versions(list(canonical) + list(model.deformation.parameters()) + [offset])
+            settings = FrameSettings(static_skip=True)
+
+            def deform(t, in_place=False):
+                return model.frame.deform(model.deformation, canonical, static, offset, t, settings, key, in_place)
+
+            copied = [x.clone() for x in deform(0.2)]
+            placed = deform(0.2, in_place=True)
             for a, b in zip(copied, placed):
                 assert torch.equal(a, b)
-            model._render_field(0.9, versions, in_place=True)  # other values in the dynamic rows
-            for a, b in zip(copied, model._render_field(0.2, versions)):
+            deform(0.9, in_place=True)  # other values in the dynamic rows
+            for a, b in zip(copied, deform(0.2)):
                 assert torch.equal(a, b)
-            moved = model._render_field(0.9, versions)[0]
+            moved = deform(0.9)[0]
             assert not torch.equal(moved[~static], copied[0][~static])  # the dynamic rows do move
             assert torch.equal(moved[static], copied[0][static])  # the static ones do not
     finally:
@@ -195,7 +204,7 @@ def test_in_place_static_composition_matches_the_copying_one(garo_run):
 
 @pytest.mark.slow
 def test_static_classification_survives_a_checkpoint(garo_run):
-    from garo_ns.eval import load_run
+    from garo_ns.tools.eval import load_run
 
     model = _eval_model(garo_run)
     _, pipeline, _, _ = load_run(garo_run["config_path"])
@@ -231,7 +240,7 @@ def test_viewer_cache_is_exact_and_invalidated(garo_run):
 
 @pytest.mark.slow
 def test_contribution_pruning_during_training(scene_dir, tmp_path):
-    from garo_ns.train import QuickSchedule, make_config
+    from garo_ns.tools.train import QuickSchedule, make_config
 
     steps = 60
     config = make_config(
@@ -270,7 +279,7 @@ def test_contribution_pruning_during_training(scene_dir, tmp_path):
 @pytest.mark.slow
 def test_compact_storage_halves_the_model_and_renders_alike(garo_run, tmp_path):
     from garo_ns import storage
-    from garo_ns.timing import model_size_mb, render_view
+    from garo_ns.bench.timing import model_size_mb, render_view
 
     model = _eval_model(garo_run)
     cam = garo_run["trainer"].pipeline.datamanager.train_dataset.cameras[2:3].to(model.device)
@@ -324,10 +333,10 @@ def test_cuda_graph_switch_is_a_no_op_off_cuda(garo_run):
     assert model.device.type == "cpu"
     t = 0.4
     with torch.no_grad():
-        plain = model.splat_inputs(t)
+        plain = model.gaussians_at(t)
         model.config.cuda_graph = True
         try:
-            graphed = model.splat_inputs(t)
+            graphed = model.gaussians_at(t)
         finally:
             model.config.cuda_graph = False
     for a, b in zip(plain, graphed):

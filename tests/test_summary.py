@@ -1,4 +1,4 @@
-"""Cross-scene summary of benchmark results (garo_ns.summary)."""
+"""Cross-scene summary of benchmark results (garo_ns.bench.summary)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from garo_ns.summary import SummaryArgs, main, summarise
+from garo_ns.bench.summary import SummaryArgs, main, summarise
 
 
 def _result(scene, base_fps, garo_fps, base_psnr, garo_psnr, iterations=40_000):

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from garo_ns.errors import GaroInputError
-from garo_ns.export import export_times, read_ply
+from garo_ns.tools.export import export_times, read_ply
 
 ENV = {**os.environ, "TORCHDYNAMO_DISABLE": "1"}
 BIN = Path(sys.executable).parent
@@ -49,7 +49,9 @@ def test_export_round_trip_matches_the_model_at_each_time(garo_run, tmp_path):
         assert list(ply) == _splatfacto_property_names(rest)
         with torch.no_grad():
             means, quats, log_scales = (
-                (model.means, model.quats, model.scales) if t is None else model.deformed_gaussians(t)
+                (model.means, model.quats, model.scales)
+                if t is None
+                else (lambda s: (s.means, s.quats, torch.log(s.scales)))(model.gaussians_at(t))
             )
             means, quats, log_scales = means.detach(), quats.detach(), log_scales.detach()
         n = int(keep.sum())
@@ -190,7 +192,7 @@ def test_ns_render_interpolate_without_times_uses_the_default_time(garo_run, tmp
 
 
 def _resume_config(scene, out, max_steps, name, load_dir=None):
-    from garo_ns.train import QuickSchedule, make_config
+    from garo_ns.tools.train import QuickSchedule, make_config
 
     config = make_config(
         "garo-deform",
@@ -207,7 +209,7 @@ def _resume_config(scene, out, max_steps, name, load_dir=None):
 
 
 def _setup(config):
-    from garo_ns.train import seed_everything
+    from garo_ns.tools.train import seed_everything
 
     seed_everything(config.machine.seed)
     config.save_config()
@@ -218,7 +220,7 @@ def _setup(config):
 
 @pytest.mark.slow
 def test_resume_continues_step_optimizers_and_strategy_state(scene_dir, tmp_path):
-    from garo_ns.eval import evaluate
+    from garo_ns.tools.eval import evaluate
 
     first = _setup(_resume_config(scene_dir, tmp_path, 40, "part1"))
     first.train()

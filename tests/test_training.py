@@ -7,8 +7,8 @@ import json
 import pytest
 import torch
 
-from garo_ns.eval import EvalArgs, load_run, run
-from garo_ns.timing import render_view
+from garo_ns.bench.timing import render_view
+from garo_ns.tools.eval import EvalArgs, load_run, run
 
 # Thresholds come from measured runs (64 px scene, 300 steps, seed 42, 2 CPU cores): garo-deform reached
 # test PSNR 19.46 dB with 27.7k Gaussians, deform-splatfacto 19.57 dB with 31.5k; the L1 on training views

@@ -2,7 +2,7 @@
 (tile intersection and ordering), compositing, and the Python overhead of the whole call.
 
 Each stage is run on its own between CUDA synchronisations, on the same prepared views as the FPS
-protocol (garo_ns.timing); the overhead is the end-to-end frame time minus the sum of the stages,
+protocol (garo_ns.bench.timing); the overhead is the end-to-end frame time minus the sum of the stages,
 i.e. what the renderer's Python glue costs. The stages run eagerly (the projection outside any
 CUDA graph), so with `cuda_graph` and `lean_raster` the frame can take less than their sum; the
 overhead is then reported as 0. Same stages on the CUDA kernels and on the pure-torch
@@ -19,8 +19,9 @@ from typing import Any, Dict, Iterator
 
 import torch
 
-from garo_ns.rendering import TILE_SIZE, RenderView, rasterize_lean, resolve_backend
-from garo_ns.timing import prepare_views
+from garo_ns.bench.timing import prepare_views
+from garo_ns.render.backend import TILE_SIZE, rasterize_lean, resolve_backend
+from garo_ns.render.view import RenderView
 
 STAGES = ("deformation", "projection", "color", "sorting", "compositing")
 
@@ -70,7 +71,7 @@ def _staged_frame(model: Any, view: RenderView, backend: str, stage: Any) -> Non
     """One frame through the stages of the renderer (classic mode, unpacked, RGB): on CUDA the
     kernels of `rendering.rasterize_lean`, elsewhere the reference rasterizer's functions."""
     with stage("deformation"):  # MLP, composition and activations (one graph replay with cuda_graph)
-        means, quats, scales, opacities, shs = model.splat_inputs(view.time)
+        means, quats, scales, opacities, shs = model.gaussians_at(view.time)[:5]
     viewmats, Ks, W, H = view.viewmat, view.K, view.width, view.height
     degree = min(model.step // model.config.sh_degree_interval, model.config.sh_degree)
     if backend == "cuda":  # the lean path's own steps, timed where they run
@@ -79,16 +80,16 @@ def _staged_frame(model: Any, view: RenderView, backend: str, stage: Any) -> Non
         return
     tw, th = math.ceil(W / TILE_SIZE), math.ceil(H / TILE_SIZE)
     campos = torch.linalg.inv(viewmats)[:, :3, 3]
-    from garo_ns import rasterizer
-    from garo_ns.sh import eval_sh
+    from garo_ns.render import reference
+    from garo_ns.render.sh import eval_sh
 
     with stage("projection"):
-        radii, means2d, depths, conics = rasterizer.project(
-            means, rasterizer.covariance(quats, scales), viewmats, Ks, W, H
+        radii, means2d, depths, conics = reference.project(
+            means, reference.covariance(quats, scales), viewmats, Ks, W, H
         )
     with stage("color"):
         colors = torch.clamp_min(eval_sh(degree, means[None] - campos[:, None], shs[None]) + 0.5, 0.0)
     with stage("sorting"):
-        _, tile_ids, flat_ids = rasterizer.intersect_tiles(means2d, radii, depths, TILE_SIZE, tw, th)
+        _, tile_ids, flat_ids = reference.intersect_tiles(means2d, radii, depths, TILE_SIZE, tw, th)
     with stage("compositing"):
-        rasterizer.composite(means2d, conics, opacities[None], colors, tile_ids, flat_ids, W, H, TILE_SIZE)
+        reference.composite(means2d, conics, opacities[None], colors, tile_ids, flat_ids, W, H, TILE_SIZE)

@@ -35,7 +35,8 @@ def gaussian_properties(model: Any, time: Optional[float]) -> "OrderedDict[str, 
     if time is None:
         means, quats, log_scales = model.means, model.quats, model.scales
     else:
-        means, quats, log_scales = model.deformed_gaussians(float(time))
+        splats = model.gaussians_at(float(time))
+        means, quats, log_scales = splats.means, splats.quats, torch.log(splats.scales)
     n = means.shape[0]
     props: "OrderedDict[str, np.ndarray]" = OrderedDict()
     xyz = means.float().cpu().numpy()
@@ -163,7 +164,7 @@ def main() -> None:
     """Console entry point: `garo-export --load-config RUN/config.yml --num-times 5`."""
     import tyro
 
-    from garo_ns.eval import load_run
+    from garo_ns.tools.eval import load_run
 
     args = tyro.cli(ExportArgs)
     if args.num_times < 0:

@@ -1,8 +1,8 @@
-"""`python -m garo_ns.benchmark`: GARO against the D-3DGS baseline, speed against error, in one run.
+"""`python -m garo_ns.bench.benchmark`: GARO against the D-3DGS baseline, speed against error, in one run.
 
 Phase 1 trains every variant, one process per GPU (round-robin when there are more variants than
 GPUs; several processes may share a GPU). Phase 2, after all training has ended, loads each run in
-turn and evaluates it on the chosen split and times it with the FPS protocol (garo_ns.timing), so
+turn and evaluates it on the chosen split and times it with the FPS protocol (garo_ns.bench.timing), so
 no timing overlaps another job. One JSON holds everything; a Markdown table and a PNG plot (FPS
 against PSNR, marker area by Gaussian count) are written next to it.
 
@@ -116,14 +116,14 @@ class BenchArgs:
     speed: bool = False
     """Also report every trained variant with the render-time switches of SPEED_ROWS."""
     profile: bool = True
-    """Add a per-stage breakdown of one frame (garo_ns.frame_profile) to every variant."""
+    """Add a per-stage breakdown of one frame (garo_ns.bench.frame_profile) to every variant."""
     iterations: int = FULL_ITERATIONS
     """Training steps of every variant; fewer than 40k is labelled shortened in the JSON."""
     gpus: List[int] = field(default_factory=lambda: [0])
     """GPUs for the training processes (variants are assigned round-robin)."""
     device: Literal["cuda", "cpu"] = "cuda"
     quick: bool = False
-    """CPU smoke test: the compressed schedule of garo_ns.train.QuickSchedule."""
+    """CPU smoke test: the compressed schedule of garo_ns.tools.train.QuickSchedule."""
     background: Literal["black", "white"] = "black"
     warmup_views: int = 5
     timing_repeats: int = 3
@@ -155,7 +155,7 @@ def train_variant(args: BenchArgs, name: str, deadline: Optional[float]) -> Dict
     import torch
     from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
-    from garo_ns.train import QuickSchedule, make_config, seed_everything
+    from garo_ns.tools.train import QuickSchedule, make_config, seed_everything
 
     method, overrides = variant_settings(name)
     config = make_config(
@@ -222,10 +222,10 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
     import torch
 
     from garo_ns import storage
+    from garo_ns.bench.frame_profile import profile_frame
+    from garo_ns.bench.timing import measure_fps, measure_same_time, model_size_mb
     from garo_ns.data.dnerf import read_split
-    from garo_ns.eval import evaluate, load_run, load_split
-    from garo_ns.frame_profile import profile_frame
-    from garo_ns.timing import measure_fps, measure_same_time, model_size_mb
+    from garo_ns.tools.eval import evaluate, load_run, load_split
 
     _, pipeline, _, step = load_run(Path(record["config"]))
     model = pipeline.model
@@ -408,7 +408,7 @@ def run(args: BenchArgs) -> Dict[str, Any]:
         if args.device == "cuda":
             env["CUDA_VISIBLE_DEVICES"] = physical_gpu(args.gpus[i % len(args.gpus)])
         log = open(args.work_dir / f"{name}.log", "w")
-        cmd = [sys.executable, "-m", "garo_ns.benchmark", "--worker", name, "--args", json.dumps(_to_json(args))]
+        cmd = [sys.executable, "-m", "garo_ns.bench.benchmark", "--worker", name, "--args", json.dumps(_to_json(args))]
         if deadline is not None:
             cmd += ["--deadline", str(deadline)]
         proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)

@@ -8,12 +8,10 @@ and one backward per view give every Gaussian's contribution, on either backend.
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor
 
-from garo_ns.rendering import Backend, rasterize
+from garo_ns.render.backend import Backend, rasterize
 
 
 def view_contribution(
@@ -54,17 +52,3 @@ def view_contribution(
     if grad is None:
         return torch.zeros(means.shape[0], device=means.device)
     return torch.nan_to_num(grad[:, 0].detach().float(), nan=0.0, posinf=0.0, neginf=0.0)
-
-
-def least_contributing(contribution: Tensor, ratio: float) -> Tensor:
-    """Boolean mask of the floor(ratio * N) Gaussians with the smallest contribution (ties: lower index)."""
-    if not 0.0 <= ratio < 1.0:
-        raise ValueError(f"prune ratio must be in [0, 1), got {ratio}")
-    n = contribution.shape[0]
-    k = math.floor(ratio * n)
-    mask = torch.zeros(n, dtype=torch.bool, device=contribution.device)
-    if k == 0:
-        return mask
-    order = torch.sort(contribution, stable=True).indices
-    mask[order[:k]] = True
-    return mask

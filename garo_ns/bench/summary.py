@@ -1,6 +1,6 @@
-"""`python -m garo_ns.summary`: one table across scenes from per-scene benchmark results.
+"""`python -m garo_ns.bench.summary`: one table across scenes from per-scene benchmark results.
 
-Reads the JSON files `garo_ns.benchmark` wrote (one per scene), and writes a summary JSON, a
+Reads the JSON files `garo_ns.bench.benchmark` wrote (one per scene), and writes a summary JSON, a
 Markdown table (per scene and the average, as the paper's Table 1) and a PNG plot next to it.
 Each compared variant is set against the baseline trained and timed in the same file, so ratios
 never mix GPUs or runs.
@@ -27,7 +27,7 @@ class SummaryArgs:
     """Summarise per-scene benchmark results."""
 
     results: tyro.conf.Positional[List[Path]]
-    """Per-scene result JSONs of garo_ns.benchmark."""
+    """Per-scene result JSONs of garo_ns.bench.benchmark."""
     output: Path = Path("benchmarks/results/summary.json")
     """Summary JSON; the .md table and .png plot go next to it."""
     variants: List[str] = field(default_factory=lambda: ["garo-deform"])

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from garo_ns.knn import knn
+from garo_ns.redundancy.knn import knn
 
 
 def curvature(points: Tensor, normals: Tensor, query_ids: Tensor, k: int) -> Tensor:

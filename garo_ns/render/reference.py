@@ -22,40 +22,17 @@ import math
 from typing import Any, Dict, Literal, Optional, Tuple
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
-from garo_ns.sh import eval_sh
+from garo_ns.quaternions import quat_to_rotmat
+from garo_ns.render.sh import eval_sh
 
 RenderMode = Literal["RGB", "D", "ED", "RGB+D", "RGB+ED"]
 
 ALPHA_MAX = 0.999
 ALPHA_MIN = 1.0 / 255.0
 TRANSMITTANCE_MIN = 1e-4
-
-
-def quat_to_rotmat(quats: Tensor) -> Tensor:
-    """Rotation matrices of (w, x, y, z) quaternions; normalised here, a zero quaternion gives I."""
-    q = F.normalize(quats, dim=-1)
-    w, x, y, z = q.unbind(-1)
-    zero = (q.abs().sum(-1) == 0).to(q.dtype)
-    w = w + zero  # the zero quaternion reads as the identity rotation
-    rot = torch.stack(
-        [
-            1 - 2 * (y * y + z * z),
-            2 * (x * y - w * z),
-            2 * (x * z + w * y),
-            2 * (x * y + w * z),
-            1 - 2 * (x * x + z * z),
-            2 * (y * z - w * x),
-            2 * (x * z - w * y),
-            2 * (y * z + w * x),
-            1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    )
-    return rot.reshape(q.shape[:-1] + (3, 3))
 
 
 def covariance(quats: Tensor, scales: Tensor) -> Tensor:

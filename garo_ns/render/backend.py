@@ -5,12 +5,12 @@ from __future__ import annotations
 import contextlib
 import functools
 import math
-from typing import Any, Callable, ContextManager, Dict, Literal, NamedTuple, Optional, Tuple
+from typing import Any, Callable, ContextManager, Dict, Literal, Optional, Tuple
 
 import torch
 from torch import Tensor
 
-from garo_ns import rasterizer
+from garo_ns.render import reference
 
 Backend = Literal["auto", "cuda", "reference"]
 
@@ -51,7 +51,7 @@ def rasterize(
     height: int,
     sh_degree: Optional[int] = None,
     backgrounds: Optional[Tensor] = None,
-    render_mode: rasterizer.RenderMode = "RGB",
+    render_mode: reference.RenderMode = "RGB",
     near_plane: float = 0.01,
     far_plane: float = 1e10,
     backend: Backend = "auto",
@@ -109,7 +109,7 @@ def rasterize(
             absgrad=False,
             rasterize_mode="classic",
         )
-    return rasterizer.rasterize(
+    return reference.rasterize(
         means,
         quats,
         scales,
@@ -129,17 +129,6 @@ def rasterize(
 
 TILE_SIZE = 16
 EPS2D = 0.3  # gsplat's classic-mode low-pass: added to the 2D covariance's diagonal
-
-
-class RenderView(NamedTuple):
-    """One camera as the rasterizer takes it, prepared once: world-to-camera [1, 4, 4] and
-    intrinsics [1, 3, 3] on the render device, image size, and the time to deform to."""
-
-    viewmat: Tensor
-    K: Tensor
-    width: int
-    height: int
-    time: float
 
 
 # What the lean path computes before sorting: radii, means2d, depths, conics, view directions and

@@ -12,11 +12,11 @@ rasterization are also timed apart (separate synchronised runs) to show where th
 from __future__ import annotations
 
 import time
-from typing import Any, Dict, List
+from typing import Any, Callable, Dict, List
 
 import torch
 
-from garo_ns.rendering import RenderView
+from garo_ns.render.view import RenderView
 
 
 def _sync(device: torch.device) -> None:
@@ -40,13 +40,21 @@ def render_view(model: Any, camera: Any) -> torch.Tensor:
 
 
 @torch.no_grad()
-def measure_fps(model: Any, cameras: Any, warmup: int = 5, repeats: int = 3) -> Dict[str, Any]:
-    """FPS of `model` over `cameras` (see the module docstring), plus the MLP/raster split in ms."""
-    model.eval()
-    device = model.device
-    views, background = prepare_views(model, cameras), _background(model)
+def fps_protocol(
+    views: List[Any],
+    frame: Callable[[Any], Any],
+    deform: Callable[[Any], Any],
+    raster: Callable[[Any, Any], Any],
+    device: torch.device,
+    warmup: int = 5,
+    repeats: int = 3,
+) -> Dict[str, Any]:
+    """The FPS protocol (module docstring) for any renderer: `frame(view)` renders a view,
+    `deform(view)` computes its deformed Gaussians and `raster(view, deformed)` rasterizes them (the
+    MLP/raster split, timed in a separate pass). Also used for the official D-3DGS code."""
+    device = torch.device(device)
     for i in range(warmup):
-        model.render(views[i % len(views)], backgrounds=background)
+        frame(views[i % len(views)])
     _sync(device)
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
@@ -55,16 +63,16 @@ def measure_fps(model: Any, cameras: Any, warmup: int = 5, repeats: int = 3) -> 
         for view in views:
             _sync(device)
             t0 = time.perf_counter()
-            model.render(view, backgrounds=background)
+            frame(view)
             _sync(device)
             totals.append(time.perf_counter() - t0)
     for view in views:
         _sync(device)
         t0 = time.perf_counter()
-        inputs = model.splat_inputs(view.time)
+        deformed = deform(view)
         _sync(device)
         t1 = time.perf_counter()
-        model.render(view, backgrounds=background, inputs=inputs)
+        raster(view, deformed)
         _sync(device)
         mlps.append(t1 - t0)
         rasters.append(time.perf_counter() - t1)
@@ -81,19 +89,34 @@ def measure_fps(model: Any, cameras: Any, warmup: int = 5, repeats: int = 3) -> 
     }
 
 
+def measure_fps(model: Any, cameras: Any, warmup: int = 5, repeats: int = 3) -> Dict[str, Any]:
+    """FPS of `model` over `cameras` (see the module docstring), plus the MLP/raster split in ms."""
+    model.eval()
+    background = _background(model)
+    return fps_protocol(
+        prepare_views(model, cameras),
+        lambda view: model.render(view, backgrounds=background),
+        lambda view: model.gaussians_at(view.time),
+        lambda view, splats: model.render(view, backgrounds=background, splats=splats),
+        model.device,
+        warmup,
+        repeats,
+    )
+
+
 @torch.no_grad()
 def measure_same_time(model: Any, cameras: Any) -> float:
     """Mean ms per view when the view's time was rendered just before (what the viewer pays while
     the user moves the camera at a fixed time): the deformation cache, then rasterization."""
     model.eval()
     device = model.device
-    background, cache = _background(model), model.config.cache_deformation
+    background = _background(model)
     times = []
     for view in prepare_views(model, cameras):
-        model.splat_inputs(view.time, cache=cache)
+        model.gaussians_at(view.time)
         _sync(device)
         t0 = time.perf_counter()
-        model.render(view, backgrounds=background, inputs=model.splat_inputs(view.time, cache=cache))
+        model.render(view, backgrounds=background, splats=model.gaussians_at(view.time))
         _sync(device)
         times.append(time.perf_counter() - t0)
     return 1000.0 * sum(times) / len(times)

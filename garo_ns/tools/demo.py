@@ -69,9 +69,9 @@ def static_threshold(args: DemoArgs) -> float:
 
 def train_arm(args: DemoArgs, method: Method, scene: Path, out: Path, device: str) -> Dict[str, Any]:
     """Train one arm with nerfstudio's trainer (progress lines shown) and measure it; returns its figures."""
-    from garo_ns.eval import evaluate, load_split
-    from garo_ns.timing import measure_fps, model_size_mb
-    from garo_ns.train import DemoSchedule, make_config, train
+    from garo_ns.bench.timing import measure_fps, model_size_mb
+    from garo_ns.tools.eval import evaluate, load_split
+    from garo_ns.tools.train import DemoSchedule, make_config, train
 
     schedule = DemoSchedule(
         steps=args.steps,
@@ -127,8 +127,8 @@ def floor_check(model: Any, resolution: int) -> Optional[Dict[str, Any]]:
     import numpy as np
     import torch
 
-    from garo_ns import scene as S
     from garo_ns.static import displacement, motion_statistics
+    from garo_ns.tools import scene as S
 
     static = model.strategy_state.get("static") if hasattr(model, "strategy_state") else None
     if not isinstance(static, torch.Tensor) or static.shape[0] != model.num_points:
@@ -186,7 +186,7 @@ def _renders_over_time(pipeline: Any, scene: Path, frames: int) -> Tuple[List[fl
     """Times, ground truths and renders [H, W, 3] of up to `frames` test views spread over time."""
     import torch
 
-    from garo_ns.eval import load_split
+    from garo_ns.tools.eval import load_split
 
     model = pipeline.model
     model.eval()
@@ -283,7 +283,7 @@ def run(args: DemoArgs) -> Dict[str, Any]:
 
     import torch
 
-    from garo_ns.scene import SceneSpec, generate_scene
+    from garo_ns.tools.scene import SceneSpec, generate_scene
 
     start = time.perf_counter()
     out = args.output_dir.resolve()

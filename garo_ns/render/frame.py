@@ -1,0 +1,225 @@
+"""The Gaussians at a time, and the fast path that renders a finished model outside training.
+
+During training every frame is the plain D-3DGS composition in fp32 (`compose`). Outside training
+(the viewer, `ns-render`, `garo-eval`, the benchmark) `FramePath` renders the same model with the
+render switches: the MLP in another precision, static Gaussians with frozen offsets (only the
+dynamic ones go through the MLP), a cache of the last time rendered, and CUDA graphs of the
+deformation and of the camera's projection. It holds only caches: everything it renders from is
+passed in, so it knows nothing of the model.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Dict, NamedTuple, Optional, Tuple, Union
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from garo_ns.deformation import DeformationField, Precision, precision
+from garo_ns.render.backend import Backend, lean_front, rasterize
+from garo_ns.render.graphs import InputGraph, TimeGraph, graphs_available
+from garo_ns.render.view import RenderView
+
+
+class Canonical(NamedTuple):
+    """The model's parameters as stored: canonical Gaussians (log-scales, opacity logits, SH)."""
+
+    means: Tensor
+    quats: Tensor
+    log_scales: Tensor
+    opacities: Tensor
+    features_dc: Tensor
+    features_rest: Tensor
+
+
+class Splats(NamedTuple):
+    """What the rasterizer takes: means, quaternions, scales, opacities [N] and SH colours [N, K, 3].
+    `graph`: the capture number of the CUDA graph whose buffers these are (the next replay overwrites
+    them), None for ordinary tensors."""
+
+    means: Tensor
+    quats: Tensor
+    scales: Tensor
+    opacities: Tensor
+    colors: Tensor
+    graph: Optional[int] = None
+
+    def select(self, keep: Tensor) -> "Splats":
+        """The Gaussians where `keep` is true (ordinary tensors)."""
+        return Splats(*(x[keep] for x in self[:5]))
+
+
+@dataclass
+class FrameSettings:
+    """The render switches (the model config's fields of the same names)."""
+
+    render_precision: Precision = "fp32"
+    static_skip: bool = False
+    cache_deformation: bool = True
+    cuda_graph: bool = False
+    lean_raster: bool = False
+
+
+Deformed = Tuple[Tensor, Tensor, Tensor]  # means, quaternions (unnormalised), log-scales
+
+
+def compose(field: DeformationField, canonical: Canonical, time: Union[float, Tensor]) -> Deformed:
+    """Every Gaussian moved by the field at `time`, as D-3DGS composes it: the MLP reads detached
+    canonical positions; offsets are added to the positions, to the normalised quaternions and (in
+    log space, which keeps scales positive) to the log-scales."""
+    d_xyz, d_rot, d_scale = field(canonical.means.detach(), time)
+    return canonical.means + d_xyz, F.normalize(canonical.quats, dim=-1) + d_rot, canonical.log_scales + d_scale
+
+
+def activate(canonical: Canonical, deformed: Deformed) -> Splats:
+    """The rasterizer's inputs from deformed geometry and the canonical appearance."""
+    means, quats, log_scales = deformed
+    colors = torch.cat([canonical.features_dc[:, None, :], canonical.features_rest], dim=1)
+    return Splats(means, quats, torch.exp(log_scales), torch.sigmoid(canonical.opacities).squeeze(-1), colors)
+
+
+def versions(tensors: Any) -> Tuple[Any, ...]:
+    """Identity, in-place version and storage of each tensor: changes whenever any of them does
+    (the storage pointer too, since assigning `.data` on checkpoint loading keeps the other two)."""
+    return tuple((id(t), t._version, t.data_ptr()) for t in tensors)
+
+
+class FramePath:
+    """Caches and CUDA graphs of the render-time frame (one per model)."""
+
+    def __init__(self) -> None:
+        self._deformed: Optional[Tuple[Any, Splats]] = None
+        self._static: Optional[Tuple[Any, Tensor, Deformed, Deformed]] = None
+        self._graph = TimeGraph()
+        self._camera_graph = InputGraph()
+
+    def splats(
+        self,
+        field: DeformationField,
+        canonical: Canonical,
+        static: Optional[Tensor],
+        static_offset: Optional[Tensor],
+        time: float,
+        settings: FrameSettings,
+    ) -> Splats:
+        """The Gaussians at `time` with the render switches. `static`/`static_offset`: the static
+        classification (None: none yet, every Gaussian goes through the MLP)."""
+        if static is not None and (static_offset is None or static.shape[0] != canonical.means.shape[0]):
+            static = None
+        key = versions(list(canonical) + list(field.parameters()) + ([static_offset] if static is not None else []))
+        device = canonical.means.device
+        if settings.cuda_graph and graphs_available(device) and not torch.is_grad_enabled():
+            graph_key = (settings.render_precision, settings.static_skip, key)
+
+            def step(t: Tensor) -> Splats:
+                return activate(canonical, self.deform(field, canonical, static, static_offset, t, settings, key, True))
+
+            out = self._graph(graph_key, step, time, device, reuse=settings.cache_deformation)
+            return Splats(*out[:5], graph=self._graph.captures)
+        cache_key = (float(time), settings.render_precision, settings.static_skip, key)
+        if settings.cache_deformation and self._deformed is not None and self._deformed[0] == cache_key:
+            return self._deformed[1]
+        out = activate(canonical, self.deform(field, canonical, static, static_offset, time, settings, key))
+        self._deformed = (cache_key, out) if settings.cache_deformation else None
+        return out
+
+    def deform(
+        self,
+        field: DeformationField,
+        canonical: Canonical,
+        static: Optional[Tensor],
+        static_offset: Optional[Tensor],
+        time: Union[float, Tensor],
+        settings: FrameSettings,
+        key: Tuple[Any, ...],
+        in_place: bool = False,
+    ) -> Deformed:
+        """`compose` in `render_precision`, with `static_skip` the MLP on the dynamic Gaussians only.
+        `in_place` writes the dynamic rows into the cached frozen tensors (for a CUDA graph, whose
+        outputs the next replay overwrites anyway; the static rows never change)."""
+        with precision(settings.render_precision, canonical.means.device):
+            if not settings.static_skip or static is None:
+                return compose(field, canonical, time)
+            dynamic, frozen, moving = self._static_split(canonical, static, static_offset, key)
+            d_xyz, d_rot, d_scale = field(moving[0], time)
+            moved = (moving[0] + d_xyz, moving[1] + d_rot, moving[2] + d_scale)
+            if in_place:
+                return tuple(f.index_copy_(0, dynamic, m) for f, m in zip(frozen, moved))  # type: ignore[return-value]
+            return tuple(f.index_copy(0, dynamic, m) for f, m in zip(frozen, moved))  # type: ignore[return-value]
+
+    def _static_split(
+        self, canonical: Canonical, static: Tensor, offset: Tensor, key: Tuple[Any, ...]
+    ) -> Tuple[Tensor, Deformed, Deformed]:
+        """Indices of the dynamic Gaussians, every Gaussian with its frozen offsets applied, and the
+        dynamic Gaussians' canonical geometry (what the MLP and its offsets start from). Recomputed
+        only when the parameters change, so a frame gathers nothing."""
+        if self._static is None or self._static[0] != key:
+            device = canonical.means.device
+            dynamic = torch.nonzero(~static.to(device)).squeeze(-1)
+            off = offset.to(device)
+            quats = F.normalize(canonical.quats, dim=-1)
+            frozen = (canonical.means + off[:, :3], quats + off[:, 3:7], canonical.log_scales + off[:, 7:])
+            moving = (canonical.means.detach()[dynamic], quats[dynamic], canonical.log_scales[dynamic])
+            self._static = (key, dynamic, frozen, moving)
+        return self._static[1:]
+
+    def rasterize(
+        self,
+        splats: Splats,
+        view: RenderView,
+        sh_degree: int,
+        backgrounds: Optional[Tensor],
+        render_mode: str,
+        backend: Backend,
+        lean_raster: bool,
+    ) -> Tuple[Tensor, Tensor, Dict[str, Any]]:
+        """Rasterize outside training. With `lean_raster`, gsplat's kernels are called directly; and
+        when `splats` are a CUDA graph's buffers, the camera's projection of them replays as a
+        second graph, fed the camera's matrices."""
+        front = None
+        if (
+            lean_raster
+            and splats.graph is not None
+            and render_mode in ("RGB", "RGB+ED")
+            and not torch.is_grad_enabled()
+        ):
+            means, quats, scales = splats[:3]
+            front = self._camera_graph(
+                (splats.graph, view.width, view.height),
+                lambda viewmat, K: lean_front(means, quats, scales, viewmat, K, view.width, view.height, True),
+                view.viewmat,
+                view.K,
+            )
+        return render_splats(splats, view, sh_degree, backgrounds, render_mode, backend, lean_raster, front)
+
+
+def render_splats(
+    splats: Splats,
+    view: RenderView,
+    sh_degree: int,
+    backgrounds: Optional[Tensor],
+    render_mode: str,
+    backend: Backend,
+    lean: bool = False,
+    front: Any = None,
+) -> Tuple[Tensor, Tensor, Dict[str, Any]]:
+    """Rasterize `splats` for `view`: render [1, H, W, C], alpha [1, H, W, 1] and the rasterizer's info."""
+    return rasterize(
+        means=splats.means,
+        quats=splats.quats,
+        scales=splats.scales,
+        opacities=splats.opacities,
+        colors=splats.colors,
+        viewmats=view.viewmat,
+        Ks=view.K,
+        width=view.width,
+        height=view.height,
+        sh_degree=sh_degree,
+        backgrounds=backgrounds,
+        render_mode=render_mode,  # type: ignore[arg-type]
+        backend=backend,
+        lean=lean,
+        front=front,
+    )

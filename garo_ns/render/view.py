@@ -1,0 +1,31 @@
+"""The camera as the rasterizer takes it: gsplat's world-to-camera convention and one prepared view."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+
+def viewmat_from_c2w(c2w: Tensor) -> Tensor:
+    """World-to-camera [C, 4, 4] in gsplat's convention (OpenCV axes) from nerfstudio's c2w [C, 3, 4]."""
+    # Flip the y and z axes (OpenGL to OpenCV) without a host-to-device copy of a sign vector.
+    rot = torch.cat([c2w[:, :3, :1], -c2w[:, :3, 1:3]], dim=-1)
+    rot_inv = rot.transpose(1, 2)
+    view = torch.zeros(c2w.shape[0], 4, 4, device=c2w.device, dtype=c2w.dtype)
+    view[:, :3, :3] = rot_inv
+    view[:, :3, 3:4] = -rot_inv @ c2w[:, :3, 3:4]
+    view[:, 3, 3] = 1.0
+    return view
+
+
+class RenderView(NamedTuple):
+    """One camera as the rasterizer takes it, prepared once: world-to-camera [1, 4, 4] and
+    intrinsics [1, 3, 3] on the render device, image size, and the time to deform to."""
+
+    viewmat: Tensor
+    K: Tensor
+    width: int
+    height: int
+    time: float
