@@ -108,7 +108,9 @@ class DeformationField(nn.Module):
                 nn.init.zeros_(head.weight)
                 nn.init.zeros_(head.bias)
 
-    def _encode(self, xyz: Tensor, time: Tensor | float) -> Tensor:
+    def encode(self, xyz: Tensor, time: Tensor | float) -> Tensor:
+        """The MLP's input [N, F]: positional encodings of `xyz` [N, 3] and of `time` (a scalar, or one
+        per point [N, 1]), the latter through the time network when there is one."""
         t = torch.as_tensor(time, dtype=xyz.dtype, device=xyz.device)
         t_enc = positional_encoding(t.reshape(-1, 1), self.time_freqs, self.time_bands)
         if self.time_net is not None:
@@ -119,7 +121,7 @@ class DeformationField(nn.Module):
 
     def hidden(self, xyz: Tensor, time: Tensor | float) -> List[Tensor]:
         """The ReLU output of every hidden layer [N, width] (before the skip concatenation)."""
-        x = self._encode(xyz, time)
+        x = self.encode(xyz, time)
         h, out = x, []
         for i, layer in enumerate(self.layers):
             h = torch.relu(layer(h))

@@ -41,9 +41,9 @@ def test_time_network_for_synthetic_scenes_only():
     assert plain.time_net is None and plain.layers[0].in_features == 63 + 13
     # The time features change with time and are shared by every Gaussian at one time.
     xyz = torch.rand(5, 3)
-    a, b = field._encode(xyz, 0.1), field._encode(xyz, 0.9)
+    a, b = field.encode(xyz, 0.1), field.encode(xyz, 0.9)
     assert torch.equal(a[:, 63:], a[:1, 63:].expand(5, -1)) and not torch.allclose(a[:, 63:], b[:, 63:])
-    per_point = field._encode(xyz, torch.full((5, 1), 0.1))  # a time per Gaussian gives the same features
+    per_point = field.encode(xyz, torch.full((5, 1), 0.1))  # a time per Gaussian gives the same features
     torch.testing.assert_close(per_point, a)
     with pytest.raises(ValueError, match="time_net"):
         DeformationField(time_net=-1)
