@@ -1,0 +1,641 @@
+"""Micro-benchmark of the deformation field alone (issue 19): every candidate fast path against fp32 eager
+and against the GPU's FLOP-rate limit, at N moving Gaussians.
+
+The field is the current recipe's, built by `GaroModel._make_deformation` from `GaroModelConfig`'s defaults
+(8 layers of 256 with the input re-injected after layer 4, a time network of 30 features). Its weights are
+random, not trained: the hidden layers are He-initialised (activations keep their scale through the depth, as
+a trained field's do; PyTorch's default initialisation shrinks them layer by layer) and the heads are scaled so
+that position offsets are a few hundredths of the extent (the JSON records their size). Canonical positions
+are uniform in the unit cube, so the scene extent is taken as 1.0 and `relative_error` is the largest absolute
+difference of the position offset from fp32 eager, in units of that extent (rotation and log-scale offsets:
+`rot_error`, `scale_error`, absolute). Errors are taken at one time (EVAL_TIME); the timed repeats cycle
+through several times so that nothing can be reused between calls.
+
+Paths (each one computes the three offsets at a time for all N Gaussians):
+  fp32           the field as the product runs it (`DeformationField.forward`, position encoded every frame)
+  tf32           the same with TF32 tensor-core matrix products (`render_precision=tf32`; CUDA only)
+  bf16           the same under bf16 autocast (`render_precision=bf16` today)
+  fp16           half weights and activations (encoding computed in fp32, then rounded), the three heads as
+                 one matrix product; cuBLAS accumulates in fp32 with
+                 torch.backends.cuda.matmul.allow_fp16_reduced_precision_reduction=False
+  <p>_cached     (p in fp32, tf32, bf16, fp16) the first layer and the skip layer split into a position part,
+                 computed once per Gaussian (fixed until the parameters change; `prepare_ms`, `cache_mb`),
+                 plus a time part that is one row per frame; exact up to float reassociation
+  <p>+graph      each of the above replayed as one CUDA graph (garo_ns.render.graphs.TimeGraph; CUDA only)
+  compile        torch.compile(mode="max-autotune-no-cudagraphs") of the fastest eager path whose error is
+                 within --compile-max-error (or of --compile-from; `compiled_from`, `compile_s`), and
+                 compile+graph; CUDA only, skipped with the reason when compiling fails, when
+                 TORCHDYNAMO_DISABLE is set, or when --compile-budget-s would be passed
+
+Per N and path the JSON holds `ms` (median of synchronised repeats after warm-up, CUDA events on a GPU),
+`speedup` (fp32 eager's ms over this one), `tflops` (the FLOPs the path executes, counted from the layer shapes,
+over `ms`), `limit_ms` (those FLOPs at the GPU's dense peak for the path's precision) and `peak_fraction`;
+`field_limit_ms` per N is the whole field at the dense 16-bit peak (the issue's yardstick). A path that cannot
+run here is a row with `skipped` and the reason. Output: benchmarks/results/deform_mlp_<GPU>.json (GPU: H100,
+H200, ..., or cpu) and a printed table.
+
+    python benchmarks/deform_mlp.py                        # CUDA, N = 50k 10k 200k (in that order)
+    python benchmarks/deform_mlp.py --device cpu --n 2000  # the CPU-capable paths (a test of the script)
+
+Next GPU session: one call of the `run` (device) tool from a checkout that has the device kit (`.device/`, made
+by ../shared/device/make-device-kit.sh; the prelude installs nerfstudio's wheels, which the recipe's config
+imports, and puts the project root on PYTHONPATH). No scene and no gsplat compile are needed. Expected: under
+3 minutes on a fresh machine (wheel install under a minute, every eager and graph path a few seconds, the rest
+torch.compile's autotuning, which stops starting new compiles at --compile-budget-s 120):
+
+    kind:      nvidia-h200            (the issue's numbers are an H200's; nvidia-h100-x1 for the H100 file)
+    carry:     [".device"]
+    timeout_s: 420
+    command (one line):
+      source .device/prelude.sh && timeout 400 python3 benchmarks/deform_mlp.py --output $OUT 2>&1 | tee $OUT/log
+
+The result comes back as $OUT/deform_mlp_<GPU>.json (written after every N, so a cut-off run keeps what it
+measured) with the log: copy the JSON to benchmarks/results/. Do not set TORCHDYNAMO_DISABLE (tests/conftest.py
+and benchmarks/device_run.sh do; this script is not run through either).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import math
+import os
+import re
+import statistics
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from garo_ns.deformation import DeformationField, positional_encoding, precision
+from garo_ns.render.graphs import TimeGraph, graphs_available
+
+# Measured in this order (the issue's target N first: the compile budget may run out); reported sorted.
+NS = (50_000, 10_000, 200_000)
+EVAL_TIME = 0.37
+EXTENT = 1.0  # positions uniform in the unit cube
+Offsets = Tuple[Tensor, Tensor, Tensor]
+Step = Callable[[Any], Offsets]
+
+# Dense (no 2:4 sparsity) peak rates in TFLOP/s, from NVIDIA's H100 and H200 datasheets, whose tensor-core
+# figures are quoted with sparsity: halved here. SXM parts (the device tool's "NVIDIA H100 80GB HBM3",
+# "NVIDIA H200"): FP32 66.9 (CUDA cores), TF32 494.7, FP16/BF16 989.4; PCIe and NVL parts are lower.
+# First matching substring of torch.cuda.get_device_name() wins.
+PEAKS: List[Tuple[str, Dict[str, float]]] = [
+    ("H200 NVL", {"fp32": 60.0, "tf32": 417.5, "bf16": 835.5, "fp16": 835.5}),
+    ("H200", {"fp32": 66.9, "tf32": 494.7, "bf16": 989.4, "fp16": 989.4}),
+    ("H100 NVL", {"fp32": 60.0, "tf32": 417.5, "bf16": 835.5, "fp16": 835.5}),
+    ("H100 PCIe", {"fp32": 51.2, "tf32": 378.0, "bf16": 756.5, "fp16": 756.5}),
+    ("H100", {"fp32": 66.9, "tf32": 494.7, "bf16": 989.4, "fp16": 989.4}),
+]
+
+
+def peaks_for(device_name: str) -> Optional[Dict[str, float]]:
+    """The dense peak table's row for a device name (None: not in the table, e.g. a CPU)."""
+    return next((row for key, row in PEAKS if key in device_name), None)
+
+
+def gpu_tag(device_name: str) -> str:
+    """H100, H200, ... from the device name (the result file's suffix); 'cpu' for the CPU."""
+    if device_name == "cpu":
+        return "cpu"
+    match = re.search(r"\b([A-Z]{1,2}\d{2,4}[A-Za-z]?)\b", device_name)
+    return match.group(1) if match else re.sub(r"[^A-Za-z0-9]+", "_", device_name).strip("_")
+
+
+# --- the field ---------------------------------------------------------------------------------------------
+
+
+def recipe_field() -> DeformationField:
+    """The field of the current recipe: `GaroModel._make_deformation` on `GaroModelConfig()`'s defaults
+    (the method reads only `self.config`). Imports nerfstudio (the device kit's wheels on the GPU machine)."""
+    from garo_ns.garo_model import GaroModel, GaroModelConfig
+
+    return GaroModel._make_deformation(SimpleNamespace(config=GaroModelConfig()))  # type: ignore[arg-type]
+
+
+@torch.no_grad()
+def trained_looking(field: DeformationField, seed: int = 0, offset_scale: float = 0.05) -> DeformationField:
+    """Random weights with a trained field's scales: He-normal hidden layers (ReLU activations keep their size
+    through the depth), small random biases, heads of standard deviation `offset_scale / sqrt(width)`."""
+    g = torch.Generator().manual_seed(seed)
+    hidden = list(field.layers)
+    if field.time_net is not None:
+        hidden += [m for m in field.time_net if isinstance(m, torch.nn.Linear)]
+    for layer in hidden:
+        layer.weight.copy_(torch.randn(layer.weight.shape, generator=g) * math.sqrt(2.0 / layer.in_features))
+        layer.bias.copy_(torch.randn(layer.bias.shape, generator=g) * 0.1)
+    for head in (field.d_xyz, field.d_rot, field.d_scale):
+        head.weight.copy_(torch.randn(head.weight.shape, generator=g) * offset_scale / math.sqrt(head.in_features))
+        head.bias.copy_(torch.randn(head.bias.shape, generator=g) * offset_scale * 0.1)
+    return field
+
+
+def layer_dims(field: DeformationField) -> Dict[str, int]:
+    """Input widths of the field's MLP: position encoding, time features, hidden width, heads' outputs."""
+    pos = 3 * (1 + 2 * field.pos_freqs)
+    return {
+        "pos": pos,
+        "time": field.layers[0].in_features - pos,
+        "width": field.layers[0].out_features,
+        "heads": field.d_xyz.out_features + field.d_rot.out_features + field.d_scale.out_features,
+    }
+
+
+def flops_per_gaussian(field: DeformationField, cached: bool = False) -> int:
+    """Multiply-add FLOPs (2 per weight) of the MLP and heads for one Gaussian, from the layer shapes. The
+    time network runs on one row per frame and is not counted. `cached`: without the position parts of the
+    first and the skip layer (computed once per Gaussian, not per frame)."""
+    linears = list(field.layers) + [field.d_xyz, field.d_rot, field.d_scale]
+    total = sum(2 * m.in_features * m.out_features for m in linears)
+    if cached:
+        d = layer_dims(field)
+        n_split = 2 if field.skip + 1 < len(field.layers) else 1
+        total -= n_split * 2 * (d["pos"] + d["time"]) * d["width"]
+    return total
+
+
+# --- the paths ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Weights:
+    """The field's weights in one dtype, the first and skip layers split into position / time / hidden
+    columns, the three heads stacked into one matrix."""
+
+    layers: List[Tuple[Tensor, Tensor]]
+    first_pos: Tensor
+    first_time: Tensor
+    skip_pos: Optional[Tensor]
+    skip_time: Optional[Tensor]
+    skip_hidden: Optional[Tensor]
+    head_w: Tensor
+    head_b: Tensor
+    skip: int
+
+    @classmethod
+    def of(cls, field: DeformationField, dtype: torch.dtype) -> "Weights":
+        d = layer_dims(field)
+        p, t = d["pos"], d["pos"] + d["time"]
+        layers = [(m.weight.detach().to(dtype), m.bias.detach().to(dtype)) for m in field.layers]
+        has_skip = field.skip + 1 < len(layers)
+        skip_w = layers[field.skip + 1][0] if has_skip else None
+        heads = (field.d_xyz, field.d_rot, field.d_scale)
+        return cls(
+            layers=layers,
+            first_pos=layers[0][0][:, :p],
+            first_time=layers[0][0][:, p:t],
+            skip_pos=skip_w[:, :p] if skip_w is not None else None,
+            skip_time=skip_w[:, p:t] if skip_w is not None else None,
+            skip_hidden=skip_w[:, t:].contiguous() if skip_w is not None else None,
+            head_w=torch.cat([h.weight.detach() for h in heads]).to(dtype),
+            head_b=torch.cat([h.bias.detach() for h in heads]).to(dtype),
+            skip=field.skip if has_skip else -1,
+        )
+
+
+def time_features(field: DeformationField, time: Any, device: torch.device) -> Tensor:
+    """The time part of the field's input [1, T] (encoding, then the time network if any), in fp32."""
+    t = torch.as_tensor(time, dtype=torch.float32, device=device).reshape(1, 1)
+    t_enc = positional_encoding(t, field.time_freqs, field.time_bands)
+    return field.time_net(t_enc).float() if field.time_net is not None else t_enc
+
+
+def split_heads(out: Tensor) -> Offsets:
+    return out[:, :3], out[:, 3:7], out[:, 7:]
+
+
+def plain_forward(w: Weights, x: Tensor) -> Offsets:
+    """The MLP on its full input `x` [N, F] with weights `w` (any dtype), heads as one product."""
+    h = x
+    for i, (weight, bias) in enumerate(w.layers):
+        h = F.linear(h, weight, bias).relu_()
+        if i == w.skip:
+            h = torch.cat([x, h], dim=-1)
+    return split_heads(F.linear(h, w.head_w, w.head_b))
+
+
+@dataclass
+class PositionCache:
+    """The per-Gaussian position parts of the first and the skip layer's pre-activations (biases folded in)."""
+
+    first: Tensor
+    skip: Optional[Tensor]
+
+    @classmethod
+    @torch.no_grad()
+    def build(cls, field: DeformationField, xyz: Tensor, dtype: torch.dtype) -> "PositionCache":
+        w = Weights.of(field, torch.float32)  # computed once in fp32, then stored in `dtype`
+        pe = positional_encoding(xyz.float(), field.pos_freqs, field.pos_bands)
+        first = F.linear(pe, w.first_pos, w.layers[0][1]).to(dtype)
+        skip = F.linear(pe, w.skip_pos, w.layers[w.skip + 1][1]).to(dtype) if w.skip_pos is not None else None
+        return cls(first, skip)
+
+    def megabytes(self) -> float:
+        return sum(t.numel() * t.element_size() for t in (self.first, self.skip) if t is not None) / 2**20
+
+
+def cached_forward(w: Weights, cache: PositionCache, tfeat: Tensor) -> Offsets:
+    """The MLP from the cached position parts plus the time features `tfeat` [1, T]: the first and the skip
+    layer add one per-frame row to the cached per-Gaussian part (same sums as the full products, reassociated)."""
+    tfeat = tfeat.to(w.first_time.dtype)
+    h = (cache.first + F.linear(tfeat, w.first_time)).relu_()
+    for i in range(1, len(w.layers)):
+        if i == w.skip + 1:
+            base = cache.skip + F.linear(tfeat, w.skip_time)
+            h = torch.addmm(base.to(h.dtype), h, w.skip_hidden.t()).relu_()
+        else:
+            h = F.linear(h, *w.layers[i]).relu_()
+    return split_heads(F.linear(h, w.head_w, w.head_b))
+
+
+@dataclass
+class PathSpec:
+    """A deformation path: `build(field, xyz)` does the input-independent set-up once (not timed, except as
+    `prepare_ms`) and returns the per-frame step `inner(time)`; `mode` is the matmul precision set around it."""
+
+    name: str
+    mode: str  # fp32, tf32, bf16 or fp16: the precision context and the peak rate it is held against
+    cached: bool
+    cuda_only: bool
+    description: str
+
+    def build(self, field: DeformationField, xyz: Tensor) -> Tuple[Step, Dict[str, Any]]:
+        device = xyz.device
+        extra: Dict[str, Any] = {}
+        if not self.cached and self.mode != "fp16":
+            return (lambda t: field(xyz, t)), extra  # the product's forward; precision() set by `context`
+        dtype = torch.float16 if self.mode == "fp16" else torch.float32
+        w = Weights.of(field, dtype)
+        if not self.cached:
+            return (lambda t: plain_forward(w, field.encode(xyz, t).to(dtype))), extra
+        cache = PositionCache.build(field, xyz, dtype)
+        extra["cache_mb"] = round(cache.megabytes(), 4)
+        return (lambda t: cached_forward(w, cache, time_features(field, t, device))), extra
+
+    @contextlib.contextmanager
+    def context(self, device: torch.device) -> Iterator[None]:
+        """The precision of the matrix products: `garo_ns.deformation.precision` for fp32/tf32/bf16 (what
+        `render_precision` does), and for fp16 fp32 accumulation in cuBLAS (no reduced-precision reduction)."""
+        if self.mode != "fp16":
+            with precision(self.mode, device):  # type: ignore[arg-type]
+                yield
+            return
+        previous = torch.backends.cuda.matmul.allow_fp16_reduced_precision_reduction
+        torch.backends.cuda.matmul.allow_fp16_reduced_precision_reduction = False
+        try:
+            yield
+        finally:
+            torch.backends.cuda.matmul.allow_fp16_reduced_precision_reduction = previous
+
+
+def path_specs() -> List[PathSpec]:
+    specs = [
+        PathSpec("fp32", "fp32", False, False, "the product's forward in fp32 (reference)"),
+        PathSpec("tf32", "tf32", False, True, "the product's forward with TF32 matrix products"),
+        PathSpec("bf16", "bf16", False, False, "the product's forward under bf16 autocast (render_precision=bf16)"),
+        PathSpec("fp16", "fp16", False, False, "half weights and activations, fp32 accumulation, heads fused"),
+    ]
+    for base in list(specs):
+        desc = f"{base.name} with the position parts of the first and skip layers cached per Gaussian"
+        specs.append(PathSpec(base.name + "_cached", base.mode, True, base.cuda_only, desc))
+    return specs
+
+
+# --- measuring ---------------------------------------------------------------------------------------------
+
+
+def sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def median_ms(call: Callable[[float], Any], device: torch.device, warmup: int, repeats: int) -> float:
+    """Median wall time of `call(time)` in ms over `repeats` synchronised calls after `warmup` ones (CUDA
+    events on a GPU); the time changes between calls so that nothing can be reused."""
+    times = [(k % 16) / 15.0 for k in range(warmup + repeats)]
+    for t in times[:warmup]:
+        call(t)
+    sync(device)
+    samples = []
+    for t in times[warmup:]:
+        if device.type == "cuda":
+            start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+            start.record()
+            call(t)
+            end.record()
+            end.synchronize()
+            samples.append(start.elapsed_time(end))
+        else:
+            t0 = time.perf_counter()
+            call(t)
+            samples.append((time.perf_counter() - t0) * 1e3)
+    return statistics.median(samples)
+
+
+def errors(out: Offsets, ref: Offsets) -> Dict[str, float]:
+    """Largest absolute differences from the reference: position offset over EXTENT, rotation, log-scale."""
+    diff = [float((a.float() - b.float()).abs().max()) for a, b in zip(out, ref)]
+    return {"relative_error": diff[0] / EXTENT, "rot_error": diff[1], "scale_error": diff[2]}
+
+
+def measure(
+    label: str,
+    spec: PathSpec,
+    call: Callable[[float], Offsets],
+    ref: Offsets,
+    flops: float,
+    peaks: Optional[Dict[str, float]],
+    device: torch.device,
+    a: argparse.Namespace,
+) -> Dict[str, Any]:
+    """One row: errors at EVAL_TIME, then the timing."""
+    out = tuple(o.clone() for o in call(EVAL_TIME))  # graph outputs are overwritten by the next replay
+    row: Dict[str, Any] = {"mode": spec.mode, **errors(out, ref)}  # type: ignore[arg-type]
+    ms = median_ms(call, device, a.warmup, a.repeats)
+    row.update(ms=round(ms, 5), tflops=round(flops / (ms * 1e-3) / 1e12, 3), gflop=round(flops / 1e9, 4))
+    if peaks is not None:
+        limit = flops / (peaks[spec.mode] * 1e12) * 1e3
+        row.update(limit_ms=round(limit, 5), peak_fraction=round(limit / ms, 4))
+    print(f"  {label:<22} {ms:9.4f} ms  err {row['relative_error']:.2e}", flush=True)
+    return row
+
+
+def graph_call(step: Step, spec: PathSpec, device: torch.device) -> Callable[[float], Offsets]:
+    """`step` replayed as one CUDA graph (captured on the first call, under the path's precision)."""
+    graph = TimeGraph()
+
+    def fn(t: Tensor) -> Offsets:
+        with spec.context(device):
+            return step(t)
+
+    return lambda t: graph("deform", fn, t, device)
+
+
+def compile_skip_reason(device: torch.device) -> Optional[str]:
+    if device.type != "cuda":
+        return "CUDA only (max-autotune tunes GPU kernels)"
+    if os.environ.get("TORCHDYNAMO_DISABLE", "") not in ("", "0"):
+        return "TORCHDYNAMO_DISABLE is set (torch.compile would return the function unchanged)"
+    return None
+
+
+def run(
+    field: DeformationField,
+    device: torch.device | str,
+    ns: Sequence[int],
+    a: argparse.Namespace,
+    output: Optional[Path] = None,
+    paths: Optional[Sequence[str]] = None,
+    construction: str = "given",
+) -> Dict[str, Any]:
+    """Measure every path at every N; the result dictionary (also written to `output` after every N)."""
+    device = torch.device(device)
+    torch.backends.cuda.matmul.allow_tf32 = False  # fp32 means fp32 (the tf32 paths switch it on themselves)
+    field = field.to(device).eval()
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
+    peaks = peaks_for(name)
+    specs = [s for s in path_specs() if paths is None or s.name in paths or s.name == "fp32"]
+    full_flops, cached_flops = flops_per_gaussian(field), flops_per_gaussian(field, cached=True)
+    result: Dict[str, Any] = {
+        "benchmark": "deform_mlp",
+        "device": name,
+        "gpu": gpu_tag(name),
+        "torch": torch.__version__,
+        "cuda": torch.version.cuda,
+        "git_commit": git_commit(),
+        "field": {
+            "construction": construction,
+            "depth": len(field.layers),
+            "width": layer_dims(field)["width"],
+            "skip": field.skip,
+            "pos_freqs": field.pos_freqs,
+            "time_freqs": field.time_freqs,
+            "time_net": 0 if field.time_net is None else field.time_net[-1].out_features,
+            "input_dims": layer_dims(field),
+            "weights": "random, not trained: He-normal hidden layers, heads scaled to small offsets (seed "
+            f"{a.seed}); positions uniform in the unit cube",
+            "flops_per_gaussian": full_flops,
+            "flops_per_gaussian_cached": cached_flops,
+        },
+        "extent": EXTENT,
+        "eval_time": EVAL_TIME,
+        "relative_error": "max |d_xyz - d_xyz(fp32 eager)| / extent at eval_time (extent 1.0: the unit cube)",
+        "timing": {
+            "statistic": "median",
+            "warmup": a.warmup,
+            "repeats": a.repeats,
+            "clock": "torch.cuda.Event" if device.type == "cuda" else "time.perf_counter",
+        },
+        "peaks_tflops": peaks,
+        "peaks_source": "NVIDIA H100/H200 datasheets, dense (tensor-core figures with sparsity halved)",
+        "paths": {s.name: s.description for s in specs},
+        "results": {},
+    }
+    budget = {"spent": 0.0, "last": 0.0}  # seconds compiling so far, and the last compile's
+    for n in ns:
+        print(f"N = {n}", flush=True)
+        g = torch.Generator().manual_seed(a.seed + n)
+        xyz = torch.rand(n, 3, generator=g).to(device)
+        rows: Dict[str, Any] = {}
+        with torch.no_grad():
+            ref = tuple(o.clone() for o in field(xyz, EVAL_TIME))
+            offset = ref[0].abs()
+            per_n: Dict[str, Any] = {
+                "mean_abs_d_xyz": float(offset.mean()),
+                "max_abs_d_xyz": float(offset.max()),
+                "field_limit_ms": (
+                    round(full_flops * n / (peaks["fp16"] * 1e12) * 1e3, 5) if peaks is not None else None
+                ),
+            }
+            steps: Dict[str, Tuple[PathSpec, Step]] = {}
+            for spec in specs:
+                if spec.cuda_only and device.type != "cuda":
+                    rows[spec.name] = {"skipped": "CUDA only (tf32 is a no-op elsewhere)"}
+                    continue
+                flops = float((cached_flops if spec.cached else full_flops) * n)
+                sync(device)
+                t0 = time.perf_counter()
+                step, extra = spec.build(field, xyz)
+                sync(device)
+                prepare_ms = (time.perf_counter() - t0) * 1e3
+
+                def eager(t: float, spec: PathSpec = spec, step: Step = step) -> Offsets:
+                    with spec.context(device):
+                        return step(t)
+
+                rows[spec.name] = measure(spec.name, spec, eager, ref, flops, peaks, device, a)
+                if spec.cached:
+                    rows[spec.name].update(prepare_ms=round(prepare_ms, 3), **extra)
+                steps[spec.name] = (spec, step)
+                label = spec.name + "+graph"
+                if not graphs_available(device):
+                    rows[label] = {"skipped": "CUDA graphs need a CUDA device"}
+                    continue
+                rows[label] = measure(label, spec, graph_call(step, spec, device), ref, flops, peaks, device, a)
+                torch.cuda.empty_cache()
+            compile_rows(rows, steps, field, ref, n, full_flops, cached_flops, peaks, device, a, budget)
+        for row in rows.values():
+            if "ms" in row and "ms" in rows["fp32"]:
+                row["speedup"] = round(rows["fp32"]["ms"] / row["ms"], 3)
+        result["results"][str(n)] = {**per_n, "paths": rows}
+        result["results"] = {k: result["results"][k] for k in sorted(result["results"], key=int)}
+        if output is not None:
+            output.parent.mkdir(parents=True, exist_ok=True)
+            output.write_text(json.dumps(result, indent=1) + "\n")
+        del xyz, ref, steps
+        if device.type == "cuda":
+            torch.cuda.empty_cache()
+    print_table(result)
+    return result
+
+
+def compile_rows(
+    rows: Dict[str, Any],
+    steps: Dict[str, Tuple[PathSpec, Step]],
+    field: DeformationField,
+    ref: Offsets,
+    n: int,
+    full_flops: int,
+    cached_flops: int,
+    peaks: Optional[Dict[str, float]],
+    device: torch.device,
+    a: argparse.Namespace,
+    budget: Dict[str, float],
+) -> None:
+    """torch.compile of the fastest eager path within the error bound, alone and in a CUDA graph, guarded;
+    `budget` counts the seconds spent compiling: no compile starts that the last one's duration would take past
+    --compile-budget-s."""
+    reason = compile_skip_reason(device)
+    if reason is None and a.no_compile:
+        reason = "--no-compile"
+    if reason is None and budget["spent"] + budget["last"] > a.compile_budget_s:
+        reason = (
+            f"compile budget: {budget['spent']:.0f} s spent, the last compile took {budget['last']:.0f} s, "
+            f"--compile-budget-s {a.compile_budget_s:.0f}"
+        )
+    eligible = [k for k in steps if rows[k].get("relative_error", math.inf) <= a.compile_max_error]
+    if a.compile_from is not None:
+        eligible = [k for k in steps if k == a.compile_from]
+    if reason is None and not eligible:
+        reason = (
+            f"--compile-from {a.compile_from} did not run"
+            if a.compile_from is not None
+            else f"no eager path within --compile-max-error {a.compile_max_error:g}"
+        )
+    if reason is not None:
+        rows["compile"] = rows["compile+graph"] = {"skipped": reason}
+        return
+    best = min(eligible, key=lambda k: rows[k]["ms"])
+    spec, step = steps[best]
+    flops = float((cached_flops if spec.cached else full_flops) * n)
+    t0 = time.perf_counter()
+    try:
+        import torch._dynamo
+
+        torch._dynamo.reset()
+        compiled = torch.compile(step, mode="max-autotune-no-cudagraphs", dynamic=False)
+        t_buf = torch.zeros((), device=device)
+
+        def call(t: float) -> Offsets:
+            t_buf.fill_(t)  # a tensor time: a Python float would be specialised (one compile per value)
+            with spec.context(device):
+                return compiled(t_buf)
+
+        call(EVAL_TIME)  # compiles (and autotunes) here, outside the timing
+        compile_s = time.perf_counter() - t0
+        rows["compile"] = measure("compile", spec, call, ref, flops, peaks, device, a)
+        rows["compile"].update(compiled_from=best, compile_s=round(compile_s, 1))
+        rows["compile+graph"] = measure(
+            "compile+graph", spec, graph_call(compiled, spec, device), ref, flops, peaks, device, a
+        )
+        rows["compile+graph"]["compiled_from"] = best
+    except Exception as e:  # any compiler failure is a result, not a crash
+        msg = f"{type(e).__name__}: {str(e).strip().splitlines()[0][:300] if str(e).strip() else ''}"
+        for label in ("compile", "compile+graph"):
+            rows.setdefault(label, {"skipped": f"torch.compile failed on {best}: {msg}"})
+        print(f"  compile failed: {msg}", flush=True)
+    budget["last"] = time.perf_counter() - t0
+    budget["spent"] += budget["last"]
+
+
+def print_table(result: Dict[str, Any]) -> None:
+    print(f"\ndeformation field on {result['device']} (torch {result['torch']}); error: max |d_xyz| diff / extent")
+    print(f"{'N':>8} {'path':<22} {'ms':>9} {'speedup':>8} {'TFLOP/s':>8} {'of peak':>8} {'rel err':>9}")
+    for n, entry in result["results"].items():
+        for label, row in entry["paths"].items():
+            if "skipped" in row:
+                print(f"{n:>8} {label:<22} skipped: {row['skipped']}")
+                continue
+            frac = f"{100 * row['peak_fraction']:.1f}%" if "peak_fraction" in row else "-"
+            print(
+                f"{n:>8} {label:<22} {row['ms']:9.4f} {row.get('speedup', 1.0):8.2f} {row['tflops']:8.2f} "
+                f"{frac:>8} {row['relative_error']:9.2e}"
+            )
+        if entry.get("field_limit_ms") is not None:
+            print(f"{n:>8} {'(limit at 16-bit peak)':<22} {entry['field_limit_ms']:9.4f}")
+
+
+def git_commit() -> Optional[str]:
+    marker = Path(".git-commit")
+    if marker.exists():
+        return marker.read_text().strip()
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
+        return out.stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--n", type=int, nargs="+", default=list(NS), help="numbers of moving Gaussians")
+    p.add_argument("--paths", nargs="+", default=None, help="only these paths (fp32 always runs)")
+    p.add_argument("--warmup", type=int, default=5)
+    p.add_argument("--repeats", type=int, default=30)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-compile", action="store_true")
+    p.add_argument("--compile-budget-s", type=float, default=120.0, help="no new compile once this is spent")
+    p.add_argument(
+        "--compile-max-error",
+        type=float,
+        default=5e-4,
+        help="the largest relative_error of a path that may be compiled (bf16 is about 1e-3 of the extent,\n"
+        "some 0.8 px of an 800 px view across the extent; fp16 about 1e-4)",
+    )
+    p.add_argument("--compile-from", default=None, help="compile this path instead of the fastest eligible one")
+    p.add_argument("--output", default="benchmarks/results", help="a .json file, or a folder for deform_mlp_<GPU>.json")
+    return p.parse_args(argv)
+
+
+def output_path(arg: str, device: torch.device) -> Path:
+    out = Path(arg)
+    if out.suffix == ".json":
+        return out
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
+    return out / f"deform_mlp_{gpu_tag(name)}.json"
+
+
+def main(argv: Optional[Sequence[str]] = None) -> None:
+    a = parse_args(argv)
+    device = torch.device(a.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        sys.exit("CUDA is not available here: use --device cpu")
+    field = trained_looking(recipe_field(), seed=a.seed)
+    output = output_path(a.output, device)
+    construction = "GaroModel._make_deformation with GaroModelConfig's defaults"
+    run(field, device, a.n, a, output=output, paths=a.paths, construction=construction)
+    print(f"wrote {output}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,105 @@
+"""benchmarks/deform_mlp.py on the CPU: every CPU-capable deformation path against fp32 eager on a tiny field,
+and the result file's fields. The GPU paths (tf32, CUDA graphs, torch.compile) are skipped with a reason."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from garo_ns.deformation import DeformationField, precision
+
+_spec = importlib.util.spec_from_file_location(
+    "deform_mlp", Path(__file__).resolve().parents[1] / "benchmarks" / "deform_mlp.py"
+)
+dm = importlib.util.module_from_spec(_spec)
+sys.modules["deform_mlp"] = dm  # its dataclasses look their module up
+_spec.loader.exec_module(dm)  # type: ignore[union-attr]
+
+# Largest position-offset difference from fp32 eager, relative to the extent (1.0), per CPU-capable path.
+# The cached paths only reassociate float sums; bf16 keeps 8 mantissa bits, fp16 11.
+BOUNDS = {
+    "fp32": 0.0,
+    "fp32_cached": 1e-5,
+    "bf16": 1e-2,
+    "bf16_cached": 1e-2,
+    "fp16": 2e-3,
+    "fp16_cached": 2e-3,
+}
+CUDA_ONLY = ("tf32", "tf32_cached", "compile", "compile+graph") + tuple(f"{p}+graph" for p in BOUNDS)
+
+
+def tiny_field(time_net: int = 8, depth: int = 4, skip: int = 1) -> DeformationField:
+    field = DeformationField(pos_freqs=4, time_freqs=3, depth=depth, width=32, skip=skip, time_net=time_net)
+    return dm.trained_looking(field, seed=1)
+
+
+def args(**kw):
+    a = dm.parse_args(["--device", "cpu", "--warmup", "1", "--repeats", "2"])
+    for k, v in kw.items():
+        setattr(a, k, v)
+    return a
+
+
+def test_paths_against_fp32_and_result_file(tmp_path: Path) -> None:
+    out = tmp_path / "deform_mlp_cpu.json"
+    dm.run(tiny_field(), "cpu", [300, 100], args(), output=out)
+    result = json.loads(out.read_text())
+    assert result["gpu"] == "cpu" and result["extent"] == 1.0
+    assert result["field"]["flops_per_gaussian"] > result["field"]["flops_per_gaussian_cached"] > 0
+    assert list(result["results"]) == ["100", "300"]  # sorted by N
+    for entry in result["results"].values():
+        assert entry["max_abs_d_xyz"] > 1e-3  # the field moves the Gaussians
+        rows = entry["paths"]
+        for name, bound in BOUNDS.items():
+            row = rows[name]
+            assert {"ms", "relative_error", "tflops", "speedup"} <= set(row), (name, row)
+            assert row["ms"] > 0 and row["tflops"] > 0
+            assert row["relative_error"] <= bound, (name, row["relative_error"])
+        for name in ("fp32_cached", "bf16_cached", "fp16_cached"):
+            assert rows[name]["cache_mb"] > 0 and rows[name]["prepare_ms"] >= 0
+        for name in CUDA_ONLY:
+            assert rows[name]["skipped"], name
+        assert rows["compile"]["skipped"].startswith("CUDA only")
+
+
+@pytest.mark.parametrize("time_net,depth,skip", [(0, 4, 1), (8, 3, 2), (8, 3, 5)])
+def test_cached_forward_is_the_field(time_net: int, depth: int, skip: int) -> None:
+    """Position cache + per-frame time row = the field (no time network, skip at the last layer, no skip)."""
+    field = tiny_field(time_net, depth, skip)
+    xyz = torch.rand(50, 3, generator=torch.Generator().manual_seed(0))
+    spec = next(s for s in dm.path_specs() if s.name == "fp32_cached")
+    step, extra = spec.build(field, xyz)
+    with torch.no_grad():
+        for t in (0.0, 0.37, 1.0):
+            ref = field(xyz, t)
+            for got, want in zip(step(t), ref):
+                assert (got - want).abs().max() <= 1e-5 * max(1.0, float(want.abs().max()))
+
+
+def test_bf16_path_is_render_precision_bf16() -> None:
+    field = tiny_field()
+    xyz = torch.rand(40, 3, generator=torch.Generator().manual_seed(2))
+    spec = next(s for s in dm.path_specs() if s.name == "bf16")
+    step, _ = spec.build(field, xyz)
+    with torch.no_grad():
+        with spec.context(xyz.device):
+            got = step(0.5)
+        with precision("bf16", xyz.device):
+            want = field(xyz, 0.5)
+    assert all(torch.equal(g, w) for g, w in zip(got, want))
+
+
+def test_flops_and_peaks() -> None:
+    recipe = DeformationField(10, 6, 8, 256, 4, time_net=30)
+    # 93 -> 256, six 256 -> 256, the skip layer (93 + 256) -> 256, heads 256 -> 10: about 1 MFLOP.
+    assert dm.flops_per_gaussian(recipe) == 2 * (93 * 256 + 6 * 256 * 256 + 349 * 256 + 256 * 10)
+    assert dm.flops_per_gaussian(recipe, cached=True) == dm.flops_per_gaussian(recipe) - 2 * 2 * 93 * 256
+    assert dm.gpu_tag("NVIDIA H100 80GB HBM3") == "H100" and dm.gpu_tag("NVIDIA H200") == "H200"
+    assert dm.peaks_for("NVIDIA H200")["fp16"] == pytest.approx(989.4)
+    assert dm.peaks_for("NVIDIA H100 PCIe")["tf32"] < dm.peaks_for("NVIDIA H100 80GB HBM3")["tf32"]
+    assert dm.peaks_for("cpu") is None
