@@ -604,7 +604,12 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     p.add_argument("--repeats", type=int, default=30)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-compile", action="store_true")
-    p.add_argument("--compile-budget-s", type=float, default=120.0, help="no new compile once this is spent")
+    p.add_argument(
+        "--compile-budget-s",
+        type=float,
+        default=120.0,
+        help="seconds of compiling: no compile starts that the last one's duration would take past this",
+    )
     p.add_argument(
         "--compile-max-error",
         type=float,
