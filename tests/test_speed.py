@@ -339,5 +339,6 @@ def test_cuda_graph_switch_is_a_no_op_off_cuda(garo_run):
             graphed = model.gaussians_at(t)
         finally:
             model.config.cuda_graph = False
-    for a, b in zip(plain, graphed):
+    assert graphed.graph is None  # ordinary tensors, not a graph's buffers
+    for a, b in zip(plain[:5], graphed[:5]):
         assert torch.equal(a, b)
