@@ -93,6 +93,7 @@ class GaroStrategy(DefaultStrategy):
         start, stop, every = self.garo_schedule()
         return start <= step < stop and step % every == 0
 
+    # The hooks below take gsplat's strategy arguments (params, optimizers, state, ...) on purpose.
     def step_post_backward(
         self,
         params: Params,

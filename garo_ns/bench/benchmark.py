@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Tuple
 
 from garo_ns import compat
+from garo_ns.bench.results import publish
 
 compat.install()
 
@@ -446,11 +447,7 @@ def run(args: BenchArgs) -> Dict[str, Any]:
             "psnr_drop_db": base["psnr"] - garo["psnr"],
             "gaussian_ratio": garo["num_gaussians"] / max(base["num_gaussians"], 1),
         }
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(result, indent=2))
-    md, png = write_report(result, args.output)
-    print(md.read_text())
-    print(f"wrote {args.output}, {md}, {png}")
+    publish(result, args.output, write_report)
     return result
 
 

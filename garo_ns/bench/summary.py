@@ -15,6 +15,8 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import tyro
 
+from garo_ns.bench.results import publish
+
 BASELINE = "deform-splatfacto"
 METRICS = ("psnr", "ssim", "lpips", "fps", "num_gaussians", "model_size_mb")
 # The paper's claim for GARO against D-3DGS: this speed-up at no more than this PSNR loss.
@@ -175,11 +177,7 @@ def main(args: SummaryArgs) -> Dict[str, Any]:
         summary = summarise(loaded, list(args.variants))
     except ValueError as err:
         raise SystemExit(f"error: {err}") from None
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(summary, indent=2))
-    md, png = write_report(summary, args.output)
-    print(md.read_text())
-    print(f"wrote {args.output}, {md}, {png}")
+    publish(summary, args.output, write_report)
     return summary
 
 

@@ -39,6 +39,8 @@ def resolve_backend(backend: Backend, device: torch.device) -> Literal["cuda", "
     return "cuda" if on_cuda and gsplat_cuda_available() else "reference"
 
 
+# Arguments as gsplat's `rasterization` on purpose (and so the reference's and the lean path's): one
+# call site whatever the backend.
 def rasterize(
     means: Tensor,
     quats: Tensor,
@@ -185,6 +187,7 @@ def lean_front(
     return radii, means2d, depths, conics, means[None] - campos[:, None], radii > 0
 
 
+# Arguments as `rasterize` on purpose: the same call, gsplat's kernels without the wrapper.
 def rasterize_lean(
     means: Tensor,
     quats: Tensor,

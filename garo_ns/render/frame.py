@@ -195,6 +195,7 @@ class FramePath:
         return render_splats(splats, view, sh_degree, backgrounds, render_mode, backend, lean_raster, front)
 
 
+# Arguments as `FramePath.rasterize` on purpose: the training path, without the frame path's graphs.
 def render_splats(
     splats: Splats,
     view: RenderView,

@@ -310,6 +310,7 @@ def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, 
         )
 
 
+# Arguments as gsplat's `rasterization` on purpose: the reference stands in for it.
 def rasterize(
     means: Tensor,
     quats: Tensor,
