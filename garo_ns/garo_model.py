@@ -29,7 +29,6 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 from torch.nn import Parameter
 
-from garo_ns.data.dnerf import camera_extent
 from garo_ns.deformation import DeformationField, Precision, health_check
 from garo_ns.errors import GaroTrainingError
 from garo_ns.garo_strategy import GaroStrategy
@@ -38,7 +37,7 @@ from garo_ns.render.backend import Backend
 from garo_ns.render.contribution import view_contribution
 from garo_ns.render.frame import Canonical, FramePath, FrameSettings, Splats, activate, compose, render_splats
 from garo_ns.render.sh import num_sh_bases
-from garo_ns.render.view import RenderView, viewmat_from_c2w
+from garo_ns.render.view import RenderView, camera_extent, viewmat_from_c2w
 from garo_ns.static import classify, sample_times
 
 GAUSSIAN_KEYS = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")

@@ -145,7 +145,8 @@ def test_nerfstudio_dnerf_parser_background_extent_and_ns_eval(small_scene, tmp_
 
     from nerfstudio.data.dataparsers.dnerf_dataparser import DNeRFDataParserConfig
 
-    from garo_ns.data.dnerf import camera_extent, read_split
+    from garo_ns.data.dnerf import read_split
+    from garo_ns.render.view import camera_extent
     from garo_ns.tools.train import QuickSchedule, make_config, train
 
     config = make_config(

@@ -23,6 +23,7 @@ from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.utils.colors import get_color
 
 from garo_ns.errors import GaroInputError
+from garo_ns.render.view import camera_extent
 
 
 @dataclass
@@ -49,12 +50,6 @@ class GaroDNeRFDataParserConfig(DataParserConfig):
         root = Path(data if data is not None else self.data)
         read_split(root, "train")
         read_split(root, self.eval_split)
-
-
-def camera_extent(c2w: np.ndarray) -> float:
-    """3DGS's scene extent: 1.1 x the largest distance of a camera centre from their mean."""
-    centres = c2w[:, :3, 3]
-    return float(1.1 * np.linalg.norm(centres - centres.mean(0), axis=-1).max()) if len(centres) else 1.0
 
 
 def read_json_object(path: Path, what: str = "transforms file") -> Dict[str, Any]:

@@ -29,8 +29,9 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserConfig, DataparserOutputs
 from nerfstudio.data.scene_box import SceneBox
 
-from garo_ns.data.dnerf import camera_extent, image_size, read_json_object
+from garo_ns.data.dnerf import image_size, read_json_object
 from garo_ns.errors import GaroInputError
+from garo_ns.render.view import camera_extent
 
 # OpenCV camera axes (x right, y down, z forward) to OpenGL's (x right, y up, z back).
 _CV_TO_GL = np.diag([1.0, -1.0, -1.0])

@@ -1,9 +1,11 @@
-"""The camera as the rasterizer takes it: gsplat's world-to-camera convention and one prepared view."""
+"""Cameras: gsplat's world-to-camera convention, one view prepared for the rasterizer, and the scene extent
+that a set of cameras implies."""
 
 from __future__ import annotations
 
 from typing import NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -29,3 +31,9 @@ class RenderView(NamedTuple):
     width: int
     height: int
     time: float
+
+
+def camera_extent(c2w: np.ndarray) -> float:
+    """3DGS's scene extent: 1.1 x the largest distance of a camera centre from their mean."""
+    centres = c2w[:, :3, 3]
+    return float(1.1 * np.linalg.norm(centres - centres.mean(0), axis=-1).max()) if len(centres) else 1.0
