@@ -15,7 +15,7 @@ strategy, then kNN) can run at different times and the report still covers all f
 mutant's name to {"kind": "equivalent" | "harmless", "why": "..."}. The score is
 killed / (all - equivalent): harmless survivors (a change no test of the CPU code can see, such as
 a CUDA-only device argument or a speed parameter) stay in the denominator. A module whose source
-changed since its run is flagged stale (its mutant names may no longer match). Survivors without a
+changed (or moved) since its run is flagged stale (its mutant names may no longer match). Survivors without a
 note are listed as UNEXPLAINED and make the exit status 1, as do partial or stale modules.
 """
 
@@ -101,7 +101,8 @@ def report(results: Path, notes_path: Path, out: Path) -> int:
         surv = m["survivors"]
         equivalent = sum(notes.get(n, {}).get("kind") == "equivalent" for n in surv)
         scored = m["run"] - equivalent
-        stale = _sha256(ROOT / m["source"]) != m["source_sha256"]
+        src = ROOT / m["source"]
+        stale = not src.exists() or _sha256(src) != m["source_sha256"]
         problems += stale + m["partial"]
         flag = (" (partial run)" if m["partial"] else "") + (" (source changed since: stale)" if stale else "")
         rows.append(

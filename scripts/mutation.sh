@@ -3,10 +3,10 @@
 # garo_strategy (the joint selection and GaroStrategy's own logic). Each mutant is run against the
 # fast unit tests only (tests/test_redundancy_*.py, tests/test_garo_strategy.py: seconds, no training).
 #
-#   bash scripts/mutation.sh                                  # both halves, about 2 hours on 2 CPU cores
+#   bash scripts/mutation.sh                                  # both halves, about 1.5 hours on 2 CPU cores
 #   MUTATION_NAMES="garo_ns.activity.* garo_ns.normals.* garo_ns.curvature.* garo_ns.garo_strategy.*" \
 #     bash scripts/mutation.sh                                # the first half only (about an hour)
-#   MUTATION_NAMES="garo_ns.knn.*" bash scripts/mutation.sh   # the kNN half only (about 40 minutes)
+#   MUTATION_NAMES="garo_ns.knn.*" bash scripts/mutation.sh   # the kNN half only (17 to 25 minutes)
 #   MUTATION_JOBS=8 bash scripts/mutation.sh
 #
 # Works in a scratch copy (build/mutation/, git-ignored) so the checkout is never mutated, then
