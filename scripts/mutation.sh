@@ -3,13 +3,18 @@
 # (the joint selection) and garo_strategy (GaroStrategy's own logic). Each mutant is run against the
 # fast unit tests only (tests/test_redundancy_*.py, tests/test_garo_strategy.py: seconds, no training).
 #
-#   bash scripts/mutation.sh            # about 30-60 minutes on 2 CPU cores
+#   bash scripts/mutation.sh                                  # both halves, about 1.5 hours on 2 CPU cores
+#   MUTATION_NAMES="garo_ns.redundancy.activity.* garo_ns.redundancy.normals.* garo_ns.redundancy.curvature.* garo_ns.redundancy.select.* garo_ns.garo_strategy.*" \
+#     bash scripts/mutation.sh                                # the first half only (about an hour)
+#   MUTATION_NAMES="garo_ns.redundancy.knn.*" bash scripts/mutation.sh   # the kNN half only (17 to 25 minutes)
 #   MUTATION_JOBS=8 bash scripts/mutation.sh
 #
 # Works in a scratch copy (build/mutation/, git-ignored) so the checkout is never mutated, then
-# writes benchmarks/results/mutation_report.md: the score and every surviving mutant with its diff
-# and the reason it is equivalent or harmless (from benchmarks/mutation_notes.json; a survivor
-# without a note is listed as UNEXPLAINED and makes the script exit 1).
+# writes one results file per module it ran, benchmarks/results/mutation_<module>.json (see
+# benchmarks/mutation_report.py collect), and rebuilds benchmarks/results/mutation_report.md from
+# all five: the score and every surviving mutant with its diff and the reason it is equivalent or
+# harmless (from benchmarks/mutation_notes.json; a survivor without a note is listed as UNEXPLAINED
+# and makes the script exit 1). MUTATION_NOTE, if set, is recorded with the run.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 root=$(pwd)
@@ -50,6 +55,7 @@ export GARO_PROPERTY_EXAMPLES=${GARO_PROPERTY_EXAMPLES:-25}
 # MUTATION_NAMES (mutmut name globs, e.g. "garo_ns.redundancy.curvature.*") runs those mutants only.
 passes=("garo_ns.redundancy.activity.* garo_ns.redundancy.normals.* garo_ns.redundancy.curvature.* garo_ns.redundancy.select.* garo_ns.garo_strategy.*" "garo_ns.redundancy.knn.*")
 if [ -n "${MUTATION_NAMES:-}" ]; then passes=("$MUTATION_NAMES"); fi
+start=$SECONDS
 for names in "${passes[@]}"; do
   # shellcheck disable=SC2086
   "$root/.venv/bin/mutmut" run --max-children "${MUTATION_JOBS:-2}" $names >> mutmut-run.log 2>&1 || {
@@ -59,5 +65,8 @@ for names in "${passes[@]}"; do
 done
 "$root/.venv/bin/mutmut" export-cicd-stats > /dev/null
 "$root/.venv/bin/mutmut" results --all true > results.txt
+export MUTATION_WALL_S=$((SECONDS - start)) MUTATION_JOBS=${MUTATION_JOBS:-2}
 cd "$root"
-.venv/bin/python benchmarks/mutation_report.py "$work" benchmarks/mutation_notes.json benchmarks/results/mutation_report.md
+.venv/bin/python benchmarks/mutation_report.py collect "$work" benchmarks/results
+.venv/bin/python benchmarks/mutation_report.py report benchmarks/results benchmarks/mutation_notes.json \
+  benchmarks/results/mutation_report.md

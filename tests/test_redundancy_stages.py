@@ -16,6 +16,7 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+import garo_ns.redundancy.knn as knn_module
 from garo_ns.garo_strategy import GaroStrategy
 from garo_ns.redundancy.activity import activity_candidates, mean_activity, record
 from garo_ns.redundancy.curvature import curvature
@@ -310,4 +311,71 @@ def test_knn_rejects_k_outside_one_to_n_minus_one(method):
         with pytest.raises(ValueError, match="k must be in 1..4"):
             method(pts, torch.tensor([0]), k)
     assert method(pts, torch.tensor([0]), 4).sort().values.tolist() == [[1, 2, 3, 4]]
-    assert method(pts, torch.tensor([], dtype=torch.long), 2).shape == (0, 2)
+    none = method(pts, torch.tensor([], dtype=torch.long), 2)
+    assert none.shape == (0, 2) and none.dtype == torch.long  # indices, even when there are none
+
+
+def spy_on_knn_brute(monkeypatch) -> list:
+    """Records the number of queries of every knn_brute call that knn_grid makes (the sample, the fallback)."""
+    calls, real = [], knn_module.knn_brute
+
+    def spy(points, query_ids, k, **kw):
+        calls.append(query_ids.numel())
+        return real(points, query_ids, k, **kw)
+
+    monkeypatch.setattr(knn_module, "knn_brute", spy)
+    return calls
+
+
+def test_knn_grid_answers_exactly_the_queries_whose_kth_neighbour_is_within_one_cell(monkeypatch):
+    # A 14 x 12 x 10 lattice, spacing 0.5, corner at -3 (exact in binary). k = 6: an interior point has
+    # its 6 face neighbours at 0.5; the 720 points on the faces have only 3 to 5, so their 6th lies at
+    # 0.5 * sqrt(2). The median 6th distance (960 of 1680 are interior) gives cells of exactly 0.5, one
+    # per lattice point: an interior query's 27 cells hold 27 points and its 6th neighbour is within
+    # one cell, so the grid answers it; a face query goes to the brute-force fallback.
+    dims = (14, 12, 10)
+    pts = torch.stack(torch.meshgrid(*[torch.arange(d) for d in dims], indexing="ij"), -1).reshape(-1, 3) * 0.5 - 3.0
+    q = torch.arange(len(pts))
+    interior = ((pts > -3.0) & (pts < torch.tensor(dims) * 0.5 - 3.5)).all(-1)
+    calls = spy_on_knn_brute(monkeypatch)
+    got = knn_grid(pts, q, 6, cell_quantile=0.5, sample_size=4096, max_candidates=27)
+    assert calls == [1680, 720]  # the sample (every query), then the face queries only
+    assert int(interior.sum()) == 960
+    steps = (pts[got[interior]] - pts[interior][:, None, :]).abs().sum(-1)
+    assert torch.equal(steps, torch.full_like(steps, 0.5))  # exactly the 6 face neighbours
+    torch.testing.assert_close(distances_of(pts, q, got), reference_distances(pts, q, 6), rtol=0, atol=0)
+    calls.clear()
+    again = knn_grid(pts, q, 6, cell_quantile=0.5, sample_size=4096, max_candidates=26)
+    assert calls == [1680, 1680]  # 27 candidates exceed 26: every query falls back
+    torch.testing.assert_close(distances_of(pts, q, again), reference_distances(pts, q, 6), rtol=0, atol=0)
+
+
+def test_knn_grid_leaves_too_few_finite_points_to_brute_force(monkeypatch):
+    nan_pts = torch.full((4, 3), NAN)
+    none_finite = knn_grid(nan_pts, torch.tensor([0, 2]), 2)  # no finite point at all: padding only, no error
+    assert none_finite.shape == (2, 2) and 0 not in none_finite[0] and 2 not in none_finite[1]
+    assert (none_finite.sort(-1).values.diff(dim=-1) != 0).all() and (none_finite < 4).all()
+    pts = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [NAN, 0.0, 0.0], [0.0, INF, 0.0], [0.0, 0.0, NAN]])
+    calls = spy_on_knn_brute(monkeypatch)
+    got = knn_grid(pts, torch.tensor([0, 1]), 2)  # 2 finite points, k = 2: no grid (and no sample) at all
+    assert calls == [2]
+    assert got[:, 0].tolist() == [1, 0] and (got[:, 1] >= 2).all()
+
+
+def test_knn_grid_when_squared_distances_overflow_float32():
+    # Points 4e19 apart: every squared distance is inf in float32, so no finite k-th distance sizes the
+    # cells; the grid falls back to its extent-based size instead of failing.
+    pts = torch.zeros(20, 3)
+    pts[:, 0] = torch.arange(20.0) * 4e19
+    q = torch.arange(20)
+    got = knn_grid(pts, q, 2)
+    assert got.sort(-1).values.tolist() == [[1, 2]] + [[i - 1, i + 1] for i in range(1, 19)] + [[17, 18]]
+
+
+def test_knn_takes_the_grid_above_two_to_the_26_query_point_pairs(monkeypatch):
+    used = []
+    monkeypatch.setattr(knn_module, "knn_grid", lambda p, q, k: used.append("grid"))
+    monkeypatch.setattr(knn_module, "knn_brute", lambda p, q, k: used.append("brute"))
+    for n, q in [(2**13, 2**13), (2**13, 2**13 + 1), (2**13 + 1, 2**13), (2**26, 1), (2**26, 0), (2**26 + 1, 0)]:
+        knn(torch.zeros(1, 3).expand(n, 3), torch.arange(q), 5)  # only the shapes matter here
+    assert used == ["brute", "grid", "grid", "brute", "brute", "grid"]
