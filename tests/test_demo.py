@@ -37,3 +37,29 @@ def test_demo_writes_side_by_side_figures_strip_and_plot(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "demo_strip.png" in out and "ns-viewer --load-config" in out
     assert "Step" in out or "ETA" in out  # nerfstudio's progress lines were shown
+
+
+def test_demo_config_scales_rates_and_coarsens_the_scene(tmp_path):
+    """The demo's settings reach the trainer config and the scene (no training)."""
+    from garo_ns.config import optimizers
+    from garo_ns.tools.demo import DemoArgs, scene_spec
+    from garo_ns.tools.scene import GROUND_HALF, SceneSpec
+    from garo_ns.tools.train import DemoSchedule, make_config
+
+    args = DemoArgs()
+    spec = scene_spec(args)
+    assert spec.checks_per_unit * 2 * GROUND_HALF == pytest.approx(args.ground_squares)
+    assert spec.sphere_stripes == args.sphere_stripes and spec.resolution == args.resolution
+    assert SceneSpec().checks_per_unit == 4.0 and SceneSpec().sphere_stripes == 8  # the tests' scene unchanged
+    schedule = DemoSchedule(
+        steps=100, lr_scale={"means": 20.0, "features_dc": 4.0}, extra={"deform_head_init": "default"}
+    )
+    config = make_config("garo-deform", tmp_path, tmp_path, schedule=schedule)
+    ref = optimizers()
+    assert config.optimizers["means"]["optimizer"].lr == pytest.approx(20 * ref["means"]["optimizer"].lr)
+    assert config.optimizers["means"]["scheduler"].lr_final == pytest.approx(20 * ref["means"]["scheduler"].lr_final)
+    assert config.optimizers["features_dc"]["optimizer"].lr == pytest.approx(4 * ref["features_dc"]["optimizer"].lr)
+    assert config.optimizers["opacities"]["optimizer"].lr == ref["opacities"]["optimizer"].lr
+    assert config.pipeline.model.deform_head_init == "default"
+    with pytest.raises(ValueError, match="not a parameter group"):
+        make_config("garo-deform", tmp_path, tmp_path, schedule=DemoSchedule(steps=100, lr_scale={"mean": 2.0}))

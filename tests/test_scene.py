@@ -52,9 +52,24 @@ def test_loads_with_nerfstudio_dnerf_parser(tmp_path):
         ({"n_val": -1}, "n_val"),
         ({"resolution": 0}, "resolution"),
         ({"resolution": 12.5}, "resolution"),
+        ({"checks_per_unit": 0.0}, "checks_per_unit"),
+        ({"sphere_stripes": 3}, "sphere_stripes"),
     ],
 )
 def test_bad_arguments_name_the_argument(tmp_path, kwargs, name):
     with pytest.raises(ValueError, match=name):
         generate_scene(tmp_path / "x", SceneSpec(**kwargs))
     assert not (tmp_path / "x").exists()
+
+
+def test_coarser_textures_change_only_the_textures():
+    """The demo's coarser floor and ball: same geometry and coverage, fewer colour edges."""
+    c2w = look_at_c2w(np.array([0.0, -4.0, 2.0]))
+    fine, coarse = render_frame(c2w, 0.3, 48), render_frame(c2w, 0.3, 48, checks_per_unit=2 / 2.4, sphere_stripes=2)
+    assert np.array_equal(fine[..., 3], coarse[..., 3])
+    assert np.array_equal(render_frame(c2w, 0.3, 48), render_frame(c2w, 0.3, 48, 2, 4.0, 8))  # defaults
+
+    def edges(img):
+        return np.abs(np.diff(img[..., :3], axis=1)).sum()
+
+    assert edges(coarse) < 0.7 * edges(fine)

@@ -27,9 +27,9 @@ class DemoArgs:
 
     output_dir: Path = Path("runs/demo")
     """Where the scene, the runs and the results go."""
-    steps: int = 300
+    steps: int = 2000
     """Training steps of each arm (the full recipe is 40k; this compresses its phases)."""
-    resolution: int = 48
+    resolution: int = 32
     """Scene resolution in pixels."""
     methods: Tuple[Method, ...] = ("garo-deform", "deform-splatfacto")
     """The arms to train, in this order."""
@@ -37,13 +37,17 @@ class DemoArgs:
     """Default: cuda when available."""
     strip_frames: int = 6
     """Test views in the picture, ordered by time."""
-    n_train: int = 24
-    """Training views of the generated scene."""
+    n_train: int = 60
+    """Training views of the generated scene (one per training time; they cost no time per step)."""
     n_test: int = 6
     """Test views of the generated scene."""
     n_val: int = 2
     """Validation views of the generated scene (the demo does not use them)."""
-    num_random: int = 1000
+    ground_squares: int = 2
+    """Checker squares along each side of the floor (the library's default scene has 9.6: 4 per unit)."""
+    sphere_stripes: int = 2
+    """Coloured stripes around the ball (the library's default scene has 8)."""
+    num_random: int = 500
     """Random Gaussians the scene starts from."""
     deform_width: int = 64
     """Width of the deformation MLP."""
@@ -55,11 +59,34 @@ class DemoArgs:
     """Learning rate of the deformation MLP, held through the static warm-up, then decaying 100x."""
     deform_warmup_frac: float = 0.25
     """Share of the steps trained static before the deformation field switches on."""
-    densify_grad_thresh: float = 0.0008
+    deform_head_init: Literal["zero", "default"] = "default"
+    """Initial heads of the deformation MLP. With "zero" (QuickSchedule's) the field collapsed in 800-step trials
+    on this scene (its last layer died after the switch-on; the ball and box rendered as static blurs)."""
+    means_lr_scale: float = 20.0
+    """Factor on D-3DGS's position learning rate (tuned for 30k steps)."""
+    color_lr_scale: float = 4.0
+    """Factor on D-3DGS's colour learning rates (SH coefficients)."""
+    scales_lr_scale: float = 2.0
+    """Factor on D-3DGS's scale learning rate."""
+    densify_grad_thresh: float = 0.002
     """Densification's gradient threshold (a higher one keeps the Gaussians, and the CPU time per step, fewer)."""
     static_threshold: Optional[float] = None
     """Static threshold as a share of the scene extent. Default: the model's 2.5e-4 scaled by 800 / resolution,
     the same fraction of a pixel as the default at 800 px (the D-NeRF size)."""
+
+
+def scene_spec(args: DemoArgs) -> Any:
+    """The built-in scene the demo trains on: the library's scene with its floor and ball textures coarser."""
+    from garo_ns.tools.scene import GROUND_HALF, SceneSpec
+
+    return SceneSpec(
+        resolution=args.resolution,
+        n_train=args.n_train,
+        n_val=args.n_val,
+        n_test=args.n_test,
+        checks_per_unit=args.ground_squares / (2 * GROUND_HALF),
+        sphere_stripes=args.sphere_stripes,
+    )
 
 
 def static_threshold(args: DemoArgs) -> float:
@@ -81,7 +108,17 @@ def train_arm(args: DemoArgs, method: Method, scene: Path, out: Path, device: st
         deform_skip=args.deform_skip,
         deform_lr=args.deform_lr,
         deform_warmup_frac=args.deform_warmup_frac,
-        extra={"densify_grad_thresh": args.densify_grad_thresh, "static_threshold": static_threshold(args)},
+        lr_scale={
+            "means": args.means_lr_scale,
+            "features_dc": args.color_lr_scale,
+            "features_rest": args.color_lr_scale,
+            "scales": args.scales_lr_scale,
+        },
+        extra={
+            "densify_grad_thresh": args.densify_grad_thresh,
+            "static_threshold": static_threshold(args),
+            "deform_head_init": args.deform_head_init,
+        },
     )
     config = make_config(method, scene, out, device=device, schedule=schedule, experiment_name=method)
     config.logging.local_writer.enable = True  # nerfstudio's own progress output
@@ -283,13 +320,16 @@ def run(args: DemoArgs) -> Dict[str, Any]:
 
     import torch
 
-    from garo_ns.tools.scene import SceneSpec, generate_scene
+    from garo_ns.tools.scene import generate_scene
 
     start = time.perf_counter()
     out = args.output_dir.resolve()
     out.mkdir(parents=True, exist_ok=True)
-    spec = SceneSpec(resolution=args.resolution, n_train=args.n_train, n_val=args.n_val, n_test=args.n_test)
-    scene = out / f"scene_{args.resolution}px_{args.n_train}x{args.n_val}x{args.n_test}"
+    spec = scene_spec(args)
+    scene = out / (
+        f"scene_{args.resolution}px_{args.n_train}x{args.n_val}x{args.n_test}"
+        f"_{args.ground_squares}sq_{args.sphere_stripes}st"
+    )
     if not (scene / "transforms_test.json").exists():
         generate_scene(scene, spec)
         print(f"wrote the built-in scene to {scene}")

@@ -37,6 +37,10 @@ class SceneSpec:
     n_val: int = 8
     n_test: int = 8
     seed: int = 0
+    checks_per_unit: float = 4.0
+    """Checker squares of the ground per scene unit (the ground is 2.4 units wide)."""
+    sphere_stripes: int = 8
+    """Meridian stripes around the sphere (an even number, so that the colours alternate)."""
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad field."""
@@ -50,6 +54,15 @@ class SceneSpec:
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ValueError(f"{name} must be an int >= 1, got {value!r}")
+        if not isinstance(self.checks_per_unit, (int, float)) or not self.checks_per_unit > 0:
+            raise ValueError(f"checks_per_unit must be > 0, got {self.checks_per_unit!r}")
+        if (
+            not isinstance(self.sphere_stripes, int)
+            or isinstance(self.sphere_stripes, bool)
+            or self.sphere_stripes < 2
+            or self.sphere_stripes % 2
+        ):
+            raise ValueError(f"sphere_stripes must be an even int >= 2, got {self.sphere_stripes!r}")
 
 
 def sphere_center(t: float) -> np.ndarray:
@@ -77,18 +90,20 @@ def look_at_c2w(position: np.ndarray, target: Sequence[float] = (0.0, 0.0, -0.3)
     return c2w
 
 
-def _hit_ground(o: np.ndarray, d: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _hit_ground(o: np.ndarray, d: np.ndarray, checks: float = 4.0) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     with np.errstate(divide="ignore", invalid="ignore"):
         t = (GROUND_Z - o[..., 2]) / d[..., 2]
     p = o + t[..., None] * d
     ok = (t > 1e-6) & (np.abs(p[..., 0]) <= GROUND_HALF) & (np.abs(p[..., 1]) <= GROUND_HALF)
-    checker = (np.floor(p[..., 0] * 4) + np.floor(p[..., 1] * 4)) % 2
+    checker = (np.floor(p[..., 0] * checks) + np.floor(p[..., 1] * checks)) % 2
     albedo = np.where(checker[..., None] > 0, [0.85, 0.82, 0.75], [0.25, 0.45, 0.65])
     normal = np.broadcast_to([0.0, 0.0, 1.0], p.shape)
     return np.where(ok, t, np.inf), albedo, normal
 
 
-def _hit_sphere(o: np.ndarray, d: np.ndarray, time: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _hit_sphere(
+    o: np.ndarray, d: np.ndarray, time: float, stripes: int = 8
+) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     c = sphere_center(time)
     oc = o - c
     b = np.sum(oc * d, -1)
@@ -100,7 +115,7 @@ def _hit_sphere(o: np.ndarray, d: np.ndarray, time: float) -> Tuple[np.ndarray, 
     n = (p - c) / SPHERE_RADIUS
     # Meridian stripes in a frame that rolls with the motion, so the texture moves too.
     lon = np.arctan2(n[..., 1], n[..., 0]) + 2.5 * math.pi * time
-    stripe = (np.floor(lon / (math.pi / 4)) % 2)[..., None]
+    stripe = (np.floor(lon / (2 * math.pi / stripes)) % 2)[..., None]
     albedo = np.where(stripe > 0, [0.9, 0.25, 0.2], [0.95, 0.8, 0.2])
     return np.where(ok, t, np.inf), albedo, n
 
@@ -132,7 +147,14 @@ def _hit_box(o: np.ndarray, d: np.ndarray, time: float) -> Tuple[np.ndarray, np.
     return np.where(ok, tnear, np.inf), palette[face], nl @ rot.T
 
 
-def render_frame(c2w: np.ndarray, time: float, resolution: int, supersample: int = 2) -> np.ndarray:
+def render_frame(
+    c2w: np.ndarray,
+    time: float,
+    resolution: int,
+    supersample: int = 2,
+    checks_per_unit: float = 4.0,
+    sphere_stripes: int = 8,
+) -> np.ndarray:
     """RGBA float image [H, W, 4] of the scene at `time` seen from OpenGL pose `c2w`."""
     focal = 0.5 * resolution / math.tan(0.5 * CAMERA_ANGLE_X)
     s = supersample
@@ -143,7 +165,7 @@ def render_frame(c2w: np.ndarray, time: float, resolution: int, supersample: int
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     o = np.broadcast_to(c2w[:3, 3], d.shape)
 
-    hits = [_hit_ground(o, d), _hit_sphere(o, d, time), _hit_box(o, d, time)]
+    hits = [_hit_ground(o, d, checks_per_unit), _hit_sphere(o, d, time, sphere_stripes), _hit_box(o, d, time)]
     ts = np.stack([h[0] for h in hits], 0)
     nearest = np.argmin(ts, 0)
     hit = np.isfinite(np.min(ts, 0))
@@ -189,7 +211,14 @@ def _frames(spec: SceneSpec):
         times = _split_times(rng, n, split)
         for i in range(n):
             c2w = look_at_c2w(positions[i])
-            yield split, i, c2w, float(times[i]), render_frame(c2w, float(times[i]), spec.resolution)
+            image = render_frame(
+                c2w,
+                float(times[i]),
+                spec.resolution,
+                checks_per_unit=spec.checks_per_unit,
+                sphere_stripes=spec.sphere_stripes,
+            )
+            yield split, i, c2w, float(times[i]), image
 
 
 def surface_points(n: int = 2000, seed: int = 0) -> np.ndarray:
