@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 from garo_ns.garo_strategy import GaroStrategy, restrict_info
 from garo_ns.redundancy.curvature import curvature
 from garo_ns.redundancy.normals import normals
-from garo_ns.redundancy.select import select_redundant
+from garo_ns.redundancy.select import least_contributing, select_redundant
 
 NAN, INF = float("nan"), float("inf")
 # Examples per property test; scripts/mutation.sh lowers it to keep each mutant's run short.
@@ -570,3 +570,34 @@ def test_densification_after_garo_gets_the_optimizers():
     torch.testing.assert_close(params["opacities"].detach(), torch.full((6,), cap))
     opt = optimizers["opacities"]
     assert torch.equal(opt.state[opt.param_groups[0]["params"][0]]["exp_avg"], torch.zeros(6))
+
+
+# --- pruning by contribution ----------------------------------------------------------------------
+
+
+def test_least_contributing_marks_exactly_floor_ratio_n_smallest_ties_by_index():
+    w = torch.tensor([3.0, 1.0, 2.0, 1.0, 5.0, 0.5, 1.0])
+    assert least_contributing(w, 0.5).tolist() == [False, True, False, True, False, True, False]  # floor(3.5)
+    assert least_contributing(w, 0.3).tolist() == [False, True, False, False, False, True, False]  # ties: index
+    assert not least_contributing(w, 0.1).any()  # floor(0.7) = 0
+    assert not least_contributing(w, 0.0).any()
+    assert least_contributing(torch.zeros(0), 0.5).tolist() == []
+    for bad in (1.0, -0.1, float("nan")):
+        with pytest.raises(ValueError, match=r"^prune ratio must be in \[0, 1\), got"):
+            least_contributing(w, bad)
+
+
+def test_prune_by_contribution_removes_rows_everywhere_and_reports_the_count():
+    params, optimizers = flat_plane_params(10)
+    strategy = GaroStrategy()
+    state = strategy.initialize_state()
+    state["static"] = torch.arange(10) % 2 == 0
+    state["static_offset"] = torch.arange(10, dtype=torch.float32)[:, None].expand(10, 10).clone()
+    contribution = torch.tensor([5.0, 0.1, 4.0, 0.2, 3.0, 9.0, 8.0, 0.3, 7.0, 6.0])
+    assert strategy.prune_by_contribution(params, optimizers, state, contribution, 0.3) == 3
+    kept = [0, 2, 4, 5, 6, 8, 9]
+    assert params["opacities"].detach().reshape(-1).tolist() == kept
+    assert state["static"].tolist() == [k % 2 == 0 for k in kept]
+    assert state["static_offset"][:, 0].tolist() == kept
+    assert strategy.prune_by_contribution(params, optimizers, state, torch.ones(7), 0.1) == 0
+    assert len(params["means"]) == 7
