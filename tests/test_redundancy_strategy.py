@@ -17,6 +17,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from garo_ns.garo_strategy import GaroStrategy, restrict_info
+from garo_ns.redundancy.activity import record
 from garo_ns.redundancy.curvature import curvature
 from garo_ns.redundancy.normals import normals
 from garo_ns.redundancy.select import least_contributing, select_redundant
@@ -601,3 +602,45 @@ def test_prune_by_contribution_removes_rows_everywhere_and_reports_the_count():
     assert state["static_offset"][:, 0].tolist() == kept
     assert strategy.prune_by_contribution(params, optimizers, state, torch.ones(7), 0.1) == 0
     assert len(params["means"]) == 7
+
+
+# --- the baseline's mode, and the gradient GARO reads ----------------------------------------------
+
+
+def test_mode_off_is_plain_densification_with_the_strategy_owned_rows():
+    off, full = GaroStrategy(mode="off"), GaroStrategy(mode="full")
+    owned = {"static": None, "static_offset": None, "static_step": -1}
+    state = off.initialize_state()
+    assert {k: state[k] for k in owned} == owned
+    assert not {"garo_grad", "garo_count", "garo_last"} & set(state)
+    state = full.initialize_state()
+    assert {k: state[k] for k in owned} == owned
+    assert state["garo_grad"] is None and state["garo_count"] is None and state["garo_last"] == {}
+    assert not any(GaroStrategy(mode="off", garo_start_iter=0, garo_every=1).is_garo_step(s) for s in range(50))
+    assert full.is_garo_step(600) and not full.is_garo_step(601)
+    # A step of the baseline: no activity record and no GARO, even at a step where GARO would prune.
+    params, optimizers = flat_plane_params(20)
+    strategy = GaroStrategy(mode="off", garo_start_iter=1, garo_stop_iter=2, garo_every=1, refine_start_iter=10_000)
+    state = run_step(strategy, params, optimizers, fake_info(20, ndc=0.5))
+    assert len(params["means"]) == 20 and "garo_grad" not in state and state["count"].tolist() == [1.0] * 20
+
+
+def test_activity_reads_the_gradient_densification_reads():
+    params = {"means": torch.zeros(3, 3)}
+    m2d = torch.zeros(1, 3, 2, requires_grad=True)
+    info = {"means2d": m2d, "radii": torch.ones(1, 3), "width": W, "height": H, "n_cameras": 1, "gaussian_ids": None}
+    m2d.absgrad = torch.tensor([[[2.0 / (W / 2), 0.0], [0.0, 4.0 / (H / 2)], [0.0, 0.0]]])
+    sums, counts = GaroStrategy(absgrad=True).gradient_norms(params, info)  # .grad is None: absgrad is read
+    torch.testing.assert_close(sums, torch.tensor([2.0, 4.0, 0.0]))
+    assert counts.tolist() == [1.0, 1.0, 1.0]
+    with pytest.raises(ValueError, match=r"^info\['means2d'\] has no gradient"):
+        GaroStrategy().gradient_norms(params, info)  # the plain gradient is asked for and absent
+    del m2d.absgrad
+    with pytest.raises(ValueError, match=r"^info\['means2d'\] has no gradient"):
+        GaroStrategy(absgrad=True).gradient_norms(params, info)
+
+
+def test_an_iteration_that_did_not_see_a_gaussian_adds_nothing_to_its_record():
+    sums, counts = torch.zeros(3), torch.zeros(3)
+    record(sums, counts, torch.tensor([1.0, 2.0, 0.0]), torch.tensor([0.0, 1.0, 0.0]))
+    assert sums.tolist() == [0.0, 2.0, 0.0] and counts.tolist() == [0.0, 1.0, 0.0]
