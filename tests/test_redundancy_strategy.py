@@ -580,6 +580,7 @@ def test_least_contributing_marks_exactly_floor_ratio_n_smallest_ties_by_index()
     w = torch.tensor([3.0, 1.0, 2.0, 1.0, 5.0, 0.5, 1.0])
     assert least_contributing(w, 0.5).tolist() == [False, True, False, True, False, True, False]  # floor(3.5)
     assert least_contributing(w, 0.3).tolist() == [False, True, False, False, False, True, False]  # ties: index
+    assert least_contributing(w, 0.2).tolist() == [False, False, False, False, False, True, False]  # floor(1.4)
     assert not least_contributing(w, 0.1).any()  # floor(0.7) = 0
     assert not least_contributing(w, 0.0).any()
     assert least_contributing(torch.zeros(0), 0.5).tolist() == []
