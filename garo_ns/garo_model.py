@@ -389,7 +389,7 @@ class GaroModel(SplatfactoModel):
             return
         if (step - cfg.deform_warmup) % cfg.health_every != 0:
             return
-        times = self.train_times if self.train_times is not None else torch.linspace(0.0, 1.0, 8)
+        times = sample_times(self.train_times, 8)
         health = health_check(self.deformation, self.means, times, self.scene_extent, step)
         self.health_log.append(health)
         writer.put_scalar("garo/deform_time_sensitivity", health["time_sensitivity"], step)

@@ -313,7 +313,7 @@ def test_the_last_garo_step_is_reported_in_the_state():
     strategy = garo(rho_max=0.1, tau_curvature=0.01)
     state = run_step(strategy, params, optimizers, fake_info(30))
     last = state["garo_last"]
-    assert last["step"] == 1 and last["seconds"] >= 0.0
+    assert last["step"] == 1
     assert {k: last[k] for k in ("candidates", "redundant", "pruned", "num_gaussians")} == {
         "candidates": 30,
         "redundant": 30,
