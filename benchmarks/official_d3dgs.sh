@@ -201,7 +201,7 @@ score)
   export PYTHONPATH=$W/garo_head:${PYTHONPATH:-} # the committed evaluation code (SOURCES.json names the commit)
   gpu=$(nvidia-smi --query-gpu=name --format=csv,noheader | head -1 | grep -o 'H[0-9]\{3\}' || echo GPU)
   python3 benchmarks/official_score.py --work $W --code $W/code --scenes $(cat $W/scenes) \
-    --sources $W/code/SOURCES.json --output $W/results/official_d3dgs_$gpu.json 2>&1 | tee $W/score.log
+    --sources $W/code/SOURCES.json --note "${SHARING_NOTE:-}" --output $W/results/official_d3dgs_$gpu.json 2>&1 | tee $W/score.log
   if [ -n "${OUT:-}" ]; then
     cp $W/results/*.json $OUT/
     for s in $(cat $W/scenes); do

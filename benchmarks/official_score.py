@@ -182,6 +182,7 @@ def main() -> None:
     ap.add_argument("--output", type=Path, required=True, help="combined JSON")
     ap.add_argument("--sources", type=Path, default=None, help="JSON naming the official commits used")
     ap.add_argument("--target-iterations", type=int, default=40000)
+    ap.add_argument("--note", default="", help="how the GPU was shared during training (other runs beside these)")
     args = ap.parse_args()
 
     sys.path.insert(0, str(args.code.resolve()))  # the official top-level packages (scene, utils, ...)
@@ -261,8 +262,9 @@ def main() -> None:
         "official_branch": "paper",
         "official_commit": sources.get("official_commit"),
         "sources": sources,
-        "train_args": "--eval --is_blender (black background), 40000 iterations, official defaults otherwise; "
-        "the three scenes trained at the same time on the one GPU",
+        "train_args": "--eval --is_blender (black background), 40000 iterations, official defaults otherwise",
+        "runs_together": list(args.scenes),
+        "note": args.note,
         "protocol": {
             "metrics": "garo_ns.tools.eval.evaluate: GT via garo_ns.tools.eval.load_split (RGBA/255 composited on "
             "black in float), PSNR from per-view MSE averaged over views, SSIM nerfstudio SSIM(data_range=1, "
