@@ -30,6 +30,9 @@
 #           (the kit, for scoring: nerfstudio's SSIM, the LPIPS weights; the runs do not see it)
 #   call 4+ (nothing carried):                     bash benchmarks/official_d3dgs.sh wait 450
 #           waits until every run ended or the deadline passed, then scores (results under $OUT)
+# GPU=i (default 0) puts a run on GPU i: on the 2-GPU kind, the official run on GPU 1 and ours
+# (device_run.sh launch ... --gpus 0) on GPU 0 make a same-round pair of one scene in one hold (about 22 minutes;
+# on one GPU the pair needs about 29 minutes shared or 30 in turn, more than a session's device time).
 # All runs train at once on the one GPU. Each is killed at the deadline, DEADLINE_S (default 1290) seconds
 # after call 1 started, so that scoring ends inside the hold; a run that did not reach 40000 is scored at its
 # last saved iteration (saves at 20k, 30k, 35k, 40k) and marked shortened.
@@ -144,7 +147,7 @@ start)
     cd $W/code
     date +%s.%N > $W/$scene.start
     left=\$(( $(deadline) - \$(date +%s) )); [ \$left -gt 1 ] || left=1
-    timeout --foreground -s KILL \$left python3 train.py -s $W/data/$scene -m $W/out/$scene \
+    CUDA_VISIBLE_DEVICES=${GPU:-0} timeout --foreground -s KILL \$left python3 train.py -s $W/data/$scene -m $W/out/$scene \
       --eval --is_blender --port $port --test_iterations $ITERS --save_iterations $ITERS
     echo \$? > $W/$scene.rc
     date +%s.%N > $W/$scene.end
