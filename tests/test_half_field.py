@@ -225,3 +225,52 @@ def test_half_products_accumulate_in_fp32(monkeypatch: pytest.MonkeyPatch) -> No
         assert matmul.allow_fp16_reduced_precision_reduction is True
     finally:
         matmul.allow_fp16_reduced_precision_reduction = previous
+
+
+requires_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="the half field runs on CUDA (a GPU test)")
+
+
+@requires_cuda
+@torch.no_grad()
+def test_half_field_on_cuda_is_within_its_bound_and_replays_as_eager() -> None:
+    from garo_ns.render.graphs import TimeGraph
+
+    field = DeformationField(time_net=30).cuda().eval()  # the recipe's shape
+    for head in (field.d_xyz, field.d_rot, field.d_scale):
+        torch.nn.init.normal_(head.weight, std=0.05)
+    xyz = torch.rand(20_000, 3, device="cuda") * 2 - 1
+    fast, graph = HalfField(), TimeGraph()
+    for t in (0.0, 0.37, 1.0, 0.37):
+        want = field(xyz, t)
+        eager = fast(field, xyz, torch.tensor(t, device="cuda"), "points")
+        scale = max(float(w.abs().max()) for w in want)
+        assert 0 < _max_diff(eager, want) <= 2e-3 * scale
+        replay = [x.clone() for x in graph("k", lambda tt: fast(field, xyz, tt, "points"), t, xyz.device)]
+        for a, b in zip(replay, eager):
+            torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert graph.captures == 1 and fast.builds == 1
+
+
+@requires_cuda
+@torch.no_grad()
+@pytest.mark.parametrize("static_skip", [False, True])
+def test_frame_path_graph_in_fp16_equals_its_eager_frames(static_skip: bool) -> None:
+    field = _field().cuda()
+    canonical = Canonical(*(x.detach().cuda() for x in _canonical()))
+    static = torch.zeros(400, dtype=torch.bool, device="cuda")
+    static[::3] = True
+    offset = torch.zeros(400, 10, device="cuda")
+    graphed, eager = FramePath(), FramePath()
+    settings = dict(render_precision="fp16", static_skip=static_skip, cache_deformation=False)
+    for t in (0.2, 0.7):
+        got = graphed.splats(field, canonical, static, offset, t, FrameSettings(cuda_graph=True, **settings))
+        want = eager.splats(field, canonical, static, offset, t, FrameSettings(**settings))
+        assert got.graph is not None and want.graph is None
+        for a, b in zip(got[:5], want[:5]):
+            torch.testing.assert_close(a, b, rtol=0, atol=0)
+    canonical.means.mul_(0.5)  # new means: a new capture and a new position cache
+    got = graphed.splats(field, canonical, static, offset, 0.7, FrameSettings(cuda_graph=True, **settings))
+    want = FramePath().splats(field, canonical, static, offset, 0.7, FrameSettings(**settings))
+    for a, b in zip(got[:5], want[:5]):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert graphed.half_field.builds == 2
