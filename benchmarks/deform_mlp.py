@@ -21,6 +21,8 @@ Paths (each one computes the three offsets at a time for all N Gaussians):
   <p>_cached     (p in fp32, tf32, bf16, fp16) the first layer and the skip layer split into a position part,
                  computed once per Gaussian (fixed until the parameters change; `prepare_ms`, `cache_mb`),
                  plus a time part that is one row per frame; exact up to float reassociation
+  render_fp16    fp16_cached as the product runs it (`render_precision=fp16`: garo_ns.render.half_field.HalfField,
+                 its parameter-version checks and its outputs cast back to fp32 included)
   <p>+graph      each of the above replayed as one CUDA graph (garo_ns.render.graphs.TimeGraph; CUDA only)
   compile        torch.compile(mode="max-autotune-no-cudagraphs") of the fastest eager path whose error is
                  within --compile-max-error (or of --compile-from; `compiled_from`, `compile_s`), and
@@ -75,8 +77,17 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from garo_ns.deformation import DeformationField, positional_encoding, precision
+from garo_ns.deformation import DeformationField, precision
 from garo_ns.render.graphs import TimeGraph, graphs_available
+from garo_ns.render.half_field import (
+    FieldWeights,
+    HalfField,
+    PositionCache,
+    cached_forward,
+    fp32_accumulation,
+    split_heads,
+    time_features,
+)
 
 # Measured in this order (the issue's target N first: the compile budget may run out); reported sorted.
 NS = (50_000, 10_000, 200_000)
@@ -166,94 +177,13 @@ def flops_per_gaussian(field: DeformationField, cached: bool = False) -> int:
 # --- the paths ---------------------------------------------------------------------------------------------
 
 
-@dataclass
-class Weights:
-    """The field's weights in one dtype, the first and skip layers split into position / time / hidden
-    columns, the three heads stacked into one matrix."""
-
-    layers: List[Tuple[Tensor, Tensor]]
-    first_pos: Tensor
-    first_time: Tensor
-    skip_pos: Optional[Tensor]
-    skip_time: Optional[Tensor]
-    skip_hidden: Optional[Tensor]
-    head_w: Tensor
-    head_b: Tensor
-    skip: int
-
-    @classmethod
-    def of(cls, field: DeformationField, dtype: torch.dtype) -> "Weights":
-        d = layer_dims(field)
-        p, t = d["pos"], d["pos"] + d["time"]
-        layers = [(m.weight.detach().to(dtype), m.bias.detach().to(dtype)) for m in field.layers]
-        has_skip = field.skip + 1 < len(layers)
-        skip_w = layers[field.skip + 1][0] if has_skip else None
-        heads = (field.d_xyz, field.d_rot, field.d_scale)
-        return cls(
-            layers=layers,
-            first_pos=layers[0][0][:, :p],
-            first_time=layers[0][0][:, p:t],
-            skip_pos=skip_w[:, :p] if skip_w is not None else None,
-            skip_time=skip_w[:, p:t] if skip_w is not None else None,
-            skip_hidden=skip_w[:, t:].contiguous() if skip_w is not None else None,
-            head_w=torch.cat([h.weight.detach() for h in heads]).to(dtype),
-            head_b=torch.cat([h.bias.detach() for h in heads]).to(dtype),
-            skip=field.skip if has_skip else -1,
-        )
-
-
-def time_features(field: DeformationField, time: Any, device: torch.device) -> Tensor:
-    """The time part of the field's input [1, T] (encoding, then the time network if any), in fp32."""
-    t = torch.as_tensor(time, dtype=torch.float32, device=device).reshape(1, 1)
-    t_enc = positional_encoding(t, field.time_freqs, field.time_bands)
-    return field.time_net(t_enc).float() if field.time_net is not None else t_enc
-
-
-def split_heads(out: Tensor) -> Offsets:
-    return out[:, :3], out[:, 3:7], out[:, 7:]
-
-
-def plain_forward(w: Weights, x: Tensor) -> Offsets:
+def plain_forward(w: FieldWeights, x: Tensor) -> Offsets:
     """The MLP on its full input `x` [N, F] with weights `w` (any dtype), heads as one product."""
     h = x
     for i, (weight, bias) in enumerate(w.layers):
         h = F.linear(h, weight, bias).relu_()
         if i == w.skip:
             h = torch.cat([x, h], dim=-1)
-    return split_heads(F.linear(h, w.head_w, w.head_b))
-
-
-@dataclass
-class PositionCache:
-    """The per-Gaussian position parts of the first and the skip layer's pre-activations (biases folded in)."""
-
-    first: Tensor
-    skip: Optional[Tensor]
-
-    @classmethod
-    @torch.no_grad()
-    def build(cls, field: DeformationField, xyz: Tensor, dtype: torch.dtype) -> "PositionCache":
-        w = Weights.of(field, torch.float32)  # computed once in fp32, then stored in `dtype`
-        pe = positional_encoding(xyz.float(), field.pos_freqs, field.pos_bands)
-        first = F.linear(pe, w.first_pos, w.layers[0][1]).to(dtype)
-        skip = F.linear(pe, w.skip_pos, w.layers[w.skip + 1][1]).to(dtype) if w.skip_pos is not None else None
-        return cls(first, skip)
-
-    def megabytes(self) -> float:
-        return sum(t.numel() * t.element_size() for t in (self.first, self.skip) if t is not None) / 2**20
-
-
-def cached_forward(w: Weights, cache: PositionCache, tfeat: Tensor) -> Offsets:
-    """The MLP from the cached position parts plus the time features `tfeat` [1, T]: the first and the skip
-    layer add one per-frame row to the cached per-Gaussian part (same sums as the full products, reassociated)."""
-    tfeat = tfeat.to(w.first_time.dtype)
-    h = (cache.first + F.linear(tfeat, w.first_time)).relu_()
-    for i in range(1, len(w.layers)):
-        if i == w.skip + 1:
-            base = cache.skip + F.linear(tfeat, w.skip_time)
-            h = torch.addmm(base.to(h.dtype), h, w.skip_hidden.t()).relu_()
-        else:
-            h = F.linear(h, *w.layers[i]).relu_()
     return split_heads(F.linear(h, w.head_w, w.head_b))
 
 
@@ -273,8 +203,13 @@ class PathSpec:
         extra: Dict[str, Any] = {}
         if not self.cached and self.mode != "fp16":
             return (lambda t: field(xyz, t)), extra  # the product's forward; precision() set by `context`
+        if self.name == "render_fp16":  # the product's render_precision=fp16, checks and all
+            half = HalfField(devices=(device.type,))
+            half(field, xyz, EVAL_TIME, "points")  # builds its weight copies and position cache
+            extra["cache_mb"] = round(half.cache_megabytes(), 4)
+            return (lambda t: half(field, xyz, t, "points")), extra
         dtype = torch.float16 if self.mode == "fp16" else torch.float32
-        w = Weights.of(field, dtype)
+        w = FieldWeights.of(field, dtype)
         if not self.cached:
             return (lambda t: plain_forward(w, field.encode(xyz, t).to(dtype))), extra
         cache = PositionCache.build(field, xyz, dtype)
@@ -289,12 +224,8 @@ class PathSpec:
             with precision(self.mode, device):  # type: ignore[arg-type]
                 yield
             return
-        previous = torch.backends.cuda.matmul.allow_fp16_reduced_precision_reduction
-        torch.backends.cuda.matmul.allow_fp16_reduced_precision_reduction = False
-        try:
+        with fp32_accumulation():
             yield
-        finally:
-            torch.backends.cuda.matmul.allow_fp16_reduced_precision_reduction = previous
 
 
 def path_specs() -> List[PathSpec]:
@@ -307,6 +238,8 @@ def path_specs() -> List[PathSpec]:
     for base in list(specs):
         desc = f"{base.name} with the position parts of the first and skip layers cached per Gaussian"
         specs.append(PathSpec(base.name + "_cached", base.mode, True, base.cuda_only, desc))
+    desc = "render_precision=fp16 as the frame path runs it (garo_ns.render.half_field.HalfField: fp16_cached)"
+    specs.append(PathSpec("render_fp16", "fp16", True, False, desc))
     return specs
 
 
@@ -361,7 +294,9 @@ def measure(
     out = tuple(o.clone() for o in call(EVAL_TIME))  # graph outputs are overwritten by the next replay
     row: Dict[str, Any] = {"mode": spec.mode, **errors(out, ref)}  # type: ignore[arg-type]
     ms = median_ms(call, device, a.warmup, a.repeats)
-    row.update(ms=round(ms, 5), tflops=round(flops / (ms * 1e-3) / 1e12, 3), gflop=round(flops / 1e9, 4))
+    # Four significant digits: a tiny field on a busy CPU runs at well under a GFLOP/s.
+    tflops = float(f"{flops / (ms * 1e-3) / 1e12:.4g}")
+    row.update(ms=round(ms, 5), tflops=tflops, gflop=round(flops / 1e9, 4))
     if peaks is not None:
         limit = flops / (peaks[spec.mode] * 1e12) * 1e3
         row.update(limit_ms=round(limit, 5), peak_fraction=round(limit / ms, 4))
@@ -522,7 +457,10 @@ def compile_rows(
             f"compile budget: {budget['spent']:.0f} s spent, the last compile took {budget['last']:.0f} s, "
             f"--compile-budget-s {a.compile_budget_s:.0f}"
         )
-    eligible = [k for k in steps if rows[k].get("relative_error", math.inf) <= a.compile_max_error]
+    # Not the product's path: it checks parameter versions in Python on every call, which is no graph to compile.
+    eligible = [
+        k for k in steps if k != "render_fp16" and rows[k].get("relative_error", math.inf) <= a.compile_max_error
+    ]
     if a.compile_from is not None:
         eligible = [k for k in steps if k == a.compile_from]
     if reason is None and not eligible:

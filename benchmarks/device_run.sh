@@ -5,7 +5,7 @@
 #   bash benchmarks/device_run.sh gputests GPU         the CUDA-only tests
 #   bash benchmarks/device_run.sh smoke SCENE GPU      a 200-step run of both arms with every speed row on
 #                                                      one GPU; checks that graph and lean rows score like
-#                                                      the rows without
+#                                                      the rows without, and the +half rows' worst view
 #   bash benchmarks/device_run.sh launch NAME SCENE SPLIT GPUS [benchmark args...]
 #                                                      python -m garo_ns.bench.benchmark in the background on the
 #                                                      GPUs GPUS (e.g. 2,3; pass --gpus 0 1 to use both),
@@ -39,7 +39,8 @@ setup)
 gputests)
   export CUDA_VISIBLE_DEVICES=$1
   cd $W/src
-  python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py tests/test_rendering_cuda.py 2>&1 | tail -6 ;;
+  python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py tests/test_rendering_cuda.py tests/test_half_field.py \
+      2>&1 | tail -6 ;;
 smoke)
   scene=$1; export CUDA_VISIBLE_DEVICES=$2
   cd $W/src
@@ -56,6 +57,9 @@ for name, row in v.items():
         plain = v.get(name.replace(switch, ""), {}) if switch in name and "error" not in row else {}
         if "psnr" in plain:
             print(f"{name}: psnr {row['psnr']:.4f} vs {plain['psnr']:.4f} without {switch}, fps {row['fps']:.0f} vs {plain['fps']:.0f}")
+    if "+half" in name and "psnr_vs_plain" in row:  # render_precision fp16: within 0.02 dB on every view
+        worst = row["psnr_vs_plain"]["max_abs_db"]
+        print(f"{name}: worst view {worst:.4f} dB from the plain row ({'ok' if worst <= 0.02 else 'OVER 0.02 dB'})")
     if "error" in row:
         print(f"{name}: ERROR {row['error']}")
 PY

@@ -7,7 +7,7 @@ import json
 import pytest
 import torch
 
-from garo_ns.bench.benchmark import SPEED_ROWS, BenchArgs, run
+from garo_ns.bench.benchmark import SPEED_ROWS, BenchArgs, psnr_difference, run, split_variant
 from garo_ns.tools.scene import SceneSpec, generate_scene
 
 
@@ -92,8 +92,11 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
         plain, half = variants[t + "+static+graph+tf32+lean"], variants[t + "+static+graph+tf32+lean+fp16"]
         assert half["model_size_mb"] < 0.6 * plain["model_size_mb"] and half["storage"].startswith("fp16")
         assert abs(half["psnr"] - plain["psnr"]) < 0.1  # rounding to half precision costs ~nothing
-        for row in ("+graph", "+lean"):  # no CUDA: the same eager path and reference rasterizer
+        for row in ("+graph", "+lean", "+half"):  # no CUDA: the same eager fp32 path and reference rasterizer
             assert variants[t + row]["psnr"] == variants[t]["psnr"]
+            assert variants[t + row]["psnr_vs_plain"]["max_abs_db"] == 0.0
+        assert "psnr_vs_plain" not in variants[t]  # the plain row is the reference
+        assert len(variants[t + "+half"]["psnr_vs_plain"]["per_view_db"]) == len(images)
     # Pruning the least contributing 30% at step 28 leaves fewer Gaussians than GARO alone.
     assert variants["garo-prune0.3"]["num_gaussians"] < variants["garo-deform"]["num_gaussians"]
     # bf16 changes the render a little, never a lot (tf32 is exact on a CPU).
@@ -104,3 +107,12 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
     assert result["split"] == "val" and "fps_ratio" in result["garo_vs_baseline"]
     assert out.with_suffix(".md").read_text().count("|") > 20
     assert out.with_suffix(".png").stat().st_size > 1000
+
+
+def test_half_row_selects_render_precision_fp16_and_is_compared_view_by_view():
+    base, render = split_variant("garo-deform+static+graph+half+lean")
+    assert base == "garo-deform" and render["render_precision"] == "fp16" and render["storage"] == "fp32"
+    assert {"+half", "+graph+half"} <= set(SPEED_ROWS)
+    diff = psnr_difference([30.0, 31.5, 29.99], [30.01, 31.5, 29.98])
+    assert diff["per_view_db"] == pytest.approx([-0.01, 0.0, 0.01])
+    assert diff["max_abs_db"] == pytest.approx(0.01) and diff["mean_db"] == pytest.approx(0.0, abs=1e-12)

@@ -29,6 +29,7 @@ BOUNDS = {
     "bf16_cached": 1e-2,
     "fp16": 2e-3,
     "fp16_cached": 2e-3,
+    "render_fp16": 2e-3,
 }
 CUDA_ONLY = ("tf32", "tf32_cached", "compile", "compile+graph") + tuple(f"{p}+graph" for p in BOUNDS)
 
@@ -60,7 +61,7 @@ def test_paths_against_fp32_and_result_file(tmp_path: Path) -> None:
             assert {"ms", "relative_error", "tflops", "speedup"} <= set(row), (name, row)
             assert row["ms"] > 0 and row["tflops"] > 0
             assert row["relative_error"] <= bound, (name, row["relative_error"])
-        for name in ("fp32_cached", "bf16_cached", "fp16_cached"):
+        for name in ("fp32_cached", "bf16_cached", "fp16_cached", "render_fp16"):
             assert rows[name]["cache_mb"] > 0 and rows[name]["prepare_ms"] >= 0
         for name in CUDA_ONLY:
             assert rows[name]["skipped"], name

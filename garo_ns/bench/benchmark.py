@@ -10,11 +10,13 @@ Variants: deform-splatfacto (baseline), garo-deform (full GARO), and on request 
 (the paper's ablations), garo-rho<value> (rho_max sweep) and garo-prune<ratio> (GARO plus pruning
 of the least contributing Gaussians). A name may carry render-time switches after `+`: `+static`
 (static Gaussians skip the MLP), `+static4x` (the same with a 4x looser threshold), `+tf32` /
-`+bf16` (MLP precision), `+graph` (everything before the rasterizer as one CUDA graph), `+lean` (gsplat's kernels called
-directly), `+fp16`
-(parameters rounded to the compact half-precision file of garo_ns.storage; its size is the
-model size), e.g. `garo-deform+static+graph+tf32`;
-such variants reuse the training of the name before the first `+` and differ only at render time.
+`+bf16` (MLP precision), `+half` (`render_precision=fp16`: the half-precision field with each Gaussian's
+position part cached, garo_ns.render.half_field), `+graph` (everything before the rasterizer as one CUDA
+graph), `+lean` (gsplat's kernels called directly), `+fp16` (parameters rounded to the compact
+half-precision file of garo_ns.storage; its size is the model size), e.g. `garo-deform+static+graph+tf32`;
+such variants reuse the training of the name before the first `+` and differ only at render time. Every
+such row records `psnr_vs_plain`: its PSNR minus the plain row's (the name before the first `+`), view by
+view (`+half`'s bound: within 0.02 dB on every view).
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ RENDER_SWITCHES: Dict[str, Dict[str, Any]] = {
     "static": {"static_skip": True},
     "tf32": {"render_precision": "tf32"},
     "bf16": {"render_precision": "bf16"},
+    "half": {"render_precision": "fp16"},
     # A looser static threshold (4x the default): more Gaussians skip the MLP, at some error.
     "static4x": {"static_skip": True, "static_threshold_factor": 4.0},
     "graph": {"cuda_graph": True},
@@ -57,6 +60,9 @@ SPEED_ROWS = (
     "+static+graph+tf32",
     "+static+graph+tf32+lean",
     "+static+graph+tf32+lean+fp16",
+    "+half",
+    "+graph+half",
+    "+static+graph+half+lean",
 )
 
 
@@ -262,6 +268,7 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
         timing = measure_fps(model, cameras, warmup=args.warmup_views, repeats=args.timing_repeats)
         out = {
             "psnr": result["psnr"],
+            "psnr_per_view": result["psnr_per_view"],
             "ssim": result["ssim"],
             "lpips": result["lpips"],
             "fps": timing["fps"],
@@ -301,7 +308,22 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
                 raise
             results[name] = {"error": f"{type(err).__name__}: {err}"}
             print(f"row {name} failed: {results[name]['error']}", flush=True)
+    for name, row in results.items():
+        plain = results.get(split_variant(name)[0])
+        if "+" in name and "error" not in row and plain is not None and "error" not in plain:
+            row["psnr_vs_plain"] = psnr_difference(row["psnr_per_view"], plain["psnr_per_view"])
     return results
+
+
+def psnr_difference(row: List[float], plain: List[float]) -> Dict[str, Any]:
+    """A render-time row's PSNR minus its plain row's, view by view (dB): the largest difference either
+    way, the mean, and every view's."""
+    diff = [a - b for a, b in zip(row, plain)]
+    return {
+        "max_abs_db": max((abs(d) for d in diff), default=0.0),
+        "mean_db": sum(diff) / len(diff) if diff else 0.0,
+        "per_view_db": diff,
+    }
 
 
 # ---------------------------------------------------------------------------- report
@@ -340,9 +362,9 @@ def write_report(result: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
     lines = [
         f"# {result['scene']} ({result['split']}, {result['background']} background) on {result['gpu'] or 'CPU'}",
         "",
-        "| variant | iterations | PSNR | SSIM | LPIPS | FPS | speed-up | MLP ms | raster ms | Gaussians | static |"
-        " model MB | train s |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| variant | iterations | PSNR | worst view vs plain | SSIM | LPIPS | FPS | speed-up | MLP ms | raster ms |"
+        " Gaussians | static | model MB | train s |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     failed = {n: v["error"] for n, v in variants.items() if "error" in v}
     variants = {n: v for n, v in variants.items() if "error" not in v}
@@ -351,12 +373,13 @@ def write_report(result: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
         lp = "-" if v["lpips"] is None else f"{v['lpips']:.4f}"
         static = v.get("static_fraction")
         static_txt = "-" if static is None or not v.get("render_settings", {}).get("static_skip") else f"{static:.0%}"
+        vs_plain = f"{v['psnr_vs_plain']['max_abs_db']:.3f} dB" if "psnr_vs_plain" in v else "-"
         if v.get("deformation_collapsed"):
             name = f"{name} (deformation collapsed)"
         lines.append(
-            f"| {name} | {v['iterations']} | {v['psnr']:.2f} | {v['ssim']:.4f} | {lp} | {v['fps']:.1f} | {speed} | "
-            f"{v['ms_deformation']:.2f} | {v['ms_rasterization']:.2f} | {v['num_gaussians']} | {static_txt} | "
-            f"{v['model_size_mb']:.2f} | {v['train_seconds']:.0f} |"
+            f"| {name} | {v['iterations']} | {v['psnr']:.2f} | {vs_plain} | {v['ssim']:.4f} | {lp} | "
+            f"{v['fps']:.1f} | {speed} | {v['ms_deformation']:.2f} | {v['ms_rasterization']:.2f} | "
+            f"{v['num_gaussians']} | {static_txt} | {v['model_size_mb']:.2f} | {v['train_seconds']:.0f} |"
         )
     lines += [f"\nRow {n} failed: {e}" for n, e in failed.items()]
     md = output.with_suffix(".md")

@@ -2,16 +2,16 @@
 
 During training every frame is the plain D-3DGS composition in fp32 (`compose`). Outside training
 (the viewer, `ns-render`, `garo-eval`, the benchmark) `FramePath` renders the same model with the
-render switches: the MLP in another precision, static Gaussians with frozen offsets (only the
-dynamic ones go through the MLP), a cache of the last time rendered, and CUDA graphs of the
-deformation and of the camera's projection. It holds only caches: everything it renders from is
-passed in, so it knows nothing of the model.
+render switches: the MLP in another precision (fp16: `garo_ns.render.half_field`), static Gaussians
+with frozen offsets (only the dynamic ones go through the MLP), a cache of the last time rendered,
+and CUDA graphs of the deformation and of the camera's projection. It holds only caches: everything
+it renders from is passed in, so it knows nothing of the model.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Dict, NamedTuple, Optional, Tuple, Union
+from typing import Any, Callable, Dict, Literal, NamedTuple, Optional, Tuple, Union
 
 import torch
 import torch.nn.functional as F
@@ -20,7 +20,14 @@ from torch import Tensor
 from garo_ns.deformation import DeformationField, Precision, precision
 from garo_ns.render.backend import Backend, lean_front, rasterize
 from garo_ns.render.graphs import InputGraph, TimeGraph, graphs_available
+from garo_ns.render.half_field import HalfField
 from garo_ns.render.view import RenderView
+
+# The deformation MLP's precision outside training: fp32 (exact), tf32 and bf16 (garo_ns.deformation.precision
+# around the fp32 field), fp16 (HalfField: half weights, per-Gaussian position part cached; CUDA and no
+# gradients only, the plain fp32 field elsewhere).
+RenderPrecision = Literal["fp32", "tf32", "bf16", "fp16"]
+RENDER_PRECISIONS = ("fp32", "tf32", "bf16", "fp16")
 
 
 class Canonical(NamedTuple):
@@ -55,7 +62,7 @@ class Splats(NamedTuple):
 class FrameSettings:
     """The render switches (the model config's fields of the same names)."""
 
-    render_precision: Precision = "fp32"
+    render_precision: RenderPrecision = "fp32"
     static_skip: bool = False
     cache_deformation: bool = True
     cuda_graph: bool = False
@@ -63,9 +70,11 @@ class FrameSettings:
 
 
 Deformed = Tuple[Tensor, Tensor, Tensor]  # means, quaternions (unnormalised), log-scales
+# (canonical positions [N, 3], time) -> (d_xyz, d_rot, d_log_scale): a DeformationField or its render-time form.
+OffsetField = Callable[[Tensor, Union[float, Tensor]], Tuple[Tensor, Tensor, Tensor]]
 
 
-def compose(field: DeformationField, canonical: Canonical, time: Union[float, Tensor]) -> Deformed:
+def compose(field: OffsetField, canonical: Canonical, time: Union[float, Tensor]) -> Deformed:
     """Every Gaussian moved by the field at `time`, as D-3DGS composes it: the MLP reads detached
     canonical positions; offsets are added to the positions, to the normalised quaternions and (in
     log space, which keeps scales positive) to the log-scales."""
@@ -89,7 +98,9 @@ def versions(tensors: Any) -> Tuple[Any, ...]:
 class FramePath:
     """Caches and CUDA graphs of the render-time frame (one per model)."""
 
-    def __init__(self) -> None:
+    def __init__(self, half_field: Optional[HalfField] = None) -> None:
+        # render_precision fp16's field (its weight copies and position cache); by default CUDA only.
+        self.half_field = HalfField() if half_field is None else half_field
         self._deformed: Optional[Tuple[Any, Splats]] = None
         self._static: Optional[Tuple[Any, Tensor, Deformed, Deformed]] = None
         self._graph = TimeGraph()
@@ -139,15 +150,39 @@ class FramePath:
         """`compose` in `render_precision`, with `static_skip` the MLP on the dynamic Gaussians only.
         `in_place` writes the dynamic rows into the cached frozen tensors (for a CUDA graph, whose
         outputs the next replay overwrites anyway; the static rows never change)."""
-        with precision(settings.render_precision, canonical.means.device):
+        device = canonical.means.device
+        dynamic_only = settings.static_skip and static is not None
+        offsets, mode = self._offset_field(field, settings.render_precision, key, dynamic_only, device)
+        with precision(mode, device):
             if not settings.static_skip or static is None:
-                return compose(field, canonical, time)
+                return compose(offsets, canonical, time)
             dynamic, frozen, moving = self._static_split(canonical, static, static_offset, key)
-            d_xyz, d_rot, d_scale = field(moving[0], time)
+            d_xyz, d_rot, d_scale = offsets(moving[0], time)
             moved = (moving[0] + d_xyz, moving[1] + d_rot, moving[2] + d_scale)
             if in_place:
                 return tuple(f.index_copy_(0, dynamic, m) for f, m in zip(frozen, moved))  # type: ignore[return-value]
             return tuple(f.index_copy(0, dynamic, m) for f, m in zip(frozen, moved))  # type: ignore[return-value]
+
+    def _offset_field(
+        self,
+        field: DeformationField,
+        render_precision: RenderPrecision,
+        key: Tuple[Any, ...],
+        dynamic_only: bool,
+        device: torch.device,
+    ) -> Tuple[OffsetField, Precision]:
+        """What computes the offsets, and the matrix-product precision to run it in: for fp16 the half
+        field where it runs (CUDA, no gradients), else the fp32 field as trained; the other modes are
+        the fp32 field in that precision."""
+        if render_precision != "fp16":
+            self.half_field.release()  # not rendering in fp16 (any more): no cache to hold
+            return field, render_precision
+        if not self.half_field.runs_on(device) or torch.is_grad_enabled():
+            return field, "fp32"
+        # The position cache belongs to these Gaussians: the parameters' versions (in `key`) and
+        # whether the MLP gets the dynamic ones or all of them.
+        points_key = ("dynamic" if dynamic_only else "all", key)
+        return (lambda xyz, t: self.half_field(field, xyz, t, points_key)), "fp32"
 
     def _static_split(
         self, canonical: Canonical, static: Tensor, offset: Tensor, key: Tuple[Any, ...]

@@ -101,6 +101,7 @@ def evaluate(pipeline: Any, data: Path, split: str) -> Dict[str, Any]:
     bg = model.background_color.tolist()
     return {
         "psnr": float(np.mean(psnrs)),
+        "psnr_per_view": psnrs,
         "ssim": float(np.mean(ssims)),
         "lpips": float(np.mean(lpipss)) if lpipss else None,
         "num_gaussians": int(model.num_points),
