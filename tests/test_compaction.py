@@ -479,16 +479,8 @@ def test_the_methods_are_registered_in_pyproject():
 
 
 @pytest.mark.slow
-def test_compaction_summary_survives_the_checkpoint_and_reaches_garo_eval(compact_runs, tmp_path, monkeypatch):
-    from nerfstudio.configs.method_configs import all_methods
-
-    from garo_ns.config import METHODS
+def test_compaction_summary_survives_the_checkpoint_and_reaches_garo_eval(compact_runs, tmp_path):
     from garo_ns.tools.eval import EvalArgs, load_run, run
-
-    # nerfstudio finds methods through the installed entry points; an install older than pyproject.toml's
-    # table may lack the new ones.
-    for name, spec in METHODS.items():
-        monkeypatch.setitem(all_methods, name, spec.config)
 
     trained = compact_runs[50.0]
     config_path = trained["config"].get_base_dir() / "config.yml"
@@ -501,3 +493,11 @@ def test_compaction_summary_survives_the_checkpoint_and_reaches_garo_eval(compac
     written = json.loads((tmp_path / "eval.json").read_text())
     assert written["compaction"] == json.loads(json.dumps(summary_for_json(trained["summary"])))
     assert written["compaction"]["reason_text"] and result["num_gaussians"] == trained["summary"]["num_gaussians_end"]
+
+
+def test_benchmark_variants_of_compaction():
+    from garo_ns.bench.benchmark import split_variant, variant_settings
+
+    assert variant_settings("garo-compact") == ("garo-compact", {})
+    assert variant_settings("garo-compact0.5") == ("garo-compact", {"compact_tolerance_db": 0.5})
+    assert split_variant("garo-compact+fp16")[0] == "garo-compact"

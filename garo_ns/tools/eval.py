@@ -29,6 +29,16 @@ compat.install()
 METHODS = tuple(METHOD_SPECS)
 
 
+def register_methods() -> None:
+    """Make every method of the plugin known to nerfstudio's loaders, also where the installed entry
+    points predate one (an editable install does not re-read pyproject.toml's table)."""
+    from nerfstudio.configs.method_configs import all_methods, descriptions
+
+    for name, spec in METHOD_SPECS.items():
+        all_methods.setdefault(name, spec.config)
+        descriptions.setdefault(name, spec.description)
+
+
 def load_run(config_path: Path) -> Tuple[Any, Any, Path, int]:
     """Load a trained garo_ns run: (config, pipeline, checkpoint path, step).
 
@@ -48,6 +58,7 @@ def load_run(config_path: Path) -> Tuple[Any, Any, Path, int]:
     method = getattr(config, "method_name", None)
     if method not in METHODS:
         raise GaroInputError(f"{config_path} is a run of '{method}', not of {' or '.join(METHODS)}")
+    register_methods()
     try:
         return eval_setup(config_path, test_mode="inference")
     except (RuntimeError, EOFError, OSError, KeyError, AssertionError) as err:
