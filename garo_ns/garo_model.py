@@ -395,8 +395,8 @@ class GaroModel(SplatfactoModel):
         self.optimizers = optimizers.optimizers
 
     def after_iteration(self, step: int) -> None:
-        """The strategy (densification, GARO, contribution pruning), then the static classification,
-        then the deformation field's health check."""
+        """The strategy (densification, GARO, contribution pruning, compaction), then the static
+        classification, then the deformation field's health check."""
         cfg = self.config
         self.strategy.step_post_backward(self.gauss_params, self.optimizers, self.strategy_state, step, self.info)
         last = self.strategy_state.get("garo_last") or {}
