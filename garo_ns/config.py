@@ -1,4 +1,5 @@
-"""Method specifications registered with nerfstudio: `garo-deform` and `deform-splatfacto`.
+"""Method specifications registered with nerfstudio: `garo-deform`, `deform-splatfacto` and `garo-compact`
+(each with a `-real` twin for NeRF-DS / HyperNeRF captures).
 
 Both train the same deformable model with D-3DGS's recipe (40k steps, learning rates of the
 official code, densification from 500 to 15k); `deform-splatfacto` turns GARO pruning off and is
@@ -8,6 +9,9 @@ the camera extent; the densification thresholds still use the extent, which the 
 the dataparser):
   positions 1.6e-4 x 5 -> 1.6e-6 x 5 over 30k steps, deformation 1.6e-4 x 5 -> 1.6e-6 over 40k
   steps, colour 2.5e-3 (rest 1/20 of it), opacity 0.05, scale 1e-3 x 5, rotation 1e-3.
+`garo-compact` is `garo-deform` followed by compaction after densification (garo_ns.compaction):
+rounds of removing the least important Gaussians, with fine-tuning in between, while the PSNR on
+training views holds within `--pipeline.model.compact-tolerance-db`.
 """
 
 from __future__ import annotations
@@ -119,3 +123,36 @@ deform_splatfacto_real = MethodSpecification(
     config=real_trainer_config("deform-splatfacto-real", "off"),
     description="D-3DGS baseline on real captures (NeRF-DS / HyperNeRF layout, nerfds-data).",
 )
+
+
+def with_compaction(config: TrainerConfig, every: int, max_rounds: int) -> TrainerConfig:
+    """`config` with compaction after densification: a round every `every` steps from the end of
+    densification (15k), at most `max_rounds`, so the last ends with time left to fine-tune."""
+    model = config.pipeline.model
+    model.compact = True
+    model.compact_every = every
+    model.compact_max_rounds = max_rounds
+    return config
+
+
+# 40k steps: rounds at 15k, 16k, ..., 30k at the latest, then 10k steps of training on what is left.
+garo_compact = MethodSpecification(
+    config=with_compaction(trainer_config("garo-compact", "full"), every=1000, max_rounds=15),
+    description="GARO, then compaction that finds each scene's budget under a training-view PSNR guard.",
+)
+
+# 20k steps: rounds at 15k, 15.4k, ..., 19k at the latest.
+garo_compact_real = MethodSpecification(
+    config=with_compaction(real_trainer_config("garo-compact-real", "full"), every=400, max_rounds=10),
+    description="garo-compact on real captures (NeRF-DS / HyperNeRF layout, nerfds-data).",
+)
+
+METHODS = {
+    "garo-deform": garo_deform,
+    "deform-splatfacto": deform_splatfacto,
+    "garo-compact": garo_compact,
+    "garo-deform-real": garo_deform_real,
+    "deform-splatfacto-real": deform_splatfacto_real,
+    "garo-compact-real": garo_compact_real,
+}
+"""Every method of the plugin by name, as pyproject.toml registers them."""

@@ -11,3 +11,7 @@ class GaroInputError(GaroError, ValueError):
 
 class GaroTrainingError(GaroError, RuntimeError):
     """Training cannot go on (e.g. a non-finite loss); earlier checkpoints are left untouched."""
+
+
+class GaroConfigError(GaroError, ValueError):
+    """A setting out of its range, named by its flag; raised before training starts."""

@@ -29,9 +29,12 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 from torch.nn import Parameter
 
+from garo_ns.compaction.guard import TrainingViewGuard
+from garo_ns.compaction.schedule import Compaction
+from garo_ns.compaction.training import run_round
 from garo_ns.deformation import DeformationField, health_check
 from garo_ns.errors import GaroTrainingError
-from garo_ns.garo_strategy import GaroStrategy
+from garo_ns.garo_strategy import TRANSIENT_STATE, GaroStrategy
 from garo_ns.metrics import make_lpips
 from garo_ns.render.backend import Backend
 from garo_ns.render.contribution import view_contribution
@@ -171,10 +174,33 @@ class GaroModelConfig(SplatfactoModelConfig):
     """When not training on CUDA, call gsplat's kernels directly instead of its general Python
     wrapper (garo_ns.render.backend.rasterize_lean): same kernels and pixels, less Python per frame."""
     prune_contribution_ratio: float = 0.0
-    """At each of `prune_contribution_steps`, prune this fraction of the Gaussians with the smallest
-    summed blending weight over the training views (0: off)."""
+    """Expert knob: at each of `prune_contribution_steps`, prune this fixed fraction of the Gaussians
+    with the smallest summed blending weight over the training views (0: off). The same share for
+    every scene; `compact` chooses each scene's share from its training views instead."""
     prune_contribution_steps: Tuple[int, ...] = (20000, 30000)
     """Steps of the contribution pruning (after densification has ended, so the rest can adapt)."""
+
+    # --- compaction after densification (garo-compact; garo_ns.compaction) ---
+    compact: bool = False
+    """After densification, remove the least important Gaussians in rounds, with fine-tuning in between,
+    until a round costs more training-view PSNR than `compact_tolerance_db`: each scene gets the budget
+    its training views need. Each round is logged; the summary goes into checkpoints and garo-eval."""
+    compact_tolerance_db: float = Compaction.tolerance_db
+    """Training-view PSNR a removal may cost, in dB; a larger value gives a smaller, faster model."""
+    compact_start: Optional[int] = None
+    """Step of the first round; None: `stop_split_at`, where densification ends."""
+    compact_every: int = Compaction.every
+    """Steps of fine-tuning between rounds."""
+    compact_fraction: float = Compaction.fraction
+    """Share of the Gaussians a round removes (by blending weight over the training views x volume^beta)."""
+    compact_max_rounds: int = Compaction.max_rounds
+    """Most rounds of removal."""
+    compact_min_gaussians: int = Compaction.min_gaussians
+    """Compaction never leaves fewer Gaussians than this."""
+    compact_guard_views: int = Compaction.guard_views
+    """Training views the guard measures PSNR on (evenly spread over time; the eval split is never read)."""
+    compact_volume_beta: float = Compaction.volume_beta
+    """Exponent of the volume in the importance (LightGaussian's global significance; 0: weight alone)."""
 
     # --- GARO (geometry-aware redundancy optimisation) ---
     garo_mode: Literal["off", "oaa", "gca", "full"] = "full"
@@ -200,6 +226,14 @@ class GaroModelConfig(SplatfactoModelConfig):
     garo_activity_window: Literal["training", "garo_step"] = GaroStrategy.activity_window
     """training: g_i is the mean over every iteration of training in which Gaussian i was visible
     (the paper's equation); garo_step: the mean since the previous GARO step only."""
+
+    def __post_init__(self) -> None:
+        self.compaction()  # a compaction setting out of range fails here, before any training
+
+    def compaction(self) -> Compaction:
+        """The compaction settings of this config; raises GaroConfigError for one out of range."""
+        fields = Compaction.__dataclass_fields__
+        return Compaction(**{k: getattr(self, f"compact_{k}") for k in fields})  # type: ignore[arg-type]
 
 
 class GaroModel(SplatfactoModel):
@@ -263,7 +297,9 @@ class GaroModel(SplatfactoModel):
             garo_stop_iter=cfg.garo_stop,
             garo_every=cfg.garo_every,
             activity_window=cfg.garo_activity_window,
+            compaction=cfg.compaction() if cfg.compact else None,
         )
+        self.compaction_guard: Optional[TrainingViewGuard] = None
         self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene_extent)
         self.train_times: Optional[Tensor] = None
         self.train_cameras: Optional[Cameras] = None
@@ -346,6 +382,9 @@ class GaroModel(SplatfactoModel):
         if self.config.scene_extent is None and not self._extent_from_data:
             self.scene_extent = camera_extent(outputs.cameras.camera_to_worlds.detach().cpu().numpy())
             self.strategy_state["scene_scale"] = self.scene_extent
+        if self.strategy.compaction is not None:  # the guard's views, from the training split only
+            views = self.config.compact_guard_views
+            self.compaction_guard = TrainingViewGuard.from_datamanager(pipeline.datamanager, views)
 
     # ------------------------------------------------------------------ training callbacks
     def get_training_callbacks(
@@ -369,8 +408,8 @@ class GaroModel(SplatfactoModel):
         self.optimizers = optimizers.optimizers
 
     def after_iteration(self, step: int) -> None:
-        """The strategy (densification, GARO, contribution pruning), then the static classification,
-        then the deformation field's health check."""
+        """The strategy (densification, GARO, contribution pruning, compaction), then the static
+        classification, then the deformation field's health check."""
         cfg = self.config
         self.strategy.step_post_backward(self.gauss_params, self.optimizers, self.strategy_state, step, self.info)
         last = self.strategy_state.get("garo_last") or {}
@@ -384,6 +423,7 @@ class GaroModel(SplatfactoModel):
                 self.gauss_params, self.optimizers, self.strategy_state, contribution, ratio
             )
             CONSOLE.print(f"step {step}: pruned {n} least contributing Gaussians, {self.num_points} left")
+        run_round(self, step, self._last_step)  # compaction (garo_ns.compaction), when configured
         active = self.deformation_active()
         if active and cfg.static_every > 0:
             if (step - cfg.deform_warmup) % cfg.static_every == 0 or step == self._last_step:
@@ -602,8 +642,9 @@ class GaroModel(SplatfactoModel):
         return torch.nn.Module.load_state_dict(self, state_dict, strict=strict)
 
     def get_extra_state(self) -> Dict[str, Any]:
-        """The densification strategy's running state travels with the checkpoint."""
-        return {"strategy_state": {k: v for k, v in self.strategy_state.items()}}
+        """The densification strategy's running state (the compaction's summary too, not its undo copy)
+        travels with the checkpoint."""
+        return {"strategy_state": {k: v for k, v in self.strategy_state.items() if k not in TRANSIENT_STATE}}
 
     def set_extra_state(self, state: Dict[str, Any]) -> None:
         saved = (state or {}).get("strategy_state") or {}

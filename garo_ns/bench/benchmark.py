@@ -7,8 +7,10 @@ no timing overlaps another job. One JSON holds everything; a Markdown table and 
 against PSNR, marker area by Gaussian count) are written next to it.
 
 Variants: deform-splatfacto (baseline), garo-deform (full GARO), and on request garo-oaa, garo-gca
-(the paper's ablations), garo-rho<value> (rho_max sweep) and garo-prune<ratio> (GARO plus pruning
-of the least contributing Gaussians). A name may carry render-time switches after `+`: `+static`
+(the paper's ablations), garo-rho<value> (rho_max sweep), garo-prune<ratio> (GARO plus pruning
+of a fixed share of the least contributing Gaussians) and garo-compact / garo-compact<dB> (GARO plus
+compaction under a training-view PSNR guard, at its default tolerance or the one given).
+A name may carry render-time switches after `+`: `+static`
 (static Gaussians skip the MLP), `+static4x` (the same with a 4x looser threshold), `+tf32` /
 `+bf16` (MLP precision), `+half` (`render_precision=fp16`: the half-precision field with each Gaussian's
 position part cached, garo_ns.render.half_field), `+graph` (everything before the rasterizer as one CUDA
@@ -86,6 +88,9 @@ def split_variant(name: str) -> Tuple[str, Dict[str, Any]]:
 
 def variant_settings(name: str) -> Tuple[str, Dict[str, Any]]:
     """(method, model-config overrides) of a trained variant name."""
+    if name.startswith("garo-compact"):  # garo-compact (its defaults) or garo-compact<tolerance in dB>
+        tolerance = name[len("garo-compact") :]
+        return "garo-compact", {"compact_tolerance_db": float(tolerance)} if tolerance else {}
     if name.startswith("garo-prune"):
         return "garo-deform", {"garo_mode": "full", "prune_contribution_ratio": float(name[len("garo-prune") :])}
     if name == "deform-splatfacto":
@@ -231,6 +236,7 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
     from garo_ns import storage
     from garo_ns.bench.frame_profile import profile_frame
     from garo_ns.bench.timing import measure_fps, measure_same_time, model_size_mb
+    from garo_ns.compaction.report import summary_for_json
     from garo_ns.data.dnerf import read_split
     from garo_ns.tools.eval import evaluate, load_run, load_split
 
@@ -294,6 +300,7 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
             "garo_mode": model.config.garo_mode,
             "rho_max": model.config.rho_max,
             "prune_contribution_ratio": model.config.prune_contribution_ratio,
+            "compaction": summary_for_json(model.strategy_state.get("compact")),
             "checkpoint_step": int(step),
         }
         if args.profile:

@@ -60,3 +60,14 @@ def least_contributing(contribution: Tensor, ratio: float) -> Tensor:
     order = torch.sort(contribution, stable=True).indices
     mask[order[:k]] = True
     return mask
+
+
+def lowest(score: Tensor, count: int) -> Tensor:
+    """Boolean mask of the `count` Gaussians with the smallest score (ties: lower index)."""
+    n = score.shape[0]
+    if not 0 <= count <= n:
+        raise ValueError(f"cannot mark {count} of {n} Gaussians")
+    mask = torch.zeros(n, dtype=torch.bool, device=score.device)
+    if count > 0:
+        mask[torch.sort(score, stable=True).indices[:count]] = True
+    return mask

@@ -3,7 +3,7 @@
 `ns-eval` always scores the `test` split; D-3DGS scores lego on `val`. This command renders the
 chosen split itself (cameras and times from the transforms file, images composited on the
 model's background) and writes PSNR, SSIM, LPIPS (null without offline weights), the number of
-Gaussians and the split.
+Gaussians, the split, and for a `garo-compact` run what its compaction decided.
 """
 
 from __future__ import annotations
@@ -18,13 +18,25 @@ import torch
 from nerfstudio.cameras.cameras import Cameras
 
 from garo_ns import compat
+from garo_ns.compaction.report import summary_for_json
+from garo_ns.config import METHODS as METHOD_SPECS
 from garo_ns.data.dnerf import read_split, split_cameras
 from garo_ns.errors import GaroInputError
 from garo_ns.metrics import make_lpips
 
 compat.install()
 
-METHODS = ("garo-deform", "deform-splatfacto", "garo-deform-real", "deform-splatfacto-real")
+METHODS = tuple(METHOD_SPECS)
+
+
+def register_methods() -> None:
+    """Make every method of the plugin known to nerfstudio's loaders, also where the installed entry
+    points predate one (an editable install does not re-read pyproject.toml's table)."""
+    from nerfstudio.configs.method_configs import all_methods, descriptions
+
+    for name, spec in METHOD_SPECS.items():
+        all_methods.setdefault(name, spec.config)
+        descriptions.setdefault(name, spec.description)
 
 
 def load_run(config_path: Path) -> Tuple[Any, Any, Path, int]:
@@ -46,6 +58,7 @@ def load_run(config_path: Path) -> Tuple[Any, Any, Path, int]:
     method = getattr(config, "method_name", None)
     if method not in METHODS:
         raise GaroInputError(f"{config_path} is a run of '{method}', not of {' or '.join(METHODS)}")
+    register_methods()
     try:
         return eval_setup(config_path, test_mode="inference")
     except (RuntimeError, EOFError, OSError, KeyError, AssertionError) as err:
@@ -130,6 +143,8 @@ def run(args: EvalArgs) -> Dict[str, Any]:
     config, pipeline, ckpt, step = load_run(args.load_config)
     result = evaluate(pipeline, args.data or scene_dir(config), args.split)
     result.update({"method": config.method_name, "step": int(step), "checkpoint": str(ckpt)})
+    # What compaction decided during training (None for a run without it).
+    result["compaction"] = summary_for_json(pipeline.model.strategy_state.get("compact"))
     args.output_path.parent.mkdir(parents=True, exist_ok=True)
     args.output_path.write_text(json.dumps(result, indent=2))
     return result

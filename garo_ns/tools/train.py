@@ -8,11 +8,18 @@ from pathlib import Path
 from typing import Any, Dict, Literal, Optional
 
 from garo_ns import compat
-from garo_ns.config import real_trainer_config, trainer_config
+from garo_ns.config import METHODS
 
 compat.install()
 
-Method = Literal["garo-deform", "deform-splatfacto", "garo-deform-real", "deform-splatfacto-real"]
+Method = Literal[
+    "garo-deform",
+    "deform-splatfacto",
+    "garo-compact",
+    "garo-deform-real",
+    "deform-splatfacto-real",
+    "garo-compact-real",
+]
 
 
 @dataclass
@@ -54,6 +61,10 @@ class QuickSchedule:
         m.deform_head_init = "zero"
         m.time_noise_steps = s
         m.prune_contribution_steps = (int(s * 0.7),)
+        # Compaction rounds (when on) from the end of densification (60%) to 90% of the steps.
+        m.compact_every = max(s // 30, 5)
+        m.compact_max_rounds = max((int(s * 0.9) - m.stop_split_at) // m.compact_every, 1)
+        m.compact_min_gaussians = min(m.compact_min_gaussians, self.num_random // 10)
         for opt in config.optimizers.values():
             sched = opt.get("scheduler")
             if sched is not None and hasattr(sched, "max_steps"):
@@ -118,9 +129,10 @@ def make_config(
     experiment_name: str = "run",
 ) -> Any:
     """A TrainerConfig for `method` on the scene `data` (D-NeRF layout; NeRF-DS layout for the -real methods)."""
-    garo_mode = "off" if method.startswith("deform-splatfacto") else "full"
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r} (known: {', '.join(METHODS)})")
     real = method.endswith("-real")
-    config = copy.deepcopy((real_trainer_config if real else trainer_config)(method, garo_mode))
+    config = copy.deepcopy(METHODS[method].config)
     config.output_dir = Path(output_dir)
     config.experiment_name = experiment_name
     config.timestamp = ""

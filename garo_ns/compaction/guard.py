@@ -1,0 +1,77 @@
+"""The quality guard of compaction: PSNR on a fixed set of training views, each at its own time.
+
+Only the training split is read (the datamanager's training dataset and its cached images): the
+split that is scored is never looked at while training. Views are chosen once, evenly spread over
+the training times, so every round is judged on the same pixels. Renders are the trained field as
+training renders it (fp32, every Gaussian, no time noise), whatever the render switches.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, List, Optional
+
+import torch
+from torch import Tensor
+
+from garo_ns.render.frame import render_splats
+
+
+def spread_indices(times: Optional[Tensor], n_views: int, count: int) -> List[int]:
+    """Indices of `count` of `n_views` views evenly spread over their times (by index without times)."""
+    if n_views <= 0 or count <= 0:
+        return []
+    order = torch.arange(n_views)
+    if times is not None and times.numel() == n_views:
+        order = torch.sort(times.reshape(-1).float().cpu(), stable=True).indices
+    picks = torch.linspace(0, n_views - 1, min(count, n_views)).round().long().unique()
+    return order[picks].tolist()
+
+
+def psnr(pred: Tensor, gt: Tensor) -> float:
+    """PSNR in dB of two images in [0, 1] (as garo-eval computes it)."""
+    mse = torch.mean((pred.float() - gt.float()) ** 2)
+    return float(-10.0 * torch.log10(mse.clamp_min(1e-12)))
+
+
+@dataclass
+class TrainingViewGuard:
+    """Training views: the training cameras, which of them the guard uses, and those views' ground-truth
+    images as the datamanager holds them."""
+
+    cameras: Any
+    images: List[Tensor]
+    indices: List[int]
+
+    @classmethod
+    def from_datamanager(cls, datamanager: Any, count: int) -> Optional["TrainingViewGuard"]:
+        """Up to `count` views of the datamanager's training split (None when it has none)."""
+        dataset = getattr(datamanager, "train_dataset", None)
+        if dataset is None or len(dataset) == 0:
+            return None
+        cameras = dataset.cameras
+        indices = spread_indices(cameras.times, len(dataset), count)
+        # Full-image datamanagers cache the training images (on the model's device); others load them.
+        cached = getattr(datamanager, "cached_train", None)
+        images = [(cached[i] if cached is not None else dataset[i])["image"] for i in indices]
+        return cls(cameras=cameras, images=images, indices=indices)
+
+    @torch.no_grad()
+    def psnr(self, model: Any) -> float:
+        """Mean PSNR of `model` over the guard's views."""
+        was_training = model.training
+        model.eval()  # no time noise: the same Gaussians every time they are measured
+        try:
+            background = model.background_color.to(model.device)
+            degree = min(model.step // model.config.sh_degree_interval, model.config.sh_degree)
+            values = []
+            for i, image in zip(self.indices, self.images):
+                view = model.camera_view(self.cameras[i : i + 1].to(model.device))
+                splats = model.gaussians_at(view.time, exact=True)
+                render, alpha, _ = render_splats(splats, view, degree, None, "RGB", model.config.rasterizer)
+                rgb = (render[0, ..., :3] + (1 - alpha[0]) * background).clamp(0, 1)
+                gt = model.composite_with_background(model.get_gt_img(image), background)
+                values.append(psnr(rgb, gt))
+        finally:
+            model.train(was_training)
+        return sum(values) / len(values)

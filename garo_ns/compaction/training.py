@@ -1,0 +1,51 @@
+"""Compaction inside nerfstudio's training loop: the round of a step, run on the model and logged."""
+
+from __future__ import annotations
+
+from typing import Any, Dict, Optional
+
+from nerfstudio.utils import writer
+from nerfstudio.utils.rich_utils import CONSOLE
+from torch import Tensor
+
+from garo_ns.compaction.importance import importance
+from garo_ns.compaction.report import round_line, scalars, stop_line
+
+
+def run_round(model: Any, step: int, last_step: Optional[int]) -> Optional[Dict[str, Any]]:
+    """The compaction round of `step`, if any, on a training GaroModel: the strategy decides and removes,
+    the model's guard measures (`model.compaction_guard`, None without training data), the model's
+    blending weights over the training views rank. Logs the round; returns its record."""
+    strategy = model.strategy
+    if strategy.compaction is None:
+        return None
+    guard = model.compaction_guard
+
+    def measure() -> float:
+        return guard.psnr(model)
+
+    def score() -> Tensor:
+        was_training = model.training
+        model.eval()  # the Gaussians as the guard measures them (no time noise)
+        try:
+            return importance(model.contribution(model.train_cameras), model.scales, strategy.compaction.volume_beta)
+        finally:
+            model.train(was_training)
+
+    event = strategy.compact(
+        model.gauss_params,
+        model.optimizers,
+        model.strategy_state,
+        step,
+        measure if guard is not None else None,
+        score,
+        last_step,
+    )
+    if event is None:
+        return None
+    for name, value in scalars(event).items():
+        writer.put_scalar(name=name, scalar=value, step=step)
+    CONSOLE.print(round_line(event, strategy.compaction.tolerance_db))
+    if "stop" in event:
+        CONSOLE.print(stop_line(model.strategy_state["compact"]))
+    return event
