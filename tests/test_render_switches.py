@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from garo_ns.render.frame import FrameSettings
-from garo_ns.render.switches import resolve, worst_psnr_loss
+from garo_ns.render.switches import measure_on_views, replay, resolve, worst_psnr_loss
 
 AUTO = {"render_precision": None, "static_skip": None, "cuda_graph": None, "lean_raster": None}
 
@@ -18,7 +18,7 @@ def losses(**table):
     def measure(trial: FrameSettings) -> float:
         calls.append(trial)
         if trial.render_precision != "fp32":
-            return table[trial.render_precision]
+            return table.get(trial.render_precision, math.inf)  # a precision not listed: too lossy
         return table["static_skip"] if trial.static_skip else 0.0
 
     return measure, calls
@@ -36,7 +36,7 @@ def test_finished_model_on_cuda_gets_the_exact_switches_and_the_approximate_ones
     settings, tried = resolve(AUTO, training_run=False, cuda=True, measure=measure)
     assert settings.cuda_graph and settings.lean_raster
     assert settings.static_skip and settings.render_precision == "tf32"
-    assert tried == {"static_skip": 0.005, "render_precision=tf32": 0.01}
+    assert tried == {"static_skip": 0.005, "render_precision=fp16": math.inf, "render_precision=tf32": 0.01}
     # tf32 was measured on top of the static skip already accepted.
     assert calls[-1].static_skip and calls[-1].render_precision == "tf32"
 
@@ -45,7 +45,7 @@ def test_a_switch_that_costs_more_than_the_bound_stays_off():
     measure, _ = losses(static_skip=0.5, tf32=float("nan"))
     settings, tried = resolve(AUTO, training_run=False, cuda=True, measure=measure, bound_db=0.02)
     assert not settings.static_skip and settings.render_precision == "fp32"
-    assert set(tried) == {"static_skip", "render_precision=tf32"}
+    assert set(tried) == {"static_skip", "render_precision=fp16", "render_precision=tf32"}
 
 
 def test_precisions_are_tried_fastest_first_and_the_first_within_the_bound_wins():
@@ -108,3 +108,28 @@ def test_a_loss_equal_to_the_bound_is_within_it():
     measure, _ = losses(static_skip=0.02, tf32=0.0201)
     settings, _ = resolve(AUTO, training_run=False, cuda=True, measure=measure, bound_db=0.02)
     assert settings.static_skip and settings.render_precision == "fp32"
+
+
+def test_replay_of_recorded_losses_gives_the_same_decision_and_unmeasured_trials_stay_off():
+    measure, _ = losses(static_skip=0.001, fp16=0.5, tf32=0.004)
+    first, tried = resolve(AUTO, training_run=False, cuda=True, measure=measure)
+    again, _ = resolve(AUTO, training_run=False, cuda=True, measure=replay(tried))
+    assert again == first and first.render_precision == "tf32" and first.static_skip
+    # Recorded on a CPU (no precision measured): on CUDA the precision stays fp32.
+    cpu_only = {"static_skip": 0.0}
+    later, _ = resolve(AUTO, training_run=False, cuda=True, measure=replay(cpu_only))
+    assert later.static_skip and later.render_precision == "fp32" and later.cuda_graph
+
+
+def test_measure_on_views_compares_each_trial_with_the_plain_renders():
+    torch.manual_seed(1)
+    targets = [torch.rand(4, 4, 3) for _ in range(2)]
+    noise = {None: 0.01, True: 0.01, False: 0.03}  # static_skip on: as plain; precision trial: worse
+
+    def render(i, trial):
+        key = None if trial is None else trial.render_precision == "fp32"
+        return targets[i] + noise[key]
+
+    measure = measure_on_views(render, targets)
+    assert measure(FrameSettings(static_skip=True)) == pytest.approx(0.0, abs=1e-6)
+    assert measure(FrameSettings(render_precision="tf32")) == pytest.approx(10 * math.log10(9), rel=1e-4)

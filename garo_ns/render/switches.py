@@ -18,7 +18,6 @@ from typing import Any, Callable, Dict, Mapping, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-from garo_ns.deformation import Precision
 from garo_ns.render.frame import FrameSettings
 
 EXACT = ("cuda_graph", "lean_raster")
@@ -33,12 +32,19 @@ Measure = Callable[[FrameSettings], float]
 view against the same views rendered plain."""
 
 
+def label(trial: FrameSettings) -> str:
+    """The name under which `resolve` records a trial's loss: the approximate switch it adds."""
+    if trial.render_precision != "fp32":
+        return f"render_precision={trial.render_precision}"
+    return "static_skip"
+
+
 def resolve(
     requested: Mapping[str, Any],
     training_run: bool,
     cuda: bool,
     measure: Optional[Measure] = None,
-    precisions: Sequence[Precision] = ("tf32",),
+    precisions: Sequence[str] = ("fp16", "tf32"),
     bound_db: float = DEFAULT_BOUND_DB,
 ) -> Tuple[FrameSettings, Dict[str, float]]:
     """The switches to render with, and the measured PSNR loss of each approximate switch tried.
@@ -48,7 +54,8 @@ def resolve(
         training_run: whether the model belongs to a run that is training (or will train).
         cuda: whether the model renders on CUDA (graphs, the lean path and tf32 need it).
         measure: see `Measure`; without one the approximate switches left to auto stay off.
-        precisions: the MLP precisions to try, fastest first; the first within the bound is used.
+        precisions: the MLP precisions to try, fastest first (benchmarks/results/deform_mlp_H100.json);
+            the first within the bound is used.
         bound_db: see DEFAULT_BOUND_DB.
     """
     if not (bound_db >= 0 and math.isfinite(bound_db)):
@@ -66,22 +73,36 @@ def resolve(
     if not fast or measure is None:
         return settings, tried
 
-    def accept(trial: FrameSettings, label: str) -> bool:
+    def accept(trial: FrameSettings) -> bool:
         loss = float(measure(trial))
-        tried[label] = loss
+        tried[label(trial)] = loss
         return loss <= bound_db  # False for NaN too
 
     if requested.get("static_skip") is None:
         trial = replace(settings, static_skip=True)
-        if accept(trial, "static_skip"):
+        if accept(trial):
             settings = trial
     if requested.get("render_precision") is None and cuda:
         for mode in precisions:
             trial = replace(settings, render_precision=mode)
-            if accept(trial, f"render_precision={mode}"):
+            if accept(trial):
                 settings = trial
                 break
     return settings, tried
+
+
+def replay(tried: Mapping[str, float]) -> Measure:
+    """A Measure answering from losses `resolve` recorded earlier (at the end of training, where the
+    training views are at hand); a trial never measured counts as an infinite loss."""
+    return lambda trial: float(tried.get(label(trial), math.inf))
+
+
+def measure_on_views(render: Callable[[int, Optional[FrameSettings]], Tensor], targets: Sequence[Tensor]) -> Measure:
+    """A Measure over views: `render(i, None)` is view i rendered plain (fp32, every Gaussian),
+    `render(i, trial)` the same view with the trial's switches; `targets[i]` its ground truth."""
+    gt = torch.stack([t.float() for t in targets])
+    reference = torch.stack([render(i, None).float() for i in range(len(targets))])
+    return lambda trial: worst_psnr_loss(reference, torch.stack([render(i, trial).float() for i in range(len(gt))]), gt)
 
 
 def worst_psnr_loss(reference: Tensor, trial: Tensor, targets: Tensor) -> float:
