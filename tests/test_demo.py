@@ -9,7 +9,7 @@ from PIL import Image
 
 
 @pytest.mark.slow
-def test_demo_writes_side_by_side_figures_strip_and_plot(tmp_path, capsys):
+def test_demo_writes_side_by_side_figures_strip_and_plot(tmp_path, capfd):
     from garo_ns.tools.demo import DemoArgs, run
 
     args = DemoArgs(output_dir=tmp_path, steps=30, resolution=24, n_train=6, n_test=3, strip_frames=3, num_random=800)
@@ -28,13 +28,16 @@ def test_demo_writes_side_by_side_figures_strip_and_plot(tmp_path, capsys):
     if floor["floor_gaussians"]:
         assert 0 <= floor["floor_static_fraction"] <= 1 and floor["static_threshold"] > 0
     assert saved["wall_seconds"] > 0 and saved["peak_rss_mb"] > 0 and saved["args"]["steps"] == 30
+    if saved["parallel"]:  # the second arm trained beside the first, its progress in its run folder
+        assert "Step" in (tmp_path / "deform-splatfacto" / "train.log").read_text()
+        assert saved["peak_rss_mb"] > max(a["peak_rss_mb"] for a in saved["arms"])
     table = (tmp_path / "demo_results.md").read_text()
     assert "garo-deform" in table and "deform-splatfacto" in table and "render ms/view" in table
     assert "garo-deform floor:" in table
     strip = Image.open(tmp_path / "demo_strip.png")
     plot = Image.open(tmp_path / "demo_speed_error.png")
     assert strip.width > strip.height > 100 and plot.width > 100
-    out = capsys.readouterr().out
+    out = capfd.readouterr().out  # the first arm's process writes to the terminal's descriptor
     assert "demo_strip.png" in out and "ns-viewer --load-config" in out
     assert "Step" in out or "ETA" in out  # nerfstudio's progress lines were shown
 
