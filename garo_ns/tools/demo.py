@@ -31,8 +31,9 @@ class DemoArgs:
 
     output_dir: Path = Path("runs/demo")
     """Where the scene, the runs and the results go."""
-    steps: int = 2000
-    """Training steps of each arm (the full recipe is 40k; this compresses its phases)."""
+    steps: int = 4000
+    """Training steps of each arm (the full recipe is 40k; this compresses its phases, every one of them, the
+    learning-rate decays included, scaled with the step count)."""
     resolution: int = 32
     """Scene resolution in pixels."""
     methods: Tuple[Method, ...] = ("garo-deform", "deform-splatfacto")
