@@ -66,3 +66,26 @@ def test_demo_config_scales_rates_and_coarsens_the_scene(tmp_path):
     assert config.pipeline.model.deform_head_init == "default"
     with pytest.raises(ValueError, match="not a parameter group"):
         make_config("garo-deform", tmp_path, tmp_path, schedule=DemoSchedule(steps=100, lr_scale={"mean": 2.0}))
+
+
+@pytest.mark.parametrize("steps", [2000, 4000])
+def test_demo_schedule_scales_every_phase_with_the_step_count(tmp_path, steps):
+    """Densification, opacity resets, GARO's cadence, the deformation switch-on and every learning-rate decay
+    sit at the same fractions of the run whatever its length (no phase is left at a fixed step count)."""
+    from garo_ns.tools.demo import DemoArgs
+    from garo_ns.tools.train import DemoSchedule, make_config
+
+    schedule = DemoSchedule(steps=steps, deform_warmup_frac=DemoArgs().deform_warmup_frac)
+    config = make_config("garo-deform", tmp_path, tmp_path, schedule=schedule)
+    m = config.pipeline.model
+    assert config.max_num_iterations == steps
+    assert m.stop_split_at == int(0.6 * steps) and m.deform_warmup == int(0.25 * steps)
+    assert m.warmup_length == steps // 20 and m.refine_every == steps // 30
+    # one opacity reset, a third of the way in, before densification stops
+    assert m.refine_every * m.reset_alpha_every == pytest.approx(steps / 3, rel=0.02)
+    assert m.garo_every is None and m.garo_start is None and m.garo_stop is None  # GARO follows densification
+    for name, opt in config.optimizers.items():
+        sched = opt.get("scheduler")
+        if sched is not None and hasattr(sched, "max_steps"):
+            assert sched.max_steps == steps, name
+    assert config.optimizers["deformation"]["scheduler"].warmup_steps == int(0.25 * steps)
