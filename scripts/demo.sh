@@ -9,5 +9,6 @@ export TORCHDYNAMO_DISABLE=1
 # One CPU thread per process unless told otherwise: the demo's tensors are small, and on a 2-core machine
 # shared with other work torch's default two threads spin at each barrier; measured under such load, a
 # 300-step demo took 2.9 min with one thread, and the same run with two was still in its first arm after 10.
+# The cores go to the arms instead: on a CPU with one per arm they train at once, a process each.
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} MKL_NUM_THREADS=${MKL_NUM_THREADS:-1}
 .venv/bin/garo-demo "$@"

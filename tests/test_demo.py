@@ -9,7 +9,7 @@ from PIL import Image
 
 
 @pytest.mark.slow
-def test_demo_writes_side_by_side_figures_strip_and_plot(tmp_path, capsys):
+def test_demo_writes_side_by_side_figures_strip_and_plot(tmp_path, capfd):
     from garo_ns.tools.demo import DemoArgs, run
 
     args = DemoArgs(output_dir=tmp_path, steps=30, resolution=24, n_train=6, n_test=3, strip_frames=3, num_random=800)
@@ -28,13 +28,16 @@ def test_demo_writes_side_by_side_figures_strip_and_plot(tmp_path, capsys):
     if floor["floor_gaussians"]:
         assert 0 <= floor["floor_static_fraction"] <= 1 and floor["static_threshold"] > 0
     assert saved["wall_seconds"] > 0 and saved["peak_rss_mb"] > 0 and saved["args"]["steps"] == 30
+    if saved["parallel"]:  # the second arm trained beside the first, its progress in its run folder
+        assert "Step" in (tmp_path / "deform-splatfacto" / "train.log").read_text()
+        assert saved["peak_rss_mb"] > max(a["peak_rss_mb"] for a in saved["arms"])
     table = (tmp_path / "demo_results.md").read_text()
     assert "garo-deform" in table and "deform-splatfacto" in table and "render ms/view" in table
     assert "garo-deform floor:" in table
     strip = Image.open(tmp_path / "demo_strip.png")
     plot = Image.open(tmp_path / "demo_speed_error.png")
     assert strip.width > strip.height > 100 and plot.width > 100
-    out = capsys.readouterr().out
+    out = capfd.readouterr().out  # the first arm's process writes to the terminal's descriptor
     assert "demo_strip.png" in out and "ns-viewer --load-config" in out
     assert "Step" in out or "ETA" in out  # nerfstudio's progress lines were shown
 
@@ -63,3 +66,26 @@ def test_demo_config_scales_rates_and_coarsens_the_scene(tmp_path):
     assert config.pipeline.model.deform_head_init == "default"
     with pytest.raises(ValueError, match="not a parameter group"):
         make_config("garo-deform", tmp_path, tmp_path, schedule=DemoSchedule(steps=100, lr_scale={"mean": 2.0}))
+
+
+@pytest.mark.parametrize("steps", [2000, 4000])
+def test_demo_schedule_scales_every_phase_with_the_step_count(tmp_path, steps):
+    """Densification, opacity resets, GARO's cadence, the deformation switch-on and every learning-rate decay
+    sit at the same fractions of the run whatever its length (no phase is left at a fixed step count)."""
+    from garo_ns.tools.demo import DemoArgs
+    from garo_ns.tools.train import DemoSchedule, make_config
+
+    schedule = DemoSchedule(steps=steps, deform_warmup_frac=DemoArgs().deform_warmup_frac)
+    config = make_config("garo-deform", tmp_path, tmp_path, schedule=schedule)
+    m = config.pipeline.model
+    assert config.max_num_iterations == steps
+    assert m.stop_split_at == int(0.6 * steps) and m.deform_warmup == int(0.25 * steps)
+    assert m.warmup_length == steps // 20 and m.refine_every == steps // 30
+    # one opacity reset, a third of the way in, before densification stops
+    assert m.refine_every * m.reset_alpha_every == pytest.approx(steps / 3, rel=0.02)
+    assert m.garo_every is None and m.garo_start is None and m.garo_stop is None  # GARO follows densification
+    for name, opt in config.optimizers.items():
+        sched = opt.get("scheduler")
+        if sched is not None and hasattr(sched, "max_steps"):
+            assert sched.max_steps == steps, name
+    assert config.optimizers["deformation"]["scheduler"].warmup_steps == int(0.25 * steps)
