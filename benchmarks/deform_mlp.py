@@ -1,7 +1,7 @@
 """Micro-benchmark of the deformation field alone (issue 19): every candidate fast path against fp32 eager
 and against the GPU's FLOP-rate limit, at N moving Gaussians.
 
-The field is the current recipe's, built by `GaroModel._make_deformation` from `GaroModelConfig`'s defaults
+The field is the current recipe's, built by `GaroModelConfig.make_deformation` from its defaults
 (8 layers of 256 with the input re-injected after layer 4, a time network of 30 features). Its weights are
 random, not trained: the hidden layers are He-initialised (activations keep their scale through the depth, as
 a trained field's do; PyTorch's default initialisation shrinks them layer by layer) and the heads are scaled so
@@ -70,7 +70,6 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple
 
 import torch
@@ -126,11 +125,11 @@ def gpu_tag(device_name: str) -> str:
 
 
 def recipe_field() -> DeformationField:
-    """The field of the current recipe: `GaroModel._make_deformation` on `GaroModelConfig()`'s defaults
-    (the method reads only `self.config`). Imports nerfstudio (the device kit's wheels on the GPU machine)."""
-    from garo_ns.garo_model import GaroModel, GaroModelConfig
+    """The field of the current recipe: `GaroModelConfig().make_deformation()`, the model's own construction.
+    Imports nerfstudio (the device kit's wheels on the GPU machine)."""
+    from garo_ns.garo_model import GaroModelConfig
 
-    return GaroModel._make_deformation(SimpleNamespace(config=GaroModelConfig()))  # type: ignore[arg-type]
+    return GaroModelConfig().make_deformation()
 
 
 @torch.no_grad()
@@ -575,7 +574,7 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
         sys.exit("CUDA is not available here: use --device cpu")
     field = trained_looking(recipe_field(), seed=a.seed)
     output = output_path(a.output, device)
-    construction = "GaroModel._make_deformation with GaroModelConfig's defaults"
+    construction = "GaroModelConfig().make_deformation()"
     run(field, device, a.n, a, output=output, paths=a.paths, construction=construction)
     print(f"wrote {output}")
 

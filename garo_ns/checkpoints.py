@@ -1,8 +1,9 @@
-"""Crash-safe checkpoints for nerfstudio's trainer (installed by `garo_ns.compat.install`).
+"""Checkpoints: crash-safe files for nerfstudio's trainer, and the model's state as earlier versions wrote it.
 
-nerfstudio 1.1.5 writes `step-XXXXXXXXX.ckpt` in place and, with `save_only_latest_checkpoint` (its
-default), deletes every other checkpoint right after. A process killed during the write leaves a partial
-file; its loaders then pick the highest step in the folder whatever state it is in. Here:
+Files (the trainer is patched by `garo_ns.compat.install`): nerfstudio 1.1.5 writes `step-XXXXXXXXX.ckpt`
+in place and, with `save_only_latest_checkpoint` (its default), deletes every other checkpoint right after.
+A process killed during the write leaves a partial file; its loaders then pick the highest step in the
+folder whatever state it is in. Here:
 
 * a checkpoint is written to a temporary file in the same folder, flushed and fsync'd, then renamed
   over its final name (`os.replace`, atomic on POSIX) and the folder is fsync'd; older checkpoints are
@@ -13,6 +14,11 @@ file; its loaders then pick the highest step in the folder whatever state it is 
   checkpoint (nor breaks their parsing); it is removed once a newer checkpoint is complete;
 * `ns-train --load-dir` takes the newest *complete* `step-*.ckpt`, skipping (with one line each) files
   that are cut short, such as those stock nerfstudio leaves when killed during its in-place write.
+
+The model's state (`GaroModel.load_state_dict` and its extra state): a checkpoint holds as many
+Gaussians as it was trained to, so the model's are resized before loading; very old splatfacto
+checkpoints name the Gaussians without `gauss_params.`; fields written before the deformation field
+had its time network have none; the strategy's running state comes back key by key.
 """
 
 from __future__ import annotations
@@ -24,14 +30,16 @@ import sys
 import time
 import zipfile
 from pathlib import Path
-from typing import Any, BinaryIO, Dict, List, Optional, Tuple
+from typing import Any, BinaryIO, Dict, List, Optional, Tuple, Union
 
 import torch
+from torch import Tensor, nn
 
 from garo_ns.errors import GaroInputError
 
 CHECKPOINT_NAME = re.compile(r"^step-(\d+)\.ckpt$")
 PARTIAL_PREFIX = "partial-0."
+GAUSSIAN_KEYS = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")  # splatfacto's
 # Test hook: "STEP:SECONDS" makes the write of the checkpoint of step STEP (and later ones) pause for
 # SECONDS after its first bytes are on disk, so that a test can kill the process mid-write.
 SLOW_WRITE_ENV = "GARO_CHECKPOINT_SLOW_WRITE"
@@ -212,3 +220,33 @@ def install() -> bool:
 
     trainer_cls._load_checkpoint = _load_checkpoint
     return True
+
+
+# --- the model's state as earlier versions wrote it ------------------------------------------------------------
+
+
+def upgrade_gaussian_keys(state_dict: Dict[str, Any]) -> None:
+    """Rename, in place, the Gaussians of very old splatfacto checkpoints (`means`, ...) to `gauss_params.*`."""
+    if "means" in state_dict:
+        for key in GAUSSIAN_KEYS:
+            state_dict[f"gauss_params.{key}"] = state_dict.pop(key)
+
+
+def resize_gaussians(params: nn.ParameterDict, n: int) -> None:
+    """Give every Gaussian parameter `n` rows (zeros, to be loaded over), keeping the Parameter objects,
+    so optimizers built before loading stay bound to the loaded Gaussians."""
+    for param in params.values():
+        param.data = param.data.new_zeros((n,) + tuple(param.shape[1:]))
+
+
+def has_time_net(state_dict: Dict[str, Any]) -> bool:
+    """Whether the checkpoint's deformation field has D-3DGS's time network (later versions always write one)."""
+    return any(k.startswith("deformation.time_net.") for k in state_dict)
+
+
+def restore_strategy_state(state: Dict[str, Any], saved: Dict[str, Any], device: Union[str, torch.device]) -> None:
+    """Put the strategy state `saved` with a checkpoint back into `state`, tensors on `device`; only the
+    keys that `state` has (a checkpoint's obsolete keys are dropped, keys it lacks keep their start value)."""
+    for key, value in saved.items():
+        if key in state:
+            state[key] = value.to(device) if isinstance(value, Tensor) else value

@@ -182,3 +182,32 @@ def health_check(field: DeformationField, means: Tensor, times: Tensor, extent: 
         max(health["dead_fraction"]) >= 1.0 or health["time_sensitivity"] <= 1e-6 * extent  # type: ignore[operator]
     )
     return health
+
+
+def health_due(step: int, warmup: int, every: int) -> bool:
+    """Whether `step` is a health-check step: every `every` steps after the field switches on at
+    `warmup`, not at the switch-on itself (zero heads give no motion there by design); never when
+    `every` <= 0."""
+    return every > 0 and step > warmup and (step - warmup) % every == 0
+
+
+def collapse_warning(health: Dict[str, object], head_init: HeadInit) -> str:
+    """What to tell the user once a `health_check` found the field `collapsed` (no later step can undo it)."""
+    return (
+        f"[bold red]Step {health['step']}: the deformation field has collapsed (time sensitivity "
+        f"{health['time_sensitivity']:.2e}, dead units per layer {health['dead_fraction']}); "
+        "the scene will render as static. Retrain with another seed"
+        + (" or --pipeline.model.deform-head-init default" if head_init == "zero" else "")
+        + ".[/bold red]"
+    )
+
+
+def time_noise(strength: float, steps: int, step: int, frames: int, training: bool) -> float:
+    """D-3DGS's noise on the field's time input while training (its `ast_noise`): one draw from torch's
+    global generator, shared by all Gaussians, with a standard deviation of `strength` frame intervals
+    (`frames` frames over [0, 1]) that decays linearly to 0 at step `steps`. 0 outside training, from
+    step `steps` on, and when `strength` <= 0 (no draw then)."""
+    if not training or strength <= 0 or step >= steps:
+        return 0.0
+    std = strength * (1.0 - step / steps) / max(frames, 1)
+    return float(torch.randn(()) * std)

@@ -1,15 +1,15 @@
 """Deformable Gaussian splatting model: splatfacto plus D-3DGS's deformation field (nerfstudio glue).
 
-Canonical Gaussians live in `gauss_params` as in splatfacto; the deformation field moves them to
-each camera's time (`gaussians_at`, the one way to get the Gaussians at a time). What happens
-elsewhere: densification, GARO and every other change of the Gaussian count in `GaroStrategy`;
-rendering in `garo_ns.render` (the fast frame path outside training in `render.frame`); the static
-classification in `static`; the field's health check in `deformation`.
+Canonical Gaussians live in `gauss_params` as in splatfacto; `gaussians_at` moves them to a time (the one way
+to get the Gaussians at a time). Elsewhere: the starting Gaussians (`initialisation`), every change of their
+count (`GaroStrategy`), rendering (`render`: a camera's view, the fast frame path outside training), the static
+classification (`static`), the field with its time noise and health check (`deformation`), and the state of
+checkpoints written by earlier versions (`checkpoints`).
 
-Changes to splatfacto that a user may notice (each documented on its config field): D-3DGS's
-densification defaults, scaled by the 3DGS camera extent from the dataparser; the background is
-the data's alpha colour; LPIPS only when its weights are available offline; checkpoints keep the
-real step and the strategy's state, and optimizers stay bound to the loaded Gaussians.
+Changes to splatfacto that a user may notice (each documented on its config field): D-3DGS's densification
+defaults, scaled by the 3DGS camera extent from the dataparser; the background is the data's alpha colour;
+LPIPS only when its weights are available offline; checkpoints keep the real step and the strategy's state,
+and optimizers stay bound to the loaded Gaussians.
 """
 
 from __future__ import annotations
@@ -29,15 +29,17 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 from torch.nn import Parameter
 
+from garo_ns import checkpoints
 from garo_ns.compaction.guard import TrainingViewGuard
 from garo_ns.compaction.schedule import Compaction
 from garo_ns.compaction.training import run_round
-from garo_ns.deformation import DeformationField, health_check
+from garo_ns.deformation import DeformationField, collapse_warning, health_check, health_due, time_noise
 from garo_ns.errors import GaroTrainingError
 from garo_ns.garo_strategy import TRANSIENT_STATE, GaroStrategy
+from garo_ns.initialisation import initial_gaussians
 from garo_ns.metrics import make_lpips
 from garo_ns.render.backend import Backend
-from garo_ns.render.contribution import view_contribution
+from garo_ns.render.contribution import summed_contribution
 from garo_ns.render.frame import (
     Canonical,
     FramePath,
@@ -48,11 +50,8 @@ from garo_ns.render.frame import (
     compose,
     render_splats,
 )
-from garo_ns.render.sh import num_sh_bases
-from garo_ns.render.view import RenderView, camera_extent, viewmat_from_c2w
-from garo_ns.static import classify, sample_times
-
-GAUSSIAN_KEYS = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
+from garo_ns.render.view import RenderView, camera_extent, camera_time, camera_view
+from garo_ns.static import classification_due, classify, sample_times, static_fraction
 
 
 @dataclass
@@ -235,6 +234,49 @@ class GaroModelConfig(SplatfactoModelConfig):
         fields = Compaction.__dataclass_fields__
         return Compaction(**{k: getattr(self, f"compact_{k}") for k in fields})  # type: ignore[arg-type]
 
+    def make_deformation(self) -> DeformationField:
+        """The deformation field these settings describe (untrained)."""
+        return DeformationField(
+            self.deform_pos_freqs,
+            self.deform_time_freqs,
+            self.deform_depth,
+            self.deform_width,
+            self.deform_skip,
+            head_init=self.deform_head_init,
+            time_net=self.deform_time_net,
+        )
+
+    def make_strategy(self) -> GaroStrategy:
+        """The densification and GARO strategy these settings describe."""
+        return GaroStrategy(
+            prune_opa=self.cull_alpha_thresh,
+            grow_grad2d=self.densify_grad_thresh,
+            grow_scale3d=self.densify_size_thresh,
+            grow_scale2d=self.split_screen_size,
+            prune_scale3d=self.cull_scale_thresh,
+            prune_scale2d=self.cull_screen_size,
+            refine_scale2d_stop_iter=self.stop_screen_size_at,
+            refine_start_iter=self.warmup_length,
+            refine_stop_iter=self.stop_split_at,
+            reset_every=self.reset_alpha_every * self.refine_every,
+            refine_every=self.refine_every,
+            pause_refine_after_reset=0,
+            absgrad=self.use_absgrad,
+            revised_opacity=False,
+            verbose=False,
+            mode=self.garo_mode,
+            tau_activity=self.tau_activity,
+            n_max=self.n_max,
+            tau_curvature=self.tau_curvature,
+            rho_max=self.rho_max,
+            k_neighbors=self.k_neighbors,
+            garo_start_iter=self.garo_start,
+            garo_stop_iter=self.garo_stop,
+            garo_every=self.garo_every,
+            activity_window=self.garo_activity_window,
+            compaction=self.compaction() if self.compact else None,
+        )
+
 
 class GaroModel(SplatfactoModel):
     """Splatfacto with a D-3DGS deformation field and a GARO-capable densification strategy."""
@@ -249,8 +291,9 @@ class GaroModel(SplatfactoModel):
         if not (isinstance(extent, (int, float)) and math.isfinite(extent) and extent > 0):
             raise ValueError(f"scene extent must be a positive number, got {extent!r}")
         self.scene_extent = float(extent)
-        self.gauss_params = torch.nn.ParameterDict({k: Parameter(v) for k, v in self._initial_gaussians().items()})
-        self.deformation = self._make_deformation()
+        start = initial_gaussians(self.seed_points, cfg.random_init, cfg.num_random, cfg.random_scale, cfg.sh_degree)
+        self.gauss_params = torch.nn.ParameterDict({k: Parameter(v) for k, v in start.items()})
+        self.deformation = cfg.make_deformation()
         self.camera_optimizer = cfg.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu")
 
         from nerfstudio.models.splatfacto import SSIM
@@ -271,34 +314,7 @@ class GaroModel(SplatfactoModel):
         # A buffer, so the background the model was trained on travels with its checkpoints.
         self.register_buffer("background_rgb", background.clone().float())
         self._extent_from_data = cfg.scene_extent is None and "camera_extent" in metadata
-        self.strategy = GaroStrategy(
-            prune_opa=cfg.cull_alpha_thresh,
-            grow_grad2d=cfg.densify_grad_thresh,
-            grow_scale3d=cfg.densify_size_thresh,
-            grow_scale2d=cfg.split_screen_size,
-            prune_scale3d=cfg.cull_scale_thresh,
-            prune_scale2d=cfg.cull_screen_size,
-            refine_scale2d_stop_iter=cfg.stop_screen_size_at,
-            refine_start_iter=cfg.warmup_length,
-            refine_stop_iter=cfg.stop_split_at,
-            reset_every=cfg.reset_alpha_every * cfg.refine_every,
-            refine_every=cfg.refine_every,
-            pause_refine_after_reset=0,
-            absgrad=cfg.use_absgrad,
-            revised_opacity=False,
-            verbose=False,
-            mode=cfg.garo_mode,
-            tau_activity=cfg.tau_activity,
-            n_max=cfg.n_max,
-            tau_curvature=cfg.tau_curvature,
-            rho_max=cfg.rho_max,
-            k_neighbors=cfg.k_neighbors,
-            garo_start_iter=cfg.garo_start,
-            garo_stop_iter=cfg.garo_stop,
-            garo_every=cfg.garo_every,
-            activity_window=cfg.garo_activity_window,
-            compaction=cfg.compaction() if cfg.compact else None,
-        )
+        self.strategy = cfg.make_strategy()
         self.compaction_guard: Optional[TrainingViewGuard] = None
         self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene_extent)
         self.train_times: Optional[Tensor] = None
@@ -306,50 +322,6 @@ class GaroModel(SplatfactoModel):
         self._last_step: Optional[int] = None
         self.frame = FramePath()
         self.health_log: List[Dict[str, Any]] = []
-
-    def _initial_gaussians(self) -> Dict[str, Tensor]:
-        """As 3DGS/D-3DGS: the seed points (or random ones in a cube), scale from the RMS distance to
-        the 3 nearest neighbours, identity rotation, opacity 0.1; random points start nearly grey."""
-        cfg = self.config
-        if self.seed_points is not None and not cfg.random_init and len(self.seed_points[0]) > 0:
-            means = self.seed_points[0].float()
-            colors = self.seed_points[1].float() / 255.0 if self.seed_points[1].shape[0] > 0 else None
-        else:
-            means = (
-                torch.rand((cfg.num_random, 3), generator=torch.Generator().manual_seed(0)) - 0.5
-            ) * cfg.random_scale
-            colors = None
-        n = means.shape[0]
-        if n < 4:
-            raise ValueError(f"need at least 4 initial Gaussians, got {n}")
-        dists, _ = self.k_nearest_sklearn(means, 3)
-        rms = torch.from_numpy(dists).float().pow(2).mean(-1, keepdim=True).sqrt()
-        quats = torch.zeros(n, 4)
-        quats[:, 0] = 1.0
-        if colors is not None:
-            features_dc = (colors - 0.5) / 0.28209479177387814  # RGB to the SH DC coefficient
-        else:
-            features_dc = torch.rand(n, 3, generator=torch.Generator().manual_seed(1)) / 255.0
-        return {
-            "means": means,
-            "scales": torch.log(rms.clamp_min(1e-7)).repeat(1, 3),
-            "quats": quats,
-            "features_dc": features_dc,
-            "features_rest": torch.zeros(n, num_sh_bases(cfg.sh_degree) - 1, 3),
-            "opacities": torch.logit(torch.full((n, 1), 0.1)),
-        }
-
-    def _make_deformation(self) -> DeformationField:
-        cfg = self.config
-        return DeformationField(
-            cfg.deform_pos_freqs,
-            cfg.deform_time_freqs,
-            cfg.deform_depth,
-            cfg.deform_width,
-            cfg.deform_skip,
-            head_init=cfg.deform_head_init,
-            time_net=cfg.deform_time_net,
-        )
 
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         groups = self.get_gaussian_param_groups()
@@ -390,17 +362,14 @@ class GaroModel(SplatfactoModel):
     def get_training_callbacks(
         self, training_callback_attributes: TrainingCallbackAttributes
     ) -> List[TrainingCallback]:
-        self.adopt_training_data(training_callback_attributes.pipeline)
-        trainer = training_callback_attributes.trainer
-        if trainer is not None:
-            self._last_step = int(trainer.config.max_num_iterations) - 1
+        attributes = training_callback_attributes
+        self.adopt_training_data(attributes.pipeline)
+        if attributes.trainer is not None:
+            self._last_step = int(attributes.trainer.config.max_num_iterations) - 1
+        before, after = TrainingCallbackLocation.BEFORE_TRAIN_ITERATION, TrainingCallbackLocation.AFTER_TRAIN_ITERATION
         return [
-            TrainingCallback(
-                [TrainingCallbackLocation.BEFORE_TRAIN_ITERATION],
-                self.step_cb,
-                args=[training_callback_attributes.optimizers],
-            ),
-            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.after_iteration),
+            TrainingCallback([before], self.step_cb, args=[attributes.optimizers]),
+            TrainingCallback([after], self.after_iteration),
         ]
 
     def step_cb(self, optimizers: Optimizers, step: int) -> None:
@@ -424,53 +393,30 @@ class GaroModel(SplatfactoModel):
             )
             CONSOLE.print(f"step {step}: pruned {n} least contributing Gaussians, {self.num_points} left")
         run_round(self, step, self._last_step)  # compaction (garo_ns.compaction), when configured
-        active = self.deformation_active()
-        if active and cfg.static_every > 0:
-            if (step - cfg.deform_warmup) % cfg.static_every == 0 or step == self._last_step:
-                self.refresh_static()
-                fraction = self.static_fraction()
-                if fraction is not None:
-                    writer.put_scalar("garo/static_fraction", fraction, step)
+        if self.deformation_active() and classification_due(step, cfg.deform_warmup, cfg.static_every, self._last_step):
+            self.refresh_static()
+            fraction = self.static_fraction()
+            if fraction is not None:
+                writer.put_scalar("garo/static_fraction", fraction, step)
         self.check_health(step)
 
     def check_health(self, step: int) -> None:
         """Every `health_every` steps after the warm-up, measure whether the deformation field
         still models motion; warn once when it has collapsed (no later step can undo it)."""
         cfg = self.config
-        # Not at the switch-on itself: zero heads give no motion there by design.
-        if cfg.health_every <= 0 or step <= cfg.deform_warmup or self.num_points == 0:
+        if self.num_points == 0 or not health_due(step, cfg.deform_warmup, cfg.health_every):
             return
-        if (step - cfg.deform_warmup) % cfg.health_every != 0:
-            return
-        times = sample_times(self.train_times, 8)
-        health = health_check(self.deformation, self.means, times, self.scene_extent, step)
+        health = health_check(self.deformation, self.means, sample_times(self.train_times, 8), self.scene_extent, step)
         self.health_log.append(health)
         writer.put_scalar("garo/deform_time_sensitivity", health["time_sensitivity"], step)
         writer.put_scalar("garo/deform_dead_fraction_max", max(health["dead_fraction"]), step)
         if health["collapsed"] and not any(h["collapsed"] for h in self.health_log[:-1]):
-            CONSOLE.print(
-                f"[bold red]Step {step}: the deformation field has collapsed (time sensitivity "
-                f"{health['time_sensitivity']:.2e}, dead units per layer {health['dead_fraction']}); "
-                "the scene will render as static. Retrain with another seed"
-                + (" or --pipeline.model.deform-head-init default" if cfg.deform_head_init == "zero" else "")
-                + ".[/bold red]"
-            )
+            CONSOLE.print(collapse_warning(health, cfg.deform_head_init))
 
     # ------------------------------------------------------------------ the Gaussians at a time
     def deformation_active(self) -> bool:
         """Whether the deformation field is applied at the current step (after the static warm-up)."""
         return self.step >= self.config.deform_warmup
-
-    def camera_time(self, camera: Cameras) -> float:
-        """The camera's time in [0, 1], or the configured default (warned once) when it has none."""
-        if camera.times is not None:
-            return float(camera.times.reshape(-1)[0])
-        if not self._warned_no_time:
-            CONSOLE.print(
-                f"[yellow]Camera carries no time; rendering at default_time={self.config.default_time}[/yellow]"
-            )
-            self._warned_no_time = True
-        return float(self.config.default_time)
 
     def canonical(self) -> Canonical:
         """The parameters as stored (canonical geometry, log-scales, opacity logits, SH)."""
@@ -481,67 +427,53 @@ class GaroModel(SplatfactoModel):
         rendering, export, timing). Training: the D-3DGS composition in fp32 (with the time noise, if
         set). Otherwise the frame path with the render switches, or with `exact` the field as trained
         (fp32, every Gaussian), whatever the switches."""
-        canonical = self.canonical()
+        cfg, canonical = self.config, self.canonical()
         if not self.deformation_active():
             return activate(canonical, (canonical.means, canonical.quats, canonical.log_scales))
         if self.training or exact:
-            return activate(canonical, compose(self.deformation, canonical, time + self.time_noise()))
-        settings = FrameSettings(
-            **{k: getattr(self.config, k) for k in FrameSettings.__dataclass_fields__}  # type: ignore[arg-type]
-        )
+            frames = len(self.train_times) if self.train_times is not None else 1
+            time = time + time_noise(cfg.time_noise, cfg.time_noise_steps, self.step, frames, self.training)
+            return activate(canonical, compose(self.deformation, canonical, time))
+        settings = FrameSettings(**{k: getattr(cfg, k) for k in FrameSettings.__dataclass_fields__})  # type: ignore[arg-type]
         state = self.strategy_state
         return self.frame.splats(self.deformation, canonical, state["static"], state["static_offset"], time, settings)
-
-    def time_noise(self) -> float:
-        """This step's perturbation of the MLP's time input (0 unless training with `time_noise`)."""
-        cfg = self.config
-        if not self.training or cfg.time_noise <= 0 or self.step >= cfg.time_noise_steps:
-            return 0.0
-        frames = len(self.train_times) if self.train_times is not None else 1
-        std = cfg.time_noise * (1.0 - self.step / cfg.time_noise_steps) / max(frames, 1)
-        return float(torch.randn(()) * std)
 
     # ------------------------------------------------------------------ static classification
     def static_fraction(self) -> Optional[float]:
         """Share of Gaussians currently classified static, or None before any classification."""
-        static = self.strategy_state.get("static")
-        if not isinstance(static, Tensor) or static.shape[0] != self.num_points or static.numel() == 0:
-            return None
-        return float(static.float().mean())
+        return static_fraction(self.strategy_state.get("static"), self.num_points)
 
     @torch.no_grad()
     def refresh_static(self, times: Optional[Tensor] = None) -> None:
         """Re-decide which Gaussians are static from the current deformation field, at `times`
         (default: up to `static_times` of the training times, evenly spread)."""
         times = sample_times(self.train_times, self.config.static_times) if times is None else times
-        static, offset = classify(
-            self.deformation, self.means, self.scales, times, self.config.static_threshold * self.scene_extent
-        )
+        threshold = self.config.static_threshold * self.scene_extent
+        static, offset = classify(self.deformation, self.means, self.scales, times, threshold)
         self.strategy_state.update({"static": static, "static_offset": offset, "static_step": int(self.step)})
 
-    @torch.no_grad()
     def contribution(self, cameras: Cameras) -> Tensor:
         """Summed blending weight of every Gaussian over `cameras`, each at its own time [N]."""
-        total = torch.zeros(self.num_points, device=self.device)
-        for i in range(cameras.shape[0]):
-            view = self.camera_view(cameras[i : i + 1].to(self.device))
-            splats = self.gaussians_at(view.time, exact=True)
-            total += view_contribution(
-                *splats[:3], splats.opacities, view.viewmat, view.K, view.width, view.height, self.config.rasterizer
-            )
-        return total
+        views = (self.camera_view(cameras[i : i + 1].to(self.device)) for i in range(cameras.shape[0]))
+        return summed_contribution(
+            views, lambda t: self.gaussians_at(t, exact=True), self.num_points, self.device, self.config.rasterizer
+        )
 
     # ------------------------------------------------------------------ rendering
     def camera_view(self, camera: Cameras, c2w: Optional[Tensor] = None) -> RenderView:
-        """`camera` (one) as the rasterizer takes it, at this step's resolution; `c2w` replaces
-        its pose (the camera optimizer's correction during training)."""
+        """`camera` (one) as the rasterizer takes it, at this step's resolution and the camera's time
+        (`default_time`, warned once, when it has none); `c2w` replaces its pose (the camera
+        optimizer's correction during training)."""
+        time = camera_time(camera)
+        if time is None:
+            if not self._warned_no_time:
+                CONSOLE.print(
+                    f"[yellow]Camera carries no time; rendering at default_time={self.config.default_time}[/yellow]"
+                )
+                self._warned_no_time = True
+            time = float(self.config.default_time)
         c2w = camera.camera_to_worlds if c2w is None else c2w
-        scale = self._get_downscale_factor()
-        camera.rescale_output_resolution(1 / scale)
-        K = camera.get_intrinsics_matrices().to(self.device)
-        width, height = int(camera.width.item()), int(camera.height.item())
-        camera.rescale_output_resolution(scale)
-        return RenderView(viewmat_from_c2w(c2w.to(self.device)), K, width, height, self.camera_time(camera))
+        return camera_view(camera, c2w, self._get_downscale_factor(), self.device, time)
 
     def render(
         self,
@@ -627,18 +559,14 @@ class GaroModel(SplatfactoModel):
         In place (same Parameter objects), so optimizers built before loading stay bound to the
         loaded Gaussians; the step is the checkpoint's, set through `update_to_step`.
         """
-        if "means" in state_dict:  # very old splatfacto checkpoints
-            for key in GAUSSIAN_KEYS:
-                state_dict[f"gauss_params.{key}"] = state_dict.pop(key)
-        n = state_dict["gauss_params.means"].shape[0]
-        for key, param in self.gauss_params.items():
-            param.data = param.data.new_zeros((n,) + tuple(param.shape[1:]))
-        if self.deformation.time_net is not None and not any(k.startswith("deformation.time_net.") for k in state_dict):
+        checkpoints.upgrade_gaussian_keys(state_dict)
+        checkpoints.resize_gaussians(self.gauss_params, state_dict["gauss_params.means"].shape[0])
+        if self.deformation.time_net is not None and not checkpoints.has_time_net(state_dict):
             # Written before the time network was part of the recipe: rebuild the field without it
             # so the run renders as it was trained (an optimizer built earlier is not bound to it).
             CONSOLE.print("[yellow]Checkpoint has no deformation time network: loading the field without it[/yellow]")
             self.config.deform_time_net = 0
-            self.deformation = self._make_deformation().to(self.background_rgb.device)
+            self.deformation = self.config.make_deformation().to(self.background_rgb.device)
         return torch.nn.Module.load_state_dict(self, state_dict, strict=strict)
 
     def get_extra_state(self) -> Dict[str, Any]:
@@ -647,7 +575,4 @@ class GaroModel(SplatfactoModel):
         return {"strategy_state": {k: v for k, v in self.strategy_state.items() if k not in TRANSIENT_STATE}}
 
     def set_extra_state(self, state: Dict[str, Any]) -> None:
-        saved = (state or {}).get("strategy_state") or {}
-        for key, value in saved.items():
-            if key in self.strategy_state:
-                self.strategy_state[key] = value.to(self.device) if isinstance(value, Tensor) else value
+        checkpoints.restore_strategy_state(self.strategy_state, (state or {}).get("strategy_state") or {}, self.device)

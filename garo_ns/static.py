@@ -84,3 +84,18 @@ def classify(
     deviation, mean = motion_statistics(offsets, means.detach(), times.reshape(-1))
     size = torch.exp(log_scales.detach() + mean[:, 7:]).amax(dim=-1)
     return classify_static(deviation, size, threshold), mean
+
+
+def classification_due(step: int, warmup: int, every: int, last_step: Optional[int]) -> bool:
+    """Whether to re-decide the static Gaussians after `step` (the caller checks that the field is on):
+    every `every` steps counted from its switch-on at `warmup`, and at the `last_step` of training;
+    never when `every` <= 0."""
+    return every > 0 and ((step - warmup) % every == 0 or step == last_step)
+
+
+def static_fraction(static: object, n: int) -> Optional[float]:
+    """Share of the `n` Gaussians that the mask `static` [n] marks static; None when there is no
+    classification of these `n` Gaussians (none made yet, or one made for another count)."""
+    if not isinstance(static, Tensor) or static.shape[0] != n or static.numel() == 0:
+        return None
+    return float(static.float().mean())

@@ -192,26 +192,20 @@ def test_real_preset_defaults():
 
 
 def test_time_noise_is_annealed_and_off_by_default():
+    from garo_ns.deformation import time_noise
     from garo_ns.garo_model import GaroModelConfig
 
     assert GaroModelConfig().time_noise == 0.0
+    config = GaroModelConfig(time_noise=0.1, time_noise_steps=1000)
+    frames = 50
 
-    class Stub:
-        config = GaroModelConfig(time_noise=0.1, time_noise_steps=1000)
-        train_times = torch.linspace(0, 1, 50)
-        step = 0
-        training = True
-
-    from garo_ns.garo_model import GaroModel
+    def draw(step: int, training: bool = True) -> float:
+        return time_noise(config.time_noise, config.time_noise_steps, step, frames, training)
 
     torch.manual_seed(0)
-    stub = Stub()
-    draws = torch.tensor([GaroModel.time_noise(stub) for _ in range(4000)])
+    draws = torch.tensor([draw(0) for _ in range(4000)])
     assert draws.std() == pytest.approx(0.1 / 50, rel=0.05)
-    stub.step = 500
-    half = torch.tensor([GaroModel.time_noise(stub) for _ in range(4000)])
+    half = torch.tensor([draw(500) for _ in range(4000)])
     assert half.std() == pytest.approx(0.05 / 50, rel=0.05)
-    stub.step = 1000
-    assert GaroModel.time_noise(stub) == 0.0
-    stub.step, stub.training = 0, False
-    assert GaroModel.time_noise(stub) == 0.0  # renders outside training are never perturbed
+    assert draw(1000) == 0.0
+    assert draw(0, training=False) == 0.0  # renders outside training are never perturbed

@@ -8,10 +8,16 @@ and one backward per view give every Gaussian's contribution, on either backend.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Callable, Iterable, Union
+
 import torch
 from torch import Tensor
 
 from garo_ns.render.backend import Backend, rasterize
+from garo_ns.render.view import RenderView
+
+if TYPE_CHECKING:
+    from garo_ns.render.frame import Splats
 
 
 def view_contribution(
@@ -52,3 +58,20 @@ def view_contribution(
     if grad is None:
         return torch.zeros(means.shape[0], device=means.device)
     return torch.nan_to_num(grad[:, 0].detach().float(), nan=0.0, posinf=0.0, neginf=0.0)
+
+
+@torch.no_grad()
+def summed_contribution(
+    views: Iterable[RenderView],
+    gaussians_at: Callable[[float], "Splats"],
+    n: int,
+    device: Union[str, torch.device],
+    backend: Backend = "auto",
+) -> Tensor:
+    """Each of the `n` Gaussians' blending weight summed over `views` [n], every view rendering the
+    Gaussians at its own time (`gaussians_at`)."""
+    total = torch.zeros(n, device=device)
+    for view in views:
+        gaussians = gaussians_at(view.time)[:4]  # means, quats, scales, opacities
+        total += view_contribution(*gaussians, view.viewmat, view.K, view.width, view.height, backend)
+    return total

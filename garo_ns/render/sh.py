@@ -25,6 +25,11 @@ def num_sh_bases(degree: int) -> int:
     return (degree + 1) ** 2
 
 
+def rgb_to_dc(rgb: Tensor) -> Tensor:
+    """The degree-0 coefficient that renders colour `rgb` (in [0, 1]) from every direction."""
+    return (rgb - 0.5) / _C0
+
+
 def sh_bases(degree: int, dirs: Tensor) -> Tensor:
     """Evaluate the basis functions at unit directions.
 

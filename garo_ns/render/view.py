@@ -1,13 +1,16 @@
-"""Cameras: gsplat's world-to-camera convention, one view prepared for the rasterizer, and the scene extent
-that a set of cameras implies."""
+"""Cameras: gsplat's world-to-camera convention, one view prepared for the rasterizer (from a nerfstudio
+camera), and the scene extent that a set of cameras implies."""
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple, Optional, Union
 
 import numpy as np
 import torch
 from torch import Tensor
+
+if TYPE_CHECKING:
+    from nerfstudio.cameras.cameras import Cameras
 
 
 def viewmat_from_c2w(c2w: Tensor) -> Tensor:
@@ -31,6 +34,23 @@ class RenderView(NamedTuple):
     width: int
     height: int
     time: float
+
+
+def camera_time(camera: "Cameras") -> Optional[float]:
+    """The time in [0, 1] that `camera` (one) carries, or None when it carries none."""
+    return None if camera.times is None else float(camera.times.reshape(-1)[0])
+
+
+def camera_view(
+    camera: "Cameras", c2w: Tensor, downscale: float, device: Union[str, torch.device], time: float
+) -> RenderView:
+    """`camera` (one) as the rasterizer takes it: posed by `c2w` [1, 3, 4] (its own pose, or one the
+    camera optimizer corrected), its image `downscale`d, on `device`, at `time`."""
+    camera.rescale_output_resolution(1 / downscale)
+    K = camera.get_intrinsics_matrices().to(device)
+    width, height = int(camera.width.item()), int(camera.height.item())
+    camera.rescale_output_resolution(downscale)  # the camera is the caller's: leave it as it was
+    return RenderView(viewmat_from_c2w(c2w.to(device)), K, width, height, time)
 
 
 def camera_extent(c2w: np.ndarray) -> float:
