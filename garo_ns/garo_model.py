@@ -15,7 +15,7 @@ and optimizers stay bound to the loaded Gaussians.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Dict, List, Literal, Optional, Tuple, Type, Union
 
 import torch
@@ -38,7 +38,7 @@ from garo_ns.errors import GaroTrainingError
 from garo_ns.garo_strategy import TRANSIENT_STATE, GaroStrategy
 from garo_ns.initialisation import initial_gaussians
 from garo_ns.metrics import make_lpips
-from garo_ns.render.backend import Backend
+from garo_ns.render.backend import Backend, resolve_backend
 from garo_ns.render.contribution import summed_contribution
 from garo_ns.render.frame import (
     Canonical,
@@ -50,6 +50,7 @@ from garo_ns.render.frame import (
     compose,
     render_splats,
 )
+from garo_ns.render.switches import DEFAULT_BOUND_DB, measure_on_views, replay, resolve
 from garo_ns.render.view import RenderView, camera_extent, camera_time, camera_view
 from garo_ns.static import classification_due, classify, sample_times, static_fraction
 
@@ -141,8 +142,12 @@ class GaroModelConfig(SplatfactoModelConfig):
     rasterizer: Backend = "auto"
     """'cuda' (gsplat kernels), 'reference' (pure torch), or 'auto': cuda when it can run."""
 
-    # --- render-time speed: each a switch, each measured by the benchmark ---
-    static_skip: bool = False
+    # --- render-time speed: each a switch, each measured by the benchmark. None (the default) leaves a
+    # switch to garo_ns.render.switches: off in a training run (and for a viewer attached to it); for a
+    # finished model, the exact ones (cuda_graph, lean_raster) on where CUDA runs, static_skip and a lower
+    # render_precision on when their PSNR loss on training views, measured at the end of training, is
+    # within switch_bound_db. A value set here is used as set. ---
+    static_skip: Optional[bool] = None
     """When not training, Gaussians classified static skip the MLP; their offsets are frozen at
     their time average (the classification itself always runs during training; it is cheap)."""
     static_threshold: float = 2.5e-4
@@ -154,7 +159,7 @@ class GaroModelConfig(SplatfactoModelConfig):
     the last step; a Gaussian that starts moving becomes dynamic again."""
     static_times: int = 32
     """Training times sampled for the static classification (evenly spread over the dataset's times)."""
-    render_precision: RenderPrecision = "fp32"
+    render_precision: Optional[RenderPrecision] = None
     """Precision of the deformation MLP when not training: fp32, tf32 (CUDA tensor cores), bf16, or fp16
     (CUDA: half weights with fp32 accumulation, each Gaussian's position part of the first and skip
     layers cached; garo_ns.render.half_field). Offsets differ from fp32 by at most about 2e-4 of the scene
@@ -163,15 +168,18 @@ class GaroModelConfig(SplatfactoModelConfig):
     cache_deformation: bool = True
     """When not training, reuse the deformed Gaussians if the same time is rendered again and no
     parameter changed (the viewer re-renders one time for every camera move). Exact."""
-    cuda_graph: bool = False
+    cuda_graph: Optional[bool] = None
     """When not training on CUDA, run everything between the time and the rasterizer (MLP,
     composition, activations) as one captured CUDA graph instead of dozens of kernel launches;
     captured again when the Gaussians or the render switches change. Same arithmetic as without.
     With `lean_raster` too, the camera's share (projection, view directions, visibility) is a
     second graph, fed the camera's matrices."""
-    lean_raster: bool = False
+    lean_raster: Optional[bool] = None
     """When not training on CUDA, call gsplat's kernels directly instead of its general Python
     wrapper (garo_ns.render.backend.rasterize_lean): same kernels and pixels, less Python per frame."""
+    switch_bound_db: float = DEFAULT_BOUND_DB
+    """Largest PSNR loss, on any training view measured at the end of training, with which an
+    approximate switch left to None is turned on for a finished model."""
     prune_contribution_ratio: float = 0.0
     """Expert knob: at each of `prune_contribution_steps`, prune this fixed fraction of the Gaussians
     with the smallest summed blending weight over the training views (0: off). The same share for
@@ -315,7 +323,9 @@ class GaroModel(SplatfactoModel):
         self.register_buffer("background_rgb", background.clone().float())
         self._extent_from_data = cfg.scene_extent is None and "camera_extent" in metadata
         self.strategy = cfg.make_strategy()
-        self.compaction_guard: Optional[TrainingViewGuard] = None
+        self.compaction_guard: Optional[TrainingViewGuard] = None  # training views (compaction, switches)
+        self.training_run = False  # set when the model gets training callbacks
+        self.switch_record: Optional[Dict[str, Any]] = None  # what each approximate switch cost
         self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene_extent)
         self.train_times: Optional[Tensor] = None
         self.train_cameras: Optional[Cameras] = None
@@ -354,15 +364,17 @@ class GaroModel(SplatfactoModel):
         if self.config.scene_extent is None and not self._extent_from_data:
             self.scene_extent = camera_extent(outputs.cameras.camera_to_worlds.detach().cpu().numpy())
             self.strategy_state["scene_scale"] = self.scene_extent
-        if self.strategy.compaction is not None:  # the guard's views, from the training split only
-            views = self.config.compact_guard_views
-            self.compaction_guard = TrainingViewGuard.from_datamanager(pipeline.datamanager, views)
+        # Training views (the training split only) for compaction's guard and the render switches' measurement.
+        self.compaction_guard = TrainingViewGuard.from_datamanager(
+            pipeline.datamanager, self.config.compact_guard_views
+        )
 
     # ------------------------------------------------------------------ training callbacks
     def get_training_callbacks(
         self, training_callback_attributes: TrainingCallbackAttributes
     ) -> List[TrainingCallback]:
         attributes = training_callback_attributes
+        self.training_run = True
         self.adopt_training_data(attributes.pipeline)
         if attributes.trainer is not None:
             self._last_step = int(attributes.trainer.config.max_num_iterations) - 1
@@ -399,6 +411,8 @@ class GaroModel(SplatfactoModel):
             if fraction is not None:
                 writer.put_scalar("garo/static_fraction", fraction, step)
         self.check_health(step)
+        if step == self._last_step and self.compaction_guard is not None and self.deformation_active():
+            self.record_switches(step)
 
     def check_health(self, step: int) -> None:
         """Every `health_every` steps after the warm-up, measure whether the deformation field
@@ -434,9 +448,53 @@ class GaroModel(SplatfactoModel):
             frames = len(self.train_times) if self.train_times is not None else 1
             time = time + time_noise(cfg.time_noise, cfg.time_noise_steps, self.step, frames, self.training)
             return activate(canonical, compose(self.deformation, canonical, time))
-        settings = FrameSettings(**{k: getattr(cfg, k) for k in FrameSettings.__dataclass_fields__})  # type: ignore[arg-type]
         state = self.strategy_state
+        settings = self.render_settings()
         return self.frame.splats(self.deformation, canonical, state["static"], state["static_offset"], time, settings)
+
+    def render_settings(self) -> FrameSettings:
+        """The render switches outside training: the config's, those left to None decided by
+        garo_ns.render.switches (from the losses recorded at the end of training)."""
+        requested = {k: getattr(self.config, k) for k in FrameSettings.__dataclass_fields__}
+        cuda = resolve_backend(self.config.rasterizer, self.device) == "cuda"
+        record = self.switch_record
+        measure = replay(record["tried"]) if record else None
+        return resolve(requested, self.training_run, cuda, measure, bound_db=self.config.switch_bound_db)[0]
+
+    @torch.no_grad()
+    def record_switches(self, step: int) -> None:
+        """Measure on the training views what each approximate render switch costs against the plain
+        render (exact switches off: they change no pixel), and keep it for the finished model."""
+        guard, state = self.compaction_guard, self.strategy_state
+        assert guard is not None
+        was_training = self.training
+        self.eval()  # no time noise
+        try:
+            background = self.background_color.to(self.device)
+            degree = min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
+
+            def render(i: int, trial: Optional[FrameSettings]) -> Tensor:
+                view = self.camera_view(guard.cameras[guard.indices[i] : guard.indices[i] + 1].to(self.device))
+                if trial is None:
+                    splats = self.gaussians_at(view.time, exact=True)
+                else:
+                    trial = replace(trial, cuda_graph=False, lean_raster=False, cache_deformation=False)
+                    splats = self.frame.splats(
+                        self.deformation, self.canonical(), state["static"], state["static_offset"], view.time, trial
+                    )
+                rgb, alpha, _ = render_splats(splats, view, degree, None, "RGB", self.config.rasterizer)
+                return (rgb[0, ..., :3] + (1 - alpha[0]) * background).clamp(0, 1)
+
+            targets = [self.composite_with_background(self.get_gt_img(im), background) for im in guard.images]
+            requested = {k: getattr(self.config, k) for k in FrameSettings.__dataclass_fields__}
+            cuda = resolve_backend(self.config.rasterizer, self.device) == "cuda"
+            measure = measure_on_views(render, targets)
+            settings, tried = resolve(requested, False, cuda, measure, bound_db=self.config.switch_bound_db)
+        finally:
+            self.train(was_training)
+        self.switch_record = {"step": step, "views": len(targets), "tried": tried}
+        losses = ", ".join(f"{k} {v:.4f} dB" for k, v in tried.items()) or "none left to the plugin"
+        CONSOLE.print(f"Render switches on {len(targets)} training views (PSNR loss against plain): {losses}")
 
     # ------------------------------------------------------------------ static classification
     def static_fraction(self) -> Optional[float]:
@@ -489,7 +547,8 @@ class GaroModel(SplatfactoModel):
         backend: Backend = self.config.rasterizer
         if self.training:
             return render_splats(splats, view, degree, backgrounds, render_mode, backend)
-        return self.frame.rasterize(splats, view, degree, backgrounds, render_mode, backend, self.config.lean_raster)
+        lean = bool(self.render_settings().lean_raster)
+        return self.frame.rasterize(splats, view, degree, backgrounds, render_mode, backend, lean)
 
     def get_outputs(self, camera: Cameras) -> Dict[str, Union[Tensor, List]]:
         if not isinstance(camera, Cameras):
@@ -572,7 +631,9 @@ class GaroModel(SplatfactoModel):
     def get_extra_state(self) -> Dict[str, Any]:
         """The densification strategy's running state (the compaction's summary too, not its undo copy)
         travels with the checkpoint."""
-        return {"strategy_state": {k: v for k, v in self.strategy_state.items() if k not in TRANSIENT_STATE}}
+        state = {k: v for k, v in self.strategy_state.items() if k not in TRANSIENT_STATE}
+        return {"strategy_state": state, "render_switches": self.switch_record}
 
     def set_extra_state(self, state: Dict[str, Any]) -> None:
         checkpoints.restore_strategy_state(self.strategy_state, (state or {}).get("strategy_state") or {}, self.device)
+        self.switch_record = (state or {}).get("render_switches")

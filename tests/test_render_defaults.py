@@ -1,0 +1,82 @@
+"""A finished model renders with the switches its training measured; a training model renders plain."""
+
+import math
+from typing import Any, Dict
+
+import pytest
+import torch
+
+from garo_ns.render.frame import FrameSettings
+
+
+def train_short(scene: Any, out: Any) -> Dict[str, Any]:
+    from garo_ns.tools.train import QuickSchedule, make_config, seed_everything
+
+    config = make_config(
+        "garo-deform",
+        scene,
+        out,
+        schedule=QuickSchedule(
+            steps=60, num_random=600, deform_width=16, deform_depth=2, deform_skip=0, extra={"sh_degree": 1}
+        ),
+        experiment_name="switches",
+    )
+    config.pipeline.model.rasterizer = "reference"
+    config.pipeline.model.compact_guard_views = 3
+    config.set_timestamp()
+    seed_everything(config.machine.seed)
+    config.save_config()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    trainer.train()
+    return {"trainer": trainer, "config": config}
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    from garo_ns.tools.scene import SceneSpec, generate_scene
+
+    scene = generate_scene(tmp_path_factory.mktemp("scene"), SceneSpec(resolution=24, n_train=8, n_val=2, n_test=2))
+    return train_short(scene, tmp_path_factory.mktemp("runs"))
+
+
+@pytest.mark.slow
+def test_training_measures_the_switches_and_its_own_renders_stay_plain(trained):
+    model = trained["trainer"].pipeline.model
+    record = model.switch_record
+    assert record is not None and record["views"] == 3 and record["step"] == 59
+    # On a CPU only the static skip is measured (no CUDA precision), as a finite loss.
+    assert set(record["tried"]) == {"static_skip"} and math.isfinite(record["tried"]["static_skip"])
+    assert model.training_run
+    assert model.render_settings() == FrameSettings()  # a viewer attached to training sees what trains
+
+
+@pytest.mark.slow
+def test_a_loaded_model_follows_the_record_and_flags_override(trained):
+    from garo_ns.tools.eval import load_run
+
+    config_path = trained["config"].get_base_dir() / "config.yml"
+    _, pipeline, _, _ = load_run(config_path)
+    model = pipeline.model
+    assert not model.training_run
+    assert model.switch_record == trained["trainer"].pipeline.model.switch_record  # through the checkpoint
+    loss = model.switch_record["tried"]["static_skip"]
+    settings = model.render_settings()
+    assert settings.static_skip == (loss <= model.config.switch_bound_db)
+    assert not settings.cuda_graph and not settings.lean_raster and settings.render_precision == "fp32"  # CPU
+    # The bound decides: a looser one turns the skip on, a stricter one off.
+    model.config.switch_bound_db = max(loss, 0.0) + 1.0
+    assert model.render_settings().static_skip
+    model.switch_record = {**model.switch_record, "tried": {"static_skip": 2.0}}
+    model.config.switch_bound_db = 1.0
+    assert not model.render_settings().static_skip
+    # A flag set by the user wins over the record.
+    model.config.switch_bound_db = 5.0
+    model.config.static_skip = False
+    assert not model.render_settings().static_skip
+    # Rendering a test camera goes through the decided switches without error.
+    model.config.static_skip = None
+    camera = pipeline.datamanager.train_dataset.cameras[0:1].to(model.device)
+    with torch.no_grad():
+        out = model.get_outputs(camera)
+    assert torch.isfinite(out["rgb"]).all()
