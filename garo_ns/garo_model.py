@@ -412,7 +412,10 @@ class GaroModel(SplatfactoModel):
                 writer.put_scalar("garo/static_fraction", fraction, step)
         self.check_health(step)
         if step == self._last_step and self.compaction_guard is not None and self.deformation_active():
-            self.record_switches(step)
+            try:
+                self.record_switches(step)
+            except Exception as err:  # a measurement must never cost the run its final checkpoint
+                CONSOLE.print(f"[yellow]Render switches not measured ({err}); they stay off unless set[/yellow]")
 
     def check_health(self, step: int) -> None:
         """Every `health_every` steps after the warm-up, measure whether the deformation field
