@@ -326,6 +326,7 @@ class GaroModel(SplatfactoModel):
         self.compaction_guard: Optional[TrainingViewGuard] = None  # training views (compaction, switches)
         self.training_run = False  # set when the model gets training callbacks
         self.switch_record: Optional[Dict[str, Any]] = None  # what each approximate switch cost
+        self._switch_cache: Optional[Tuple[Any, Any, FrameSettings]] = None
         self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene_extent)
         self.train_times: Optional[Tensor] = None
         self.train_cameras: Optional[Cameras] = None
@@ -459,10 +460,16 @@ class GaroModel(SplatfactoModel):
         """The render switches outside training: the config's, those left to None decided by
         garo_ns.render.switches (from the losses recorded at the end of training)."""
         requested = {k: getattr(self.config, k) for k in FrameSettings.__dataclass_fields__}
+        record, bound = self.switch_record, self.config.switch_bound_db
+        key = (tuple(requested.values()), self.training_run, bound, self.device.type)
+        cached = self._switch_cache
+        if cached is not None and cached[0] == key and cached[1] is record:  # twice a frame: decide once
+            return cached[2]
         cuda = resolve_backend(self.config.rasterizer, self.device) == "cuda"
-        record = self.switch_record
         measure = replay(record["tried"]) if record else None
-        return resolve(requested, self.training_run, cuda, measure, bound_db=self.config.switch_bound_db)[0]
+        settings = resolve(requested, self.training_run, cuda, measure, bound_db=bound)[0]
+        self._switch_cache = (key, record, settings)
+        return settings
 
     @torch.no_grad()
     def record_switches(self, step: int) -> None:
