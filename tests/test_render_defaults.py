@@ -10,7 +10,7 @@ from garo_ns.render.frame import FrameSettings
 
 
 def train_short(scene: Any, out: Any) -> Dict[str, Any]:
-    from garo_ns.tools.train import QuickSchedule, make_config, seed_everything
+    from garo_ns.tools.train import QuickSchedule, make_config, train
 
     config = make_config(
         "garo-deform",
@@ -23,13 +23,7 @@ def train_short(scene: Any, out: Any) -> Dict[str, Any]:
     )
     config.pipeline.model.rasterizer = "reference"
     config.pipeline.model.compact_guard_views = 3
-    config.set_timestamp()
-    seed_everything(config.machine.seed)
-    config.save_config()
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
-    trainer.train()
-    return {"trainer": trainer, "config": config}
+    return {"trainer": train(config), "config": config}
 
 
 @pytest.fixture(scope="module")

@@ -19,7 +19,7 @@ from torch import Tensor
 
 from garo_ns.deformation import DeformationField, Precision, precision
 from garo_ns.render.backend import Backend, lean_front, rasterize
-from garo_ns.render.graphs import InputGraph, TimeGraph, graphs_available
+from garo_ns.render.graphs import InputGraph, TimeGraph, graphs_available, versions
 from garo_ns.render.half_field import HalfField
 from garo_ns.render.view import RenderView
 
@@ -87,12 +87,6 @@ def activate(canonical: Canonical, deformed: Deformed) -> Splats:
     means, quats, log_scales = deformed
     colors = torch.cat([canonical.features_dc[:, None, :], canonical.features_rest], dim=1)
     return Splats(means, quats, torch.exp(log_scales), torch.sigmoid(canonical.opacities).squeeze(-1), colors)
-
-
-def versions(tensors: Any) -> Tuple[Any, ...]:
-    """Identity, in-place version and storage of each tensor: changes whenever any of them does
-    (the storage pointer too, since assigning `.data` on checkpoint loading keeps the other two)."""
-    return tuple((id(t), t._version, t.data_ptr()) for t in tensors)
 
 
 class FramePath:

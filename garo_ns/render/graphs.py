@@ -125,3 +125,10 @@ def capture(
 def graphs_available(device: torch.device) -> bool:
     """CUDA graphs need a CUDA device; elsewhere the same function runs eagerly."""
     return torch.device(device).type == "cuda" and torch.cuda.is_available()
+
+
+def versions(tensors: Any) -> Tuple[Any, ...]:
+    """Identity, in-place version and storage of each tensor: changes whenever any of them does
+    (the storage pointer too, since assigning `.data` on checkpoint loading keeps the other two).
+    The key of every render-time cache and graph."""
+    return tuple((id(t), t._version, t.data_ptr()) for t in tensors)

@@ -29,6 +29,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from garo_ns.deformation import DeformationField, positional_encoding
+from garo_ns.render.graphs import versions
 
 Offsets = Tuple[Tensor, Tensor, Tensor]  # d_xyz [N, 3], d_rot [N, 4], d_log_scale [N, 3]
 
@@ -143,11 +144,6 @@ def fp32_accumulation() -> Iterator[None]:
         torch.backends.cuda.matmul.allow_fp16_reduced_precision_reduction = previous
 
 
-def parameter_versions(field: DeformationField) -> Tuple[Any, ...]:
-    """Identity, in-place version and storage of every weight: changes whenever any weight does."""
-    return tuple((id(p), p._version, p.data_ptr()) for p in field.parameters())
-
-
 class HalfField:
     """Render-time offsets of a `DeformationField`: weights in `dtype` (half by default), the position
     parts cached per Gaussian. Holds the copies and the cache of one field and one set of Gaussians;
@@ -176,7 +172,7 @@ class HalfField:
         the versions of the parameters and whether it passes the dynamic Gaussians or all of them."""
         if torch.is_grad_enabled() and any(p.requires_grad for p in field.parameters()):
             raise RuntimeError("HalfField renders without gradients; training uses the fp32 field")
-        weights_key = (parameter_versions(field), xyz.device)
+        weights_key = (versions(field.parameters()), xyz.device)
         if self._weights is None or self._weights[0] != weights_key:
             self._weights = (weights_key, FieldWeights.of(field, self.dtype))
         cache_key = (points_key, weights_key, tuple(xyz.shape))
