@@ -440,11 +440,11 @@ class GaroModel(SplatfactoModel):
         """The parameters as stored (canonical geometry, log-scales, opacity logits, SH)."""
         return Canonical(self.means, self.quats, self.scales, self.opacities, self.features_dc, self.features_rest)
 
-    def gaussians_at(self, time: float, exact: bool = False) -> Splats:
+    def gaussians_at(self, time: float, exact: bool = False, settings: Optional[FrameSettings] = None) -> Splats:
         """The Gaussians at `time`, as the rasterizer takes them: the one way to get them (training,
         rendering, export, timing). Training: the D-3DGS composition in fp32 (with the time noise, if
         set). Otherwise the frame path with the render switches, or with `exact` the field as trained
-        (fp32, every Gaussian), whatever the switches."""
+        (fp32, every Gaussian), whatever the switches; `settings` replaces the config's switches."""
         cfg, canonical = self.config, self.canonical()
         if not self.deformation_active():
             return activate(canonical, (canonical.means, canonical.quats, canonical.log_scales))
@@ -453,7 +453,7 @@ class GaroModel(SplatfactoModel):
             time = time + time_noise(cfg.time_noise, cfg.time_noise_steps, self.step, frames, self.training)
             return activate(canonical, compose(self.deformation, canonical, time))
         state = self.strategy_state
-        settings = self.render_settings()
+        settings = self.render_settings() if settings is None else settings
         return self.frame.splats(self.deformation, canonical, state["static"], state["static_offset"], time, settings)
 
     def render_settings(self) -> FrameSettings:
@@ -465,41 +465,35 @@ class GaroModel(SplatfactoModel):
         cached = self._switch_cache
         if cached is not None and cached[0] == key and cached[1] is record:  # twice a frame: decide once
             return cached[2]
-        cuda = resolve_backend(self.config.rasterizer, self.device) == "cuda"
+        cuda = self.switch_inputs()[1]
         measure = replay(record["tried"]) if record else None
         settings = resolve(requested, self.training_run, cuda, measure, bound_db=bound)[0]
         self._switch_cache = (key, record, settings)
         return settings
 
+    def switch_inputs(self) -> Tuple[Dict[str, Any], bool]:
+        """The config's render switches (None: left to the plugin) and whether rendering runs on CUDA."""
+        requested = {k: getattr(self.config, k) for k in FrameSettings.__dataclass_fields__}
+        return requested, resolve_backend(self.config.rasterizer, self.device) == "cuda"
+
     @torch.no_grad()
     def record_switches(self, step: int) -> None:
         """Measure on the training views what each approximate render switch costs against the plain
         render (exact switches off: they change no pixel), and keep it for the finished model."""
-        guard, state = self.compaction_guard, self.strategy_state
+        guard = self.compaction_guard
         assert guard is not None
         was_training = self.training
         self.eval()  # no time noise
         try:
-            background = self.background_color.to(self.device)
-            degree = min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
 
             def render(i: int, trial: Optional[FrameSettings]) -> Tensor:
-                view = self.camera_view(guard.cameras[guard.indices[i] : guard.indices[i] + 1].to(self.device))
-                if trial is None:
-                    splats = self.gaussians_at(view.time, exact=True)
-                else:
-                    trial = replace(trial, cuda_graph=False, lean_raster=False, cache_deformation=False)
-                    splats = self.frame.splats(
-                        self.deformation, self.canonical(), state["static"], state["static_offset"], view.time, trial
-                    )
-                rgb, alpha, _ = render_splats(splats, view, degree, None, "RGB", self.config.rasterizer)
-                return (rgb[0, ..., :3] + (1 - alpha[0]) * background).clamp(0, 1)
+                switches = None if trial is None else replace(trial, cuda_graph=False, lean_raster=False)
+                return guard.render(self, i, switches)
 
-            targets = [self.composite_with_background(self.get_gt_img(im), background) for im in guard.images]
-            requested = {k: getattr(self.config, k) for k in FrameSettings.__dataclass_fields__}
-            cuda = resolve_backend(self.config.rasterizer, self.device) == "cuda"
+            targets = guard.targets(self)
+            requested, cuda = self.switch_inputs()
             measure = measure_on_views(render, targets)
-            settings, tried = resolve(requested, False, cuda, measure, bound_db=self.config.switch_bound_db)
+            tried = resolve(requested, False, cuda, measure, bound_db=self.config.switch_bound_db)[1]
         finally:
             self.train(was_training)
         self.switch_record = {"step": step, "views": len(targets), "tried": tried}

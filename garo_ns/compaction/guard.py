@@ -14,7 +14,7 @@ from typing import Any, List, Optional
 import torch
 from torch import Tensor
 
-from garo_ns.render.frame import render_splats
+from garo_ns.render.frame import FrameSettings, render_splats
 
 
 def spread_indices(times: Optional[Tensor], n_views: int, count: int) -> List[int]:
@@ -56,22 +56,27 @@ class TrainingViewGuard:
         images = [(cached[i] if cached is not None else dataset[i])["image"] for i in indices]
         return cls(cameras=cameras, images=images, indices=indices)
 
+    def render(self, model: Any, i: int, settings: Optional[FrameSettings] = None) -> Tensor:
+        """The guard's view `i` [H, W, 3] on the model's background, clamped: the trained field (fp32,
+        every Gaussian), or with `settings` the frame path with those switches. Call in eval mode."""
+        view = model.camera_view(self.cameras[self.indices[i] : self.indices[i] + 1].to(model.device))
+        splats = model.gaussians_at(view.time, exact=settings is None, settings=settings)
+        degree = min(model.step // model.config.sh_degree_interval, model.config.sh_degree)
+        render, alpha, _ = render_splats(splats, view, degree, None, "RGB", model.config.rasterizer)
+        return (render[0, ..., :3] + (1 - alpha[0]) * model.background_color.to(model.device)).clamp(0, 1)
+
+    def targets(self, model: Any) -> List[Tensor]:
+        """The views' ground truth on the model's background."""
+        background = model.background_color.to(model.device)
+        return [model.composite_with_background(model.get_gt_img(image), background) for image in self.images]
+
     @torch.no_grad()
     def psnr(self, model: Any) -> float:
         """Mean PSNR of `model` over the guard's views."""
         was_training = model.training
         model.eval()  # no time noise: the same Gaussians every time they are measured
         try:
-            background = model.background_color.to(model.device)
-            degree = min(model.step // model.config.sh_degree_interval, model.config.sh_degree)
-            values = []
-            for i, image in zip(self.indices, self.images):
-                view = model.camera_view(self.cameras[i : i + 1].to(model.device))
-                splats = model.gaussians_at(view.time, exact=True)
-                render, alpha, _ = render_splats(splats, view, degree, None, "RGB", model.config.rasterizer)
-                rgb = (render[0, ..., :3] + (1 - alpha[0]) * background).clamp(0, 1)
-                gt = model.composite_with_background(model.get_gt_img(image), background)
-                values.append(psnr(rgb, gt))
+            values = [psnr(self.render(model, i), gt) for i, gt in enumerate(self.targets(model))]
         finally:
             model.train(was_training)
         return sum(values) / len(values)
