@@ -73,20 +73,34 @@ class FusedConfig:
         return replace(self, block_n=min(self.block_n, width))
 
 
-# The default launch shape. Reasoning (not yet measured): block_m 64 with 8 warps gives two warpgroups that
-# split the 256 accumulator columns (64 fp32 registers a thread for the accumulator), leaving room for the
-# half input tile; block_n 64 with 2 stages keeps 128 KB of weight slices in shared memory (3 stages of 64
-# would not fit beside the input tile in the H100/H200's 227 KB). `autotune` measures the alternatives.
-DEFAULT_CONFIG = FusedConfig()
+# The default launch shape, chosen from the static resources of the recipe's kernel compiled for sm_90
+# (benchmarks/fused_kernel_resources.py; not yet timed on a GPU): 172 KB of shared memory (2 stages of two
+# 64-row weight slices, 128 KB, plus the half input tile), 242 registers a thread and no spills, the products as
+# wgmma. With 4 warps every config spills (the 64 x 256 fp32 accumulator alone is 128 registers a thread);
+# 8 warps split its columns over two warpgroups. `autotune` (benchmarks/deform_mlp.py, row fused_tuned) times
+# the alternatives below.
+DEFAULT_CONFIG = FusedConfig(block_m=64, block_n=64, num_warps=8, num_stages=2)
 
-# The alternatives `autotune` times (each must compile; one that does not is skipped with its error).
-TUNE_CONFIGS: Tuple[FusedConfig, ...] = tuple(
-    FusedConfig(m, n, w, s)
-    for m in (64, 128)
-    for n in (32, 64)
-    for w in (4, 8)
-    for s in (2, 3)
-    if not (m == 128 and w == 4)  # a 128 x 256 fp32 accumulator on 128 threads: 256 registers each
+# The alternatives `autotune` times, those that fit in an H100/H200's 227 KB of shared memory at the recipe's
+# width (static compile for sm_90, KB of shared memory / registers / spilled bytes):
+#   m64-n32-w4-s2   98 / 255 / 184     m64-n32-w8-s2  103 / 208 / 0     m128-n32-w8-s2  131 / 255 / 0
+#   m64-n32-w4-s3  131 / 255 / 204     m64-n32-w8-s3  140 / 213 / 0     m128-n32-w8-s3  164 / 255 / 0
+#   m64-n64-w4-s2  164 / 255 / 56      m64-n64-w8-s2  172 / 242 / 0     m128-n64-w8-s2  197 / 255 / 156
+#   m64-n64-w4-s3  230 / 255 / 28
+# (m64-n64-w8-s3 needs 246 KB, m128-n64-w8-s3 263 KB: they do not launch.) A block of 128 halves the weight
+# traffic from L2 per Gaussian (every program streams all 7 x 128 KB of weights), which may matter more than
+# its register pressure.
+TUNE_CONFIGS: Tuple[FusedConfig, ...] = (
+    FusedConfig(64, 32, 4, 2),
+    FusedConfig(64, 32, 4, 3),
+    FusedConfig(64, 64, 4, 2),
+    FusedConfig(64, 64, 4, 3),
+    FusedConfig(64, 32, 8, 2),
+    FusedConfig(64, 32, 8, 3),
+    DEFAULT_CONFIG,
+    FusedConfig(128, 32, 8, 2),
+    FusedConfig(128, 32, 8, 3),
+    FusedConfig(128, 64, 8, 2),
 )
 
 
