@@ -61,7 +61,8 @@ def consume(
     return tl.dot(p, w, acc)
 
 
-@triton.jit
+# `n` is not specialised (on n % 16 == 0, n == 1): one compiled kernel for every number of Gaussians.
+@triton.jit(do_not_specialize=["n"])
 def fused_field(
     first_ptr,
     skip_ptr,
