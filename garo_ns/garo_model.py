@@ -162,9 +162,11 @@ class GaroModelConfig(SplatfactoModelConfig):
     render_precision: Optional[RenderPrecision] = None
     """Precision of the deformation MLP when not training: fp32, tf32 (CUDA tensor cores), bf16, or fp16
     (CUDA: half weights with fp32 accumulation, each Gaussian's position part of the first and skip
-    layers cached; garo_ns.render.half_field). Offsets differ from fp32 by at most about 2e-4 of the scene
-    extent (tf32 alike, bf16 1.5e-3; benchmarks/deform_mlp.py); the bound checked on real scenes is a
-    rendered PSNR within 0.02 dB of fp32 on every view (the benchmark's `+half` rows)."""
+    layers cached; garo_ns.render.half_field), or fp16-fused (the same arithmetic as one Triton kernel that
+    keeps the activations on chip; garo_ns.render.fused_field; CUDA with Triton, elsewhere as fp16; never
+    chosen when left to None). Offsets differ from fp32 by at most about 2e-4 of the scene extent (tf32
+    alike, bf16 1.5e-3; benchmarks/deform_mlp.py); the bound checked on real scenes is a rendered PSNR
+    within 0.02 dB of fp32 on every view (the benchmark's `+half` and `+fused` rows)."""
     cache_deformation: bool = True
     """When not training, reuse the deformed Gaussians if the same time is rendered again and no
     parameter changed (the viewer re-renders one time for every camera move). Exact."""

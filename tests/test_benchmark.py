@@ -92,7 +92,7 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
         plain, half = variants[t + "+static+graph+tf32+lean"], variants[t + "+static+graph+tf32+lean+fp16"]
         assert half["model_size_mb"] < 0.6 * plain["model_size_mb"] and half["storage"].startswith("fp16")
         assert abs(half["psnr"] - plain["psnr"]) < 0.1  # rounding to half precision costs ~nothing
-        for row in ("+graph", "+lean", "+half"):  # no CUDA: the same eager fp32 path and reference rasterizer
+        for row in ("+graph", "+lean", "+half", "+graph+fused"):  # no CUDA: the eager fp32 path, reference raster
             assert variants[t + row]["psnr"] == variants[t]["psnr"]
             assert variants[t + row]["psnr_vs_plain"]["max_abs_db"] == 0.0
         assert "psnr_vs_plain" not in variants[t]  # the plain row is the reference

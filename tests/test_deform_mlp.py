@@ -31,7 +31,9 @@ BOUNDS = {
     "fp16_cached": 2e-3,
     "render_fp16": 2e-3,
 }
-CUDA_ONLY = ("tf32", "tf32_cached", "compile", "compile+graph") + tuple(f"{p}+graph" for p in BOUNDS)
+CUDA_ONLY = ("tf32", "tf32_cached", "compile", "compile+graph", "fused", "fused_tuned") + tuple(
+    f"{p}+graph" for p in BOUNDS
+)
 
 
 def tiny_field(time_net: int = 8, depth: int = 4, skip: int = 1) -> DeformationField:
@@ -80,6 +82,22 @@ def test_cached_forward_is_the_field(time_net: int, depth: int, skip: int) -> No
             ref = field(xyz, t)
             for got, want in zip(step(t), ref):
                 assert (got - want).abs().max() <= 1e-5 * max(1.0, float(want.abs().max()))
+
+
+def test_fused_path_under_the_interpreter(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The fused rows on a CPU: `fused` through Triton's interpreter (within fp16's bound, with its config and
+    cache), `fused_tuned` skipped with the reason (its autotune times CUDA kernels)."""
+    pytest.importorskip("triton")
+    monkeypatch.setenv("TRITON_INTERPRET", "1")
+    out = tmp_path / "deform_mlp_cpu.json"
+    dm.run(tiny_field(), "cpu", [130], args(fused_config="m64-n16-w4-s2"), output=out, paths=["fused", "fused_tuned"])
+    rows = json.loads(out.read_text())["results"]["130"]["paths"]
+    assert set(rows) >= {"fp32", "fused", "fused_tuned"}
+    fused = rows["fused"]
+    assert 0 < fused["relative_error"] <= BOUNDS["fp16_cached"] and fused["ms"] > 0
+    assert fused["config"] == "m64-n16-w4-s2" and fused["cache_mb"] > 0
+    assert rows["fused_tuned"]["skipped"].startswith("CUDA only")
+    assert rows["fused+graph"]["skipped"]
 
 
 def test_bf16_path_is_render_precision_bf16() -> None:

@@ -13,12 +13,13 @@ compaction under a training-view PSNR guard, at its default tolerance or the one
 A name may carry render-time switches after `+`: `+static`
 (static Gaussians skip the MLP), `+static4x` (the same with a 4x looser threshold), `+tf32` /
 `+bf16` (MLP precision), `+half` (`render_precision=fp16`: the half-precision field with each Gaussian's
-position part cached, garo_ns.render.half_field), `+graph` (everything before the rasterizer as one CUDA
+position part cached, garo_ns.render.half_field), `+fused` (`render_precision=fp16-fused`: the same arithmetic as
+one Triton kernel, garo_ns.render.fused_field), `+graph` (everything before the rasterizer as one CUDA
 graph), `+lean` (gsplat's kernels called directly), `+fp16` (parameters rounded to the compact
 half-precision file of garo_ns.storage; its size is the model size), e.g. `garo-deform+static+graph+tf32`;
 such variants reuse the training of the name before the first `+` and differ only at render time. Every
 such row records `psnr_vs_plain`: its PSNR minus the plain row's (the name before the first `+`), view by
-view (`+half`'s bound: within 0.02 dB on every view).
+view (`+half`'s and `+fused`'s bound: within 0.02 dB on every view).
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ RENDER_SWITCHES: Dict[str, Dict[str, Any]] = {
     "tf32": {"render_precision": "tf32"},
     "bf16": {"render_precision": "bf16"},
     "half": {"render_precision": "fp16"},
+    "fused": {"render_precision": "fp16-fused"},
     # A looser static threshold (4x the default): more Gaussians skip the MLP, at some error.
     "static4x": {"static_skip": True, "static_threshold_factor": 4.0},
     "graph": {"cuda_graph": True},
@@ -65,6 +67,8 @@ SPEED_ROWS = (
     "+half",
     "+graph+half",
     "+static+graph+half+lean",
+    "+graph+fused",
+    "+static+graph+fused+lean",
 )
 
 

@@ -174,15 +174,31 @@ class HalfField:
             raise RuntimeError("HalfField renders without gradients; training uses the fp32 field")
         weights_key = (versions(field.parameters()), xyz.device)
         if self._weights is None or self._weights[0] != weights_key:
-            self._weights = (weights_key, FieldWeights.of(field, self.dtype))
+            self._weights = None  # free the old copies first
+            self._weights = (weights_key, self.copy_weights(field))
         cache_key = (points_key, weights_key, tuple(xyz.shape))
         if self._cache is None or self._cache[0] != cache_key:
             self._cache = None  # free the old cache before building the new one
             self._cache = (cache_key, PositionCache.build(field, xyz, self.dtype))
             self.builds += 1
-        with fp32_accumulation():
-            out = cached_forward(self._weights[1], self._cache[1], time_features(field, time, xyz.device))
+        out = self.forward(field, self._weights[1], self._cache[1], time, xyz.device)
         return tuple(o.to(xyz.dtype) for o in out)  # type: ignore[return-value]
+
+    def copy_weights(self, field: DeformationField) -> Any:
+        """The weight copies `forward` runs with (rebuilt whenever a parameter of `field` changes)."""
+        return FieldWeights.of(field, self.dtype)
+
+    def forward(
+        self,
+        field: DeformationField,
+        weights: Any,
+        cache: PositionCache,
+        time: Union[float, Tensor],
+        device: torch.device,
+    ) -> Offsets:
+        """The offsets from the weight copies and the position cache at `time`."""
+        with fp32_accumulation():
+            return cached_forward(weights, cache, time_features(field, time, device))
 
     def cache_megabytes(self) -> float:
         """Memory held by the position cache (0 when there is none)."""
