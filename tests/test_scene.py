@@ -105,3 +105,14 @@ def test_motion_settings_turn_or_slide_the_box_and_fix_the_stripes():
     # The slide moves the box between times.
     moving = dict(box_turns=0.0, box_slide=0.6, ball_turns=0.0)
     assert np.abs(render_frame(box_only, 0.0, 48, **moving) - render_frame(box_only, 0.9, 48, **moving)).mean() > 0.01
+
+
+def test_parts_draw_single_objects_for_coverage_masks():
+    c2w = look_at_c2w(np.array([0.0, -4.0, 2.0]))
+    full = render_frame(c2w, 0.3, 32)
+    assert np.array_equal(full, render_frame(c2w, 0.3, 32, parts=("ground", "ball", "box")))
+    ball, box = (render_frame(c2w, 0.3, 32, parts=(p,))[..., 3] for p in ("ball", "box"))
+    assert 0 < ball.sum() and 0 < box.sum() and (ball <= full[..., 3] + 1e-12).all()
+    assert render_frame(c2w, 0.3, 32, parts=("ball", "box"))[..., 3].sum() < full[..., 3].sum()
+    with pytest.raises(ValueError, match="parts"):
+        render_frame(c2w, 0.3, 32, parts=("floor",))

@@ -26,6 +26,7 @@ BOX_HALF = 0.25
 BOX_CENTER_XY = (0.35, -0.55)
 CAMERA_RADIUS = 4.0
 CAMERA_ANGLE_X = 0.6911  # the field of view of the D-NeRF synthetic scenes
+PARTS = ("ground", "ball", "box")
 _LIGHT = np.array([0.4, 0.3, 0.85]) / np.linalg.norm([0.4, 0.3, 0.85])
 _AMBIENT = 0.35
 
@@ -180,9 +181,13 @@ def render_frame(
     box_turns: float = 0.5,
     box_slide: float = 0.0,
     ball_turns: float = 1.25,
+    parts: Sequence[str] = PARTS,
 ) -> np.ndarray:
     """RGBA float image [H, W, 4] of the scene at `time` seen from OpenGL pose `c2w` (the keywords as in
-    SceneSpec)."""
+    SceneSpec). `parts`: the objects drawn (of PARTS); the alpha of one object alone is its pixel coverage."""
+    unknown = set(parts) - set(PARTS)
+    if unknown or not parts:
+        raise ValueError(f"parts must name some of {PARTS}, got {tuple(parts)!r}")
     focal = 0.5 * resolution / math.tan(0.5 * CAMERA_ANGLE_X)
     s = supersample
     sub = (np.arange(resolution * s) + 0.5) / s  # sample positions in pixel units
@@ -192,11 +197,13 @@ def render_frame(
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     o = np.broadcast_to(c2w[:3, 3], d.shape)
 
-    hits = [
-        _hit_ground(o, d, checks_per_unit),
-        _hit_sphere(o, d, time, sphere_stripes, ball_turns),
-        _hit_box(o, d, time, box_turns, box_slide),
-    ]
+    hits = []
+    if "ground" in parts:
+        hits.append(_hit_ground(o, d, checks_per_unit))
+    if "ball" in parts:
+        hits.append(_hit_sphere(o, d, time, sphere_stripes, ball_turns))
+    if "box" in parts:
+        hits.append(_hit_box(o, d, time, box_turns, box_slide))
     ts = np.stack([h[0] for h in hits], 0)
     nearest = np.argmin(ts, 0)
     hit = np.isfinite(np.min(ts, 0))
@@ -366,9 +373,15 @@ def main() -> None:
         n_test: int = 8,
         seed: int = 0,
         layout: Literal["dnerf", "nerfds"] = "dnerf",
+        box_turns: float = SceneSpec.box_turns,
+        box_slide: float = SceneSpec.box_slide,
+        ball_turns: float = SceneSpec.ball_turns,
     ):
         """Write the built-in dynamic scene in the D-NeRF (default) or NeRF-DS / HyperNeRF layout."""
-        path = generate_scene(out_dir, SceneSpec(resolution, n_train, n_val, n_test, seed), layout)
+        spec = SceneSpec(
+            resolution, n_train, n_val, n_test, seed, box_turns=box_turns, box_slide=box_slide, ball_turns=ball_turns
+        )
+        path = generate_scene(out_dir, spec, layout)
         print(f"wrote scene to {path}")
 
     try:
