@@ -42,7 +42,7 @@ def test_demo_writes_side_by_side_figures_strip_and_plot(tmp_path, capfd):
     assert "Step" in out or "ETA" in out  # nerfstudio's progress lines were shown
 
 
-def test_demo_config_scales_rates_and_coarsens_the_scene(tmp_path):
+def test_demo_config_scales_rates_and_sets_the_scene(tmp_path):
     """The demo's settings reach the trainer config and the scene (no training)."""
     from garo_ns.config import optimizers
     from garo_ns.tools.demo import DemoArgs, scene_spec
@@ -54,6 +54,10 @@ def test_demo_config_scales_rates_and_coarsens_the_scene(tmp_path):
     assert spec.checks_per_unit * 2 * GROUND_HALF == pytest.approx(args.ground_squares)
     assert spec.sphere_stripes == args.sphere_stripes and spec.resolution == args.resolution
     assert SceneSpec().checks_per_unit == 4.0 and SceneSpec().sphere_stripes == 8  # the tests' scene unchanged
+    # The demo's motions are ones its schedule learns: the box slides without turning, the stripes stay.
+    assert (spec.box_turns, spec.box_slide, spec.ball_turns) == (args.box_turns, args.box_slide, args.ball_turns)
+    assert args.box_turns == 0 and args.box_slide > 0 and args.ball_turns == 0
+    assert (SceneSpec().box_turns, SceneSpec().box_slide, SceneSpec().ball_turns) == (0.5, 0.0, 1.25)
     schedule = DemoSchedule(
         steps=100, lr_scale={"means": 20.0, "features_dc": 4.0}, extra={"deform_head_init": "default"}
     )

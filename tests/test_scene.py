@@ -7,7 +7,15 @@ import json
 import numpy as np
 import pytest
 
-from garo_ns.tools.scene import SceneSpec, generate_scene, look_at_c2w, render_frame, sphere_center
+from garo_ns.tools.scene import (
+    BOX_CENTER_XY,
+    SceneSpec,
+    box_center,
+    generate_scene,
+    look_at_c2w,
+    render_frame,
+    sphere_center,
+)
 
 
 def test_deterministic_from_seed(tmp_path):
@@ -54,6 +62,10 @@ def test_loads_with_nerfstudio_dnerf_parser(tmp_path):
         ({"resolution": 12.5}, "resolution"),
         ({"checks_per_unit": 0.0}, "checks_per_unit"),
         ({"sphere_stripes": 3}, "sphere_stripes"),
+        ({"box_slide": -0.1}, "box_slide"),
+        ({"box_slide": 2.0}, "box_slide"),
+        ({"box_turns": float("nan")}, "box_turns"),
+        ({"ball_turns": "1"}, "ball_turns"),
     ],
 )
 def test_bad_arguments_name_the_argument(tmp_path, kwargs, name):
@@ -73,3 +85,34 @@ def test_coarser_textures_change_only_the_textures():
         return np.abs(np.diff(img[..., :3], axis=1)).sum()
 
     assert edges(coarse) < 0.7 * edges(fine)
+
+
+def test_motion_settings_turn_or_slide_the_box_and_fix_the_stripes():
+    """Defaults: the box turns in place and the stripes turn; the demo's motion: the box slides without
+    turning and the ball carries its stripes without turning them; the floor is the same in both."""
+    c2w = look_at_c2w(np.array([0.0, -4.0, 2.0]))
+    default = render_frame(c2w, 0.3, 48)
+    assert np.array_equal(default, render_frame(c2w, 0.3, 48, box_turns=0.5, box_slide=0.0, ball_turns=1.25))
+    assert np.allclose(box_center(0.0)[:2], BOX_CENTER_XY) and np.allclose(box_center(1.0)[:2], BOX_CENTER_XY)
+    slid = box_center(1.0, 0.6) - box_center(0.0, 0.6)
+    assert np.allclose(slid, [0.0, -0.6, 0.0])
+    assert np.allclose(box_center(0.5, 0.6)[:2], BOX_CENTER_XY)
+    # No turn, no slide: the box renders the same at every time.
+    still = dict(box_turns=0.0, box_slide=0.0, ball_turns=0.0)
+    box_only = look_at_c2w(np.array([1.5, -3.5, 1.5]), target=(*BOX_CENTER_XY, -0.35))
+    a, b = render_frame(box_only, 0.0, 48, **still), render_frame(box_only, 0.9, 48, **still)
+    assert np.array_equal(a[20:28, 20:28], b[20:28, 20:28])
+    # The slide moves the box between times.
+    moving = dict(box_turns=0.0, box_slide=0.6, ball_turns=0.0)
+    assert np.abs(render_frame(box_only, 0.0, 48, **moving) - render_frame(box_only, 0.9, 48, **moving)).mean() > 0.01
+
+
+def test_parts_draw_single_objects_for_coverage_masks():
+    c2w = look_at_c2w(np.array([0.0, -4.0, 2.0]))
+    full = render_frame(c2w, 0.3, 32)
+    assert np.array_equal(full, render_frame(c2w, 0.3, 32, parts=("ground", "ball", "box")))
+    ball, box = (render_frame(c2w, 0.3, 32, parts=(p,))[..., 3] for p in ("ball", "box"))
+    assert 0 < ball.sum() and 0 < box.sum() and (ball <= full[..., 3] + 1e-12).all()
+    assert render_frame(c2w, 0.3, 32, parts=("ball", "box"))[..., 3].sum() < full[..., 3].sum()
+    with pytest.raises(ValueError, match="parts"):
+        render_frame(c2w, 0.3, 32, parts=("floor",))

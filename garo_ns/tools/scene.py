@@ -2,7 +2,9 @@
 
 The scene has known geometry, so tests can reason about it: a flat checkered ground square
 (flat: GARO should find redundancy there), a striped sphere that travels and hops across it
-(curved and moving), and a box that spins about the vertical axis (flat faces, moving).
+(curved and moving; by default its stripes also spin about the vertical axis), and a box with
+differently coloured faces that by default spins about the vertical axis and may also slide
+(flat faces, moving). `SceneSpec` sets the textures and how far the box and the stripes turn.
 Nothing here uses a Gaussian renderer: images are analytic ray-primitive intersections with
 2x2 supersampling and Lambert shading, written as RGBA PNGs (transparent background).
 """
@@ -24,6 +26,7 @@ BOX_HALF = 0.25
 BOX_CENTER_XY = (0.35, -0.55)
 CAMERA_RADIUS = 4.0
 CAMERA_ANGLE_X = 0.6911  # the field of view of the D-NeRF synthetic scenes
+PARTS = ("ground", "ball", "box")
 _LIGHT = np.array([0.4, 0.3, 0.85]) / np.linalg.norm([0.4, 0.3, 0.85])
 _AMBIENT = 0.35
 
@@ -41,6 +44,13 @@ class SceneSpec:
     """Checker squares of the ground per scene unit (the ground is 2.4 units wide)."""
     sphere_stripes: int = 8
     """Meridian stripes around the sphere (an even number, so that the colours alternate)."""
+    box_turns: float = 0.5
+    """Turns of the box about the vertical axis over the sequence (its faces differ in colour)."""
+    box_slide: float = 0.0
+    """Scene units the box slides over the sequence, towards -y, centred on BOX_CENTER_XY."""
+    ball_turns: float = 1.25
+    """Turns of the ball's stripes about the vertical axis over the sequence (0: the stripes travel with
+    the ball without turning, a pure translation)."""
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad field."""
@@ -63,6 +73,12 @@ class SceneSpec:
             or self.sphere_stripes % 2
         ):
             raise ValueError(f"sphere_stripes must be an even int >= 2, got {self.sphere_stripes!r}")
+        for name in ("box_turns", "box_slide", "ball_turns"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
+                raise ValueError(f"{name} must be a finite number, got {value!r}")
+        if not 0 <= self.box_slide <= 1.0:
+            raise ValueError(f"box_slide must be in 0..1 (the box stays on the floor), got {self.box_slide!r}")
 
 
 def sphere_center(t: float) -> np.ndarray:
@@ -73,9 +89,15 @@ def sphere_center(t: float) -> np.ndarray:
     return np.array([x, y, z])
 
 
-def box_angle(t: float) -> float:
-    """Yaw of the box at time t: half a turn over the sequence."""
-    return math.pi * t
+def box_angle(t: float, turns: float = 0.5) -> float:
+    """Yaw of the box at time t: `turns` turns over the sequence (half a turn by default)."""
+    return 2 * math.pi * turns * t
+
+
+def box_center(t: float, slide: float = 0.0) -> np.ndarray:
+    """Centre of the box at time t: on the floor, `slide` scene units along -y over the sequence, centred on
+    BOX_CENTER_XY (away from the ball's path, which bends towards +y)."""
+    return np.array([BOX_CENTER_XY[0], BOX_CENTER_XY[1] + slide * (0.5 - t), GROUND_Z + BOX_HALF])
 
 
 def look_at_c2w(position: np.ndarray, target: Sequence[float] = (0.0, 0.0, -0.3)) -> np.ndarray:
@@ -102,7 +124,7 @@ def _hit_ground(o: np.ndarray, d: np.ndarray, checks: float = 4.0) -> Tuple[np.n
 
 
 def _hit_sphere(
-    o: np.ndarray, d: np.ndarray, time: float, stripes: int = 8
+    o: np.ndarray, d: np.ndarray, time: float, stripes: int = 8, turns: float = 1.25
 ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     c = sphere_center(time)
     oc = o - c
@@ -113,18 +135,20 @@ def _hit_sphere(
     ok = (disc >= 0) & (t > 1e-6)
     p = o + t[..., None] * d
     n = (p - c) / SPHERE_RADIUS
-    # Meridian stripes in a frame that rolls with the motion, so the texture moves too.
-    lon = np.arctan2(n[..., 1], n[..., 0]) + 2.5 * math.pi * time
+    # Meridian stripes in a frame that turns `turns` times over the sequence, so the texture moves too.
+    lon = np.arctan2(n[..., 1], n[..., 0]) + 2 * math.pi * turns * time
     stripe = (np.floor(lon / (2 * math.pi / stripes)) % 2)[..., None]
     albedo = np.where(stripe > 0, [0.9, 0.25, 0.2], [0.95, 0.8, 0.2])
     return np.where(ok, t, np.inf), albedo, n
 
 
-def _hit_box(o: np.ndarray, d: np.ndarray, time: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-    ang = box_angle(time)
+def _hit_box(
+    o: np.ndarray, d: np.ndarray, time: float, turns: float = 0.5, slide: float = 0.0
+) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    ang = box_angle(time, turns)
     ca, sa = math.cos(ang), math.sin(ang)
     rot = np.array([[ca, -sa, 0.0], [sa, ca, 0.0], [0.0, 0.0, 1.0]])  # box -> world
-    center = np.array([BOX_CENTER_XY[0], BOX_CENTER_XY[1], GROUND_Z + BOX_HALF])
+    center = box_center(time, slide)
     ol = (o - center) @ rot  # world -> box frame (rot is orthonormal)
     dl = d @ rot
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -154,8 +178,16 @@ def render_frame(
     supersample: int = 2,
     checks_per_unit: float = 4.0,
     sphere_stripes: int = 8,
+    box_turns: float = 0.5,
+    box_slide: float = 0.0,
+    ball_turns: float = 1.25,
+    parts: Sequence[str] = PARTS,
 ) -> np.ndarray:
-    """RGBA float image [H, W, 4] of the scene at `time` seen from OpenGL pose `c2w`."""
+    """RGBA float image [H, W, 4] of the scene at `time` seen from OpenGL pose `c2w` (the keywords as in
+    SceneSpec). `parts`: the objects drawn (of PARTS); the alpha of one object alone is its pixel coverage."""
+    unknown = set(parts) - set(PARTS)
+    if unknown or not parts:
+        raise ValueError(f"parts must name some of {PARTS}, got {tuple(parts)!r}")
     focal = 0.5 * resolution / math.tan(0.5 * CAMERA_ANGLE_X)
     s = supersample
     sub = (np.arange(resolution * s) + 0.5) / s  # sample positions in pixel units
@@ -165,7 +197,13 @@ def render_frame(
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     o = np.broadcast_to(c2w[:3, 3], d.shape)
 
-    hits = [_hit_ground(o, d, checks_per_unit), _hit_sphere(o, d, time, sphere_stripes), _hit_box(o, d, time)]
+    hits = []
+    if "ground" in parts:
+        hits.append(_hit_ground(o, d, checks_per_unit))
+    if "ball" in parts:
+        hits.append(_hit_sphere(o, d, time, sphere_stripes, ball_turns))
+    if "box" in parts:
+        hits.append(_hit_box(o, d, time, box_turns, box_slide))
     ts = np.stack([h[0] for h in hits], 0)
     nearest = np.argmin(ts, 0)
     hit = np.isfinite(np.min(ts, 0))
@@ -217,11 +255,14 @@ def _frames(spec: SceneSpec):
                 spec.resolution,
                 checks_per_unit=spec.checks_per_unit,
                 sphere_stripes=spec.sphere_stripes,
+                box_turns=spec.box_turns,
+                box_slide=spec.box_slide,
+                ball_turns=spec.ball_turns,
             )
             yield split, i, c2w, float(times[i]), image
 
 
-def surface_points(n: int = 2000, seed: int = 0) -> np.ndarray:
+def surface_points(n: int = 2000, seed: int = 0, box_slide: float = 0.0) -> np.ndarray:
     """Points on the scene's surfaces at time 0 [n, 3]: what a capture's points.npy would hold."""
     rng = np.random.default_rng(seed)
     n_ground, n_sphere = n // 2, n // 4
@@ -239,7 +280,7 @@ def surface_points(n: int = 2000, seed: int = 0) -> np.ndarray:
     box = rng.uniform(-BOX_HALF, BOX_HALF, (n_box, 3))
     axis = rng.integers(0, 3, n_box)
     box[np.arange(n_box), axis] = np.sign(rng.uniform(-1, 1, n_box)) * BOX_HALF
-    box = box + np.array([BOX_CENTER_XY[0], BOX_CENTER_XY[1], GROUND_Z + BOX_HALF])
+    box = box + box_center(0.0, box_slide)
     return np.concatenate([ground, sphere, box]).astype(np.float32)
 
 
@@ -316,7 +357,7 @@ def _write_nerfds(out: Path, spec: SceneSpec) -> Path:
     (out / "metadata.json").write_text(json.dumps(metadata, indent=2))
     scene = {"center": list(center), "scale": scale, "near": 0.1 / scale, "far": 10.0 / scale}
     (out / "scene.json").write_text(json.dumps(scene, indent=2))
-    np.save(out / "points.npy", surface_points(seed=spec.seed) / scale + center)
+    np.save(out / "points.npy", surface_points(seed=spec.seed, box_slide=spec.box_slide) / scale + center)
     return out
 
 
@@ -332,9 +373,15 @@ def main() -> None:
         n_test: int = 8,
         seed: int = 0,
         layout: Literal["dnerf", "nerfds"] = "dnerf",
+        box_turns: float = SceneSpec.box_turns,
+        box_slide: float = SceneSpec.box_slide,
+        ball_turns: float = SceneSpec.ball_turns,
     ):
         """Write the built-in dynamic scene in the D-NeRF (default) or NeRF-DS / HyperNeRF layout."""
-        path = generate_scene(out_dir, SceneSpec(resolution, n_train, n_val, n_test, seed), layout)
+        spec = SceneSpec(
+            resolution, n_train, n_val, n_test, seed, box_turns=box_turns, box_slide=box_slide, ball_turns=ball_turns
+        )
+        path = generate_scene(out_dir, spec, layout)
         print(f"wrote scene to {path}")
 
     try:
