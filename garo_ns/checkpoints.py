@@ -244,6 +244,19 @@ def has_time_net(state_dict: Dict[str, Any]) -> bool:
     return any(k.startswith("deformation.time_net.") for k in state_dict)
 
 
+def field_for(state_dict: Dict[str, Any], field: nn.Module, settings: Any) -> nn.Module:
+    """The deformation field the checkpoint's weights fit: `field`, or, for a checkpoint written before
+    the time network was part of the recipe, a field built without it (`settings.deform_time_net` set to
+    0), so the run renders as it was trained (an optimizer built earlier is not bound to the new field)."""
+    if getattr(field, "time_net", None) is None or has_time_net(state_dict):
+        return field
+    from nerfstudio.utils.rich_utils import CONSOLE
+
+    CONSOLE.print("[yellow]Checkpoint has no deformation time network: loading the field without it[/yellow]")
+    settings.deform_time_net = 0
+    return settings.make_deformation().to(next(field.parameters()).device)
+
+
 def restore_strategy_state(state: Dict[str, Any], saved: Dict[str, Any], device: Union[str, torch.device]) -> None:
     """Put the strategy state `saved` with a checkpoint back into `state`, tensors on `device`; only the
     keys that `state` has (a checkpoint's obsolete keys are dropped, keys it lacks keep their start value)."""

@@ -9,6 +9,7 @@ first passes the time encoding through a small network of its own (one hidden la
 from __future__ import annotations
 
 import contextlib
+from dataclasses import dataclass
 from typing import Dict, Iterator, List, Literal, Tuple
 
 import torch
@@ -211,3 +212,53 @@ def time_noise(strength: float, steps: int, step: int, frames: int, training: bo
         return 0.0
     std = strength * (1.0 - step / steps) / max(frames, 1)
     return float(torch.randn(()) * std)
+
+
+@dataclass
+class DeformationSettings:
+    """The deformation field's settings (D-3DGS's), part of the model config."""
+
+    deform_pos_freqs: int = 10
+    """Positional-encoding frequencies of the canonical position."""
+    deform_time_freqs: int = 6
+    """Positional-encoding frequencies of time: 6 for synthetic scenes, 10 for real captures."""
+    deform_depth: int = 8
+    """Hidden layers of the deformation MLP."""
+    deform_width: int = 256
+    """Width of the deformation MLP."""
+    deform_skip: int = 4
+    """The input is concatenated again after this hidden layer."""
+    deform_time_net: int = 30
+    """D-3DGS's time network for synthetic scenes (`--is_blender`): the time encoding passes through
+    a 256-unit hidden layer to this many features before the MLP. 0: the encoding goes in directly,
+    as D-3DGS does for real captures (the `-real` presets)."""
+    deform_warmup: int = 3000
+    """Static warm-up: the deformation field is used from this step on (D-3DGS warm_up)."""
+    deform_head_init: HeadInit = "default"
+    """Initial output heads of the MLP: PyTorch's default (as D-3DGS) or zero (identity at the
+    switch-on). Zero heads give every unit of the last hidden layer the same first updates; on lego
+    their last layer died wholesale in 1 of 5 runs, the field then modelled no motion
+    (benchmarks/results/deform_health_H200.json; 0 of 5 with the default)."""
+    health_every: int = 500
+    """Check every this many steps after the warm-up that the deformation field still models
+    motion (garo_ns.deformation.field_health): logged, with a warning when it has collapsed. 0: off."""
+    time_noise: float = 0.0
+    """Training only: the MLP's time input gets Gaussian noise of this many frame intervals (one
+    draw per step, shared by all Gaussians), decaying linearly to 0 at `time_noise_steps`. D-3DGS
+    uses 0.1 on real captures (its `ast_noise`) to smooth motion between sparse frames; 0: off."""
+    time_noise_steps: int = 20_000
+    """Step at which the time-input noise reaches 0."""
+    default_time: float = 0.0
+    """Time used for cameras that carry none (e.g. some viewer and render paths); warned once."""
+
+    def make_deformation(self) -> DeformationField:
+        """The deformation field these settings describe (untrained)."""
+        return DeformationField(
+            self.deform_pos_freqs,
+            self.deform_time_freqs,
+            self.deform_depth,
+            self.deform_width,
+            self.deform_skip,
+            head_init=self.deform_head_init,
+            time_net=self.deform_time_net,
+        )

@@ -356,6 +356,16 @@ class GaroStrategy(DefaultStrategy):
         return event
 
 
+def garo_scalars(state: Dict[str, Any], step: int) -> Dict[str, float]:
+    """What the GARO step of `step` did, as scalars to log (`garo/<count>`); empty when none ran."""
+    last = state.get("garo_last") or {}
+    if last.get("step") != step:
+        return {}
+    return {
+        f"garo/{key}": float(last[key]) for key in ("candidates", "redundant", "pruned", "seconds", "num_gaussians")
+    }
+
+
 def _copy(value: Any) -> Any:
     """A copy that shares no tensor storage with `value` (tensors cloned, containers rebuilt)."""
     if isinstance(value, Tensor):
@@ -382,3 +392,53 @@ def restrict_info(info: Dict[str, Any], keep: Tensor) -> Dict[str, Any]:
         if isinstance(info.get(key), Tensor) and info[key].shape[0] == keep.shape[0]:
             out[key] = info[key][keep]
     return out
+
+
+@dataclass
+class GaroSettings:
+    """GARO's settings and the expert pruning by contribution, part of the model config."""
+
+    garo_mode: Literal["off", "oaa", "gca", "full"] = "full"
+    """off: plain densification (the D-3DGS baseline); oaa: activity only (the paper's "w/o GCA");
+    gca: curvature only, every visible Gaussian a candidate (the paper's "w/o OAA"); full: activity
+    candidates filtered by curvature (the paper's method)."""
+    tau_activity: float = GaroStrategy.tau_activity
+    """Candidates are Gaussians whose mean view-space gradient norm is below this (the paper's)."""
+    n_max: int = GaroStrategy.n_max
+    """At most this many candidates (the least active) per GARO step (the paper's)."""
+    tau_curvature: float = GaroStrategy.tau_curvature
+    """Candidates whose curvature is below this are redundant (the paper's)."""
+    rho_max: float = GaroStrategy.rho_max
+    """At most floor(rho_max * N) Gaussians are pruned per GARO step (the paper's default)."""
+    k_neighbors: int = GaroStrategy.k_neighbors
+    """Neighbours for the curvature estimate (the paper's K)."""
+    garo_start: Optional[int] = None
+    """First step at which GARO may prune; None: the first refinement step (after `warmup_length`)."""
+    garo_stop: Optional[int] = None
+    """GARO prunes up to (not including) this step; None: `stop_split_at`, where densification ends."""
+    garo_every: Optional[int] = None
+    """GARO prunes every this many steps; None: `refine_every` (every densification step, as the paper)."""
+    garo_activity_window: Literal["training", "garo_step"] = GaroStrategy.activity_window
+    """training: g_i is the mean over every iteration of training in which Gaussian i was visible
+    (the paper's equation); garo_step: the mean since the previous GARO step only."""
+    prune_contribution_ratio: float = 0.0
+    """Expert knob: at each of `prune_contribution_steps`, prune this fixed fraction of the Gaussians
+    with the smallest summed blending weight over the training views (0: off). The same share for
+    every scene; `compact` chooses each scene's share from its training views instead."""
+    prune_contribution_steps: Tuple[int, ...] = (20000, 30000)
+    """Steps of the contribution pruning (after densification has ended, so the rest can adapt)."""
+
+    def garo_arguments(self) -> Dict[str, Any]:
+        """GaroStrategy's GARO arguments from these settings."""
+        return dict(
+            mode=self.garo_mode,
+            tau_activity=self.tau_activity,
+            n_max=self.n_max,
+            tau_curvature=self.tau_curvature,
+            rho_max=self.rho_max,
+            k_neighbors=self.k_neighbors,
+            garo_start_iter=self.garo_start,
+            garo_stop_iter=self.garo_stop,
+            garo_every=self.garo_every,
+            activity_window=self.garo_activity_window,
+        )

@@ -5,9 +5,10 @@ from __future__ import annotations
 import os
 import warnings
 from pathlib import Path
-from typing import Optional
+from typing import Dict, Optional, Tuple
 
 import torch
+from torch import Tensor
 
 ALEXNET_FILE = "alexnet-owt-7be5be79.pth"
 _warned = False
@@ -36,3 +37,22 @@ def make_lpips() -> Optional[torch.nn.Module]:
     from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
 
     return LearnedPerceptualImagePatchSimilarity(net_type="alex", normalize=True)
+
+
+def metric_modules() -> Tuple[torch.nn.Module, torch.nn.Module, Optional[torch.nn.Module]]:
+    """PSNR and SSIM as splatfacto scores them (data range 1), and LPIPS where `make_lpips` can."""
+    from nerfstudio.models.splatfacto import SSIM
+    from torchmetrics.image import PeakSignalNoiseRatio
+
+    return PeakSignalNoiseRatio(data_range=1.0), SSIM(data_range=1.0, size_average=True, channel=3), make_lpips()
+
+
+def image_metrics(
+    gt: Tensor, pred: Tensor, psnr: torch.nn.Module, ssim: torch.nn.Module, lpips: Optional[torch.nn.Module]
+) -> Dict[str, float]:
+    """PSNR, SSIM and (where available) LPIPS of one render `pred` against `gt`, both [H, W, 3]."""
+    gt_b, pred_b = torch.moveaxis(gt, -1, 0)[None], torch.moveaxis(pred, -1, 0)[None]
+    metrics = {"psnr": float(psnr(gt_b, pred_b).item()), "ssim": float(ssim(gt_b, pred_b))}
+    if lpips is not None:
+        metrics["lpips"] = float(lpips.to(pred.device)(gt_b.clamp(0, 1), pred_b.clamp(0, 1)))
+    return metrics

@@ -10,6 +10,7 @@ that starts to move becomes dynamic again at the next decision.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Callable, Optional, Tuple
 
 import torch
@@ -99,3 +100,19 @@ def static_fraction(static: object, n: int) -> Optional[float]:
     if not isinstance(static, Tensor) or static.shape[0] != n or static.numel() == 0:
         return None
     return float(static.float().mean())
+
+
+@dataclass
+class StaticSettings:
+    """How the static classification decides, part of the model config (rendering with it is the
+    `static_skip` render switch)."""
+
+    static_threshold: float = 2.5e-4
+    """Static: freezing its offsets at their time average moves no part of the Gaussian by more than
+    this fraction of the scene extent at any sampled training time (position deviation plus size
+    times rotation and scale deviations; on D-NeRF at 800 px, 2.5e-4 is about a third of a pixel)."""
+    static_every: int = 1000
+    """Re-decide which Gaussians are static every this many steps once the deformation is on, and at
+    the last step; a Gaussian that starts moving becomes dynamic again."""
+    static_times: int = 32
+    """Training times sampled for the static classification (evenly spread over the dataset's times)."""

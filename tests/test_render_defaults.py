@@ -37,7 +37,7 @@ def trained(tmp_path_factory):
 @pytest.mark.slow
 def test_training_measures_the_switches_and_its_own_renders_stay_plain(trained):
     model = trained["trainer"].pipeline.model
-    record = model.switch_record
+    record = model.switches.record
     assert record is not None and record["views"] == 3 and record["step"] == 59
     # On a CPU only the static skip is measured (no CUDA precision), as a finite loss.
     assert set(record["tried"]) == {"static_skip"} and math.isfinite(record["tried"]["static_skip"])
@@ -53,15 +53,15 @@ def test_a_loaded_model_follows_the_record_and_flags_override(trained):
     _, pipeline, _, _ = load_run(config_path)
     model = pipeline.model
     assert not model.training_run
-    assert model.switch_record == trained["trainer"].pipeline.model.switch_record  # through the checkpoint
-    loss = model.switch_record["tried"]["static_skip"]
+    assert model.switches.record == trained["trainer"].pipeline.model.switches.record  # through the checkpoint
+    loss = model.switches.record["tried"]["static_skip"]
     settings = model.render_settings()
     assert settings.static_skip == (loss <= model.config.switch_bound_db)
     assert not settings.cuda_graph and not settings.lean_raster and settings.render_precision == "fp32"  # CPU
     # The bound decides: a looser one turns the skip on, a stricter one off.
     model.config.switch_bound_db = max(loss, 0.0) + 1.0
     assert model.render_settings().static_skip
-    model.switch_record = {**model.switch_record, "tried": {"static_skip": 2.0}}
+    model.switches.record = {**model.switches.record, "tried": {"static_skip": 2.0}}
     model.config.switch_bound_db = 1.0
     assert not model.render_settings().static_skip
     # A flag set by the user wins over the record.

@@ -119,3 +119,33 @@ class Compaction:
 
 def _finite(value: Any) -> bool:
     return isinstance(value, (int, float)) and math.isfinite(value)
+
+
+@dataclass
+class CompactionSettings:
+    """Compaction after densification (garo-compact), part of the model config."""
+
+    compact: bool = False
+    """After densification, remove the least important Gaussians in rounds, with fine-tuning in between,
+    until a round costs more training-view PSNR than `compact_tolerance_db`: each scene gets the budget
+    its training views need. Each round is logged; the summary goes into checkpoints and garo-eval."""
+    compact_tolerance_db: float = Compaction.tolerance_db
+    """Training-view PSNR a removal may cost, in dB; a larger value gives a smaller, faster model."""
+    compact_start: Optional[int] = None
+    """Step of the first round; None: `stop_split_at`, where densification ends."""
+    compact_every: int = Compaction.every
+    """Steps of fine-tuning between rounds."""
+    compact_fraction: float = Compaction.fraction
+    """Share of the Gaussians a round removes (by blending weight over the training views x volume^beta)."""
+    compact_max_rounds: int = Compaction.max_rounds
+    """Most rounds of removal."""
+    compact_min_gaussians: int = Compaction.min_gaussians
+    """Compaction never leaves fewer Gaussians than this."""
+    compact_guard_views: int = Compaction.guard_views
+    """Training views the guard measures PSNR on (evenly spread over time; the eval split is never read)."""
+    compact_volume_beta: float = Compaction.volume_beta
+    """Exponent of the volume in the importance (LightGaussian's global significance; 0: weight alone)."""
+
+    def compaction(self) -> Compaction:
+        """The compaction settings of this config; raises GaroConfigError for one out of range."""
+        return Compaction(**{k: getattr(self, f"compact_{k}") for k in Compaction.__dataclass_fields__})

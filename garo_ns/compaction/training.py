@@ -1,4 +1,5 @@
-"""Compaction inside nerfstudio's training loop: the round of a step, run on the model and logged."""
+"""Compaction inside nerfstudio's training loop: the round of a step (and the fixed-ratio expert knob), run on
+the model and logged."""
 
 from __future__ import annotations
 
@@ -49,3 +50,18 @@ def run_round(model: Any, step: int, last_step: Optional[int]) -> Optional[Dict[
     if "stop" in event:
         CONSOLE.print(stop_line(model.strategy_state["compact"]))
     return event
+
+
+def fixed_ratio_round(model: Any, step: int) -> Optional[int]:
+    """The expert knob `prune_contribution_ratio`: at its steps, the strategy removes that fixed share of
+    the Gaussians with the least blending weight over the training views. Returns how many it removed."""
+    cfg = model.config
+    ratio = cfg.prune_contribution_ratio
+    if ratio <= 0 or step not in cfg.prune_contribution_steps or model.train_cameras is None:
+        return None
+    contribution = model.contribution(model.train_cameras)
+    n = model.strategy.prune_by_contribution(
+        model.gauss_params, model.optimizers, model.strategy_state, contribution, ratio
+    )
+    CONSOLE.print(f"step {step}: pruned {n} least contributing Gaussians, {model.num_points} left")
+    return n

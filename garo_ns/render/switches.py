@@ -12,13 +12,14 @@ trains. A switch set explicitly is used as set, in both cases.
 from __future__ import annotations
 
 import math
-from dataclasses import fields, replace
+from dataclasses import dataclass, fields, replace
 from typing import Any, Callable, Dict, Mapping, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
 
-from garo_ns.render.frame import FrameSettings
+from garo_ns.render.backend import Backend, resolve_backend
+from garo_ns.render.frame import FrameSettings, RenderPrecision
 
 EXACT = ("cuda_graph", "lean_raster")
 """Switches that change no pixel: on by default outside training wherever CUDA runs."""
@@ -115,3 +116,108 @@ def worst_psnr_loss(reference: Tensor, trial: Tensor, targets: Tensor) -> float:
     mse_ref = ((reference - targets) ** 2).mean(dim=dims).clamp_min(1e-12)
     mse_trial = ((trial - targets) ** 2).mean(dim=dims).clamp_min(1e-12)
     return float((10 * torch.log10(mse_trial / mse_ref)).max())
+
+
+@dataclass
+class RenderSettings:
+    """The rasterizer and the render-time speed switches, part of the model config. Each switch is
+    measured by the benchmark. None (the default) leaves a switch to `resolve`: off in a training run
+    (and for a viewer attached to it); for a finished model, the exact ones (cuda_graph, lean_raster)
+    on where CUDA runs, static_skip and a lower render_precision on when their PSNR loss on training
+    views, measured at the end of training, is within switch_bound_db. A value set is used as set."""
+
+    rasterizer: Backend = "auto"
+    """'cuda' (gsplat kernels), 'reference' (pure torch), or 'auto': cuda when it can run."""
+    static_skip: Optional[bool] = None
+    """When not training, Gaussians classified static skip the MLP; their offsets are frozen at
+    their time average (the classification itself always runs during training; it is cheap)."""
+    render_precision: Optional[RenderPrecision] = None
+    """Precision of the deformation MLP when not training: fp32, tf32 (CUDA tensor cores), bf16, or fp16
+    (CUDA: half weights with fp32 accumulation, each Gaussian's position part of the first and skip
+    layers cached; garo_ns.render.half_field), or fp16-fused (the same arithmetic as one Triton kernel that
+    keeps the activations on chip; garo_ns.render.fused_field; CUDA with Triton, elsewhere as fp16; never
+    chosen when left to None). Offsets differ from fp32 by at most about 2e-4 of the scene extent (tf32
+    alike, bf16 1.5e-3; benchmarks/deform_mlp.py); the bound checked on real scenes is a rendered PSNR
+    within 0.02 dB of fp32 on every view (the benchmark's `+half` and `+fused` rows)."""
+    cache_deformation: bool = True
+    """When not training, reuse the deformed Gaussians if the same time is rendered again and no
+    parameter changed (the viewer re-renders one time for every camera move). Exact."""
+    cuda_graph: Optional[bool] = None
+    """When not training on CUDA, run everything between the time and the rasterizer (MLP,
+    composition, activations) as one captured CUDA graph instead of dozens of kernel launches;
+    captured again when the Gaussians or the render switches change. Same arithmetic as without.
+    With `lean_raster` too, the camera's share (projection, view directions, visibility) is a
+    second graph, fed the camera's matrices."""
+    lean_raster: Optional[bool] = None
+    """When not training on CUDA, call gsplat's kernels directly instead of its general Python
+    wrapper (garo_ns.render.backend.rasterize_lean): same kernels and pixels, less Python per frame."""
+    switch_bound_db: float = DEFAULT_BOUND_DB
+    """Largest PSNR loss, on any training view measured at the end of training, with which an
+    approximate switch left to None is turned on for a finished model."""
+
+    def requested_switches(self) -> Dict[str, Any]:
+        """The config's value of each render switch (None: left to `resolve`)."""
+        return {k: getattr(self, k) for k in FrameSettings.__dataclass_fields__}
+
+    def renders_on_cuda(self, device: torch.device) -> bool:
+        """Whether rendering on `device` uses gsplat's CUDA kernels."""
+        return resolve_backend(self.rasterizer, device) == "cuda"
+
+
+class SwitchDecision:
+    """The switches one model renders with outside training: the losses measured at the end of its
+    training (`record`, kept in checkpoints) and the settings they give, decided once per change of
+    the config, the record or the bound (a frame asks twice)."""
+
+    def __init__(self) -> None:
+        self.record: Optional[Dict[str, Any]] = None
+        self._cache: Optional[Tuple[Any, Any, FrameSettings]] = None
+
+    def settings(self, config: RenderSettings, training_run: bool, device: torch.device) -> FrameSettings:
+        """The switches to render with (see `resolve`)."""
+        requested, bound = config.requested_switches(), config.switch_bound_db
+        key = (tuple(requested.values()), training_run, bound, torch.device(device).type, config.rasterizer)
+        if self._cache is not None and self._cache[0] == key and self._cache[1] is self.record:
+            return self._cache[2]
+        measure = replay(self.record["tried"]) if self.record else None
+        settings = resolve(requested, training_run, config.renders_on_cuda(device), measure, bound_db=bound)[0]
+        self._cache = (key, self.record, settings)
+        return settings
+
+    def measure(
+        self,
+        config: RenderSettings,
+        device: torch.device,
+        render: Callable[[int, Optional[FrameSettings]], Tensor],
+        targets: Sequence[Tensor],
+        step: int,
+    ) -> str:
+        """Measure on training views what each approximate switch left to the plugin costs against the
+        plain render (`render` and `targets` as in `measure_on_views`), keep it as the record, and
+        return the line to tell the user."""
+        measure = measure_on_views(render, targets)
+        requested, bound = config.requested_switches(), config.switch_bound_db
+        tried = resolve(requested, False, config.renders_on_cuda(device), measure, bound_db=bound)[1]
+        self.record = {"step": step, "views": len(targets), "tried": tried}
+        losses = ", ".join(f"{k} {v:.4f} dB" for k, v in tried.items()) or "none left to the plugin"
+        return f"Render switches on {len(targets)} training views (PSNR loss against plain): {losses}"
+
+    @torch.no_grad()
+    def measure_on_training_views(self, model: Any, guard: Any, step: int) -> str:
+        """`measure` on a model's training views: `guard` (a compaction TrainingViewGuard) renders and
+        holds the ground truth; the exact switches stay off in the trials (they change no pixel). A
+        failed measurement leaves the record as it was and says so: it must never cost a training run
+        its final checkpoint."""
+        was_training = model.training
+        model.eval()  # no time noise
+        try:
+
+            def render(i: int, trial: Optional[FrameSettings]) -> Tensor:
+                switches = None if trial is None else replace(trial, cuda_graph=False, lean_raster=False)
+                return guard.render(model, i, switches)
+
+            return self.measure(model.config, model.device, render, guard.targets(model), step)
+        except Exception as err:
+            return f"[yellow]Render switches not measured ({err}); they stay off unless set[/yellow]"
+        finally:
+            model.train(was_training)

@@ -1,0 +1,97 @@
+"""D-3DGS's training recipe in splatfacto's terms: the settings whose D-3DGS values differ from
+splatfacto's defaults, and the densification they give.
+
+Densification follows D-3DGS (arguments/__init__.py of the official code), which in turn follows
+3DGS: grow on the plain view-space gradient above 2e-4, clone below 1% of the scene extent and split
+above, cull opacity below 0.005 and world size above 10% of the extent, refine every 100 steps from
+500 to 15k, reset opacity every 3000 steps.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Dict, Literal, Mapping, Optional
+
+import torch
+from nerfstudio.models.splatfacto import SplatfactoModelConfig
+from nerfstudio.utils.colors import get_color
+from torch import Tensor
+
+
+@dataclass
+class D3dgsRecipe(SplatfactoModelConfig):
+    """Splatfacto's settings with D-3DGS's schedule and thresholds as defaults."""
+
+    warmup_length: int = 500
+    """Densification starts after this step (3DGS densify_from_iter)."""
+    refine_every: int = 100
+    """Densify and prune every this many steps (3DGS densification_interval)."""
+    num_downscales: int = 0
+    """Full resolution from the first step, as D-3DGS trains."""
+    background_color: Literal["random", "black", "white"] = "black"
+    """Render background; replaced by the dataset's alpha colour when the dataparser reports it."""
+    cull_alpha_thresh: float = 0.005
+    """Prune Gaussians with opacity below this (3DGS min_opacity)."""
+    cull_scale_thresh: float = 0.1
+    """Prune Gaussians larger than this fraction of the scene extent (3DGS big_points_ws)."""
+    reset_alpha_every: int = 30
+    """Reset opacities every this many refinements (30 x 100 = 3000 steps, 3DGS opacity_reset_interval)."""
+    densify_grad_thresh: float = 0.0002
+    """Grow Gaussians whose mean view-space gradient exceeds this (3DGS densify_grad_threshold)."""
+    use_absgrad: bool = False
+    """D-3DGS uses the plain gradient."""
+    densify_size_thresh: float = 0.01
+    """Clone below, split above this fraction of the scene extent (3DGS percent_dense)."""
+    stop_screen_size_at: int = 0
+    """Screen-size pruning off: in 3DGS it never triggers (max_radii2D is reset before use)."""
+    stop_split_at: int = 15000
+    """Densification ends here (3DGS densify_until_iter)."""
+    random_init: bool = True
+    """D-3DGS initialises synthetic scenes with random points."""
+    num_random: int = 100_000
+    """Number of random initial Gaussians (3DGS: 100k for synthetic scenes)."""
+    random_scale: float = 2.6
+    """Edge of the random-init cube: [-1.3, 1.3]^3 as in 3DGS's synthetic scenes."""
+    sh_degree: int = 3
+    sh_degree_interval: int = 1000
+    ssim_lambda: float = 0.2
+    scene_extent: Optional[float] = None
+    """Scene extent for densification thresholds; None takes the dataparser's camera extent."""
+
+    def densification_arguments(self) -> Dict[str, Any]:
+        """gsplat DefaultStrategy's arguments for this recipe (its names for splatfacto's settings)."""
+        return dict(
+            prune_opa=self.cull_alpha_thresh,
+            grow_grad2d=self.densify_grad_thresh,
+            grow_scale3d=self.densify_size_thresh,
+            grow_scale2d=self.split_screen_size,
+            prune_scale3d=self.cull_scale_thresh,
+            prune_scale2d=self.cull_screen_size,
+            refine_scale2d_stop_iter=self.stop_screen_size_at,
+            refine_start_iter=self.warmup_length,
+            refine_stop_iter=self.stop_split_at,
+            reset_every=self.reset_alpha_every * self.refine_every,
+            refine_every=self.refine_every,
+            pause_refine_after_reset=0,
+            absgrad=self.use_absgrad,
+            revised_opacity=False,
+            verbose=False,
+        )
+
+    def extent_for(self, metadata: Mapping[str, Any]) -> float:
+        """The scene extent the densification thresholds scale with: `scene_extent`, else the
+        dataparser's camera extent (in `metadata`), else 1."""
+        extent = self.scene_extent or metadata.get("camera_extent") or 1.0
+        if not (isinstance(extent, (int, float)) and math.isfinite(extent) and extent > 0):
+            raise ValueError(f"scene extent must be a positive number, got {extent!r}")
+        return float(extent)
+
+    def background_for(self, metadata: Mapping[str, Any]) -> Tensor:
+        """The render background [3]: the data's alpha colour (in `metadata`), else `background_color`."""
+        alpha = metadata.get("alpha_color")
+        if alpha is None and self.background_color == "random":
+            raise ValueError(
+                "background_color 'random' is not supported: set it to the dataset's alpha colour (black or white)"
+            )
+        return (get_color(self.background_color) if alpha is None else torch.as_tensor(alpha).reshape(3)).float()
