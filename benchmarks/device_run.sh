@@ -11,8 +11,8 @@
 #                                                      GPUs GPUS (e.g. 2,3; pass --gpus 0 1 to use both),
 #                                                      result $W/results/NAME.json, log $W/NAME.log
 #   bash benchmarks/device_run.sh extra NAME CMD...    any other command in the background (parity, ...)
-#   bash benchmarks/device_run.sh wait SECONDS         poll until every launched job ended or SECONDS passed;
-#                                                      once all ended, collect (results come back in that call)
+#   bash benchmarks/device_run.sh wait SECONDS         poll until every launched job ended or SECONDS passed,
+#                                                      then collect (what has landed comes back in every call)
 #   bash benchmarks/device_run.sh collect              pack results and logs into $OUT/results.tar.gz
 # Scenes come from .scenes/<name> (../shared/device/make-device-kit.sh).
 set -u
@@ -94,9 +94,9 @@ wait)
     done
   done
   for j in $W/jobs/*.job; do n=$(basename ${j%.job}); echo "$n: $(cat ${j%.job}.done 2>/dev/null || echo running)"; done
-  # Pack the results in the same call that saw the jobs end: a machine goes back 30 s after a call returns,
-  # so a separate collect call that comes late finds nothing.
-  [ $pending = 0 ] && exec bash "$0" collect ;;
+  # Pack what has landed (finished results, each trained variant's rows as they are measured, logs) in every
+  # call: a machine goes back 30 s after a call returns, so a separate collect call that comes late finds nothing.
+  exec bash "$0" collect ;;
 collect)
   mkdir -p $W/pack && cp -r $W/results $W/pack/ && cp $W/*.log $W/pack/ 2>/dev/null
   for d in $W/*/; do

@@ -43,6 +43,11 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
     assert sorted(p.name for p in (tmp_path / "runs").glob("*.record.json")) == sorted(
         f"{t}.record.json" for t in trained
     )
+    # Each trained variant's rows are also written as soon as they are measured.
+    for t in trained:
+        landed = json.loads((tmp_path / "runs" / f"{t}.eval.json").read_text())
+        assert set(landed) == {n for n in result["variants"] if n.split("+")[0] == t}
+        assert landed[t]["psnr"] == result["variants"][t]["psnr"]
     for v in result["variants"].values():
         for key in (
             "psnr",

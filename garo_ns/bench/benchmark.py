@@ -460,7 +460,10 @@ def run(args: BenchArgs) -> Dict[str, Any]:
     variants: Dict[str, Dict[str, Any]] = {}
     everything = args.all_variants()
     for name in names:
-        variants.update(evaluate_variant(args, records[name], [n for n in everything if split_variant(n)[0] == name]))
+        rows = evaluate_variant(args, records[name], [n for n in everything if split_variant(n)[0] == name])
+        # Each trained variant's rows as soon as they are measured: a run cut short keeps what it finished.
+        (args.work_dir / f"{name}.eval.json").write_text(json.dumps(rows, indent=1, default=str))
+        variants.update(rows)
     variants = {n: variants[n] for n in everything}
     result = {
         **environment(args.device),
