@@ -140,8 +140,10 @@ def report(results: Path, notes_path: Path, out: Path) -> int:
         "",
         "Built by `python benchmarks/mutation_report.py report` from the per-module results in",
         "`benchmarks/results/mutation_*.json`, which `bash scripts/mutation.sh` writes (mutmut 3.8.1; each",
-        "mutant run against tests/test_redundancy_stages.py, tests/test_redundancy_strategy.py and",
-        "tests/test_garo_strategy.py). Score = killed / (run - equivalent); harmless survivors count as not killed.",
+        "mutant run against the fast tests that scripts/mutation.sh lists: tests/test_redundancy_stages.py,",
+        "tests/test_redundancy_strategy.py, tests/test_garo_strategy.py and, since 2026-11-24, the tests of",
+        "tests/test_compaction.py and tests/test_model_settings.py not marked slow). Score = killed / (run -",
+        "equivalent); harmless survivors count as not killed.",
         "",
         f"**Score: {tot['killed']} killed of {scored} non-equivalent mutants = "
         f"{100 * tot['killed'] / max(scored, 1):.1f}%** ({tot['run']} mutants run, {tot['equivalent']} equivalent, "

@@ -7,6 +7,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+import types
 from typing import Any, Dict, List
 
 import pytest
@@ -16,7 +17,7 @@ from garo_ns.compaction import Compaction, importance
 from garo_ns.compaction.guard import spread_indices
 from garo_ns.compaction.report import round_line, stop_line, summary_for_json
 from garo_ns.errors import GaroConfigError
-from garo_ns.garo_strategy import GaroStrategy
+from garo_ns.garo_strategy import GaroStrategy, _copy
 from garo_ns.redundancy.select import lowest
 
 N = 100
@@ -323,6 +324,238 @@ def test_a_strategy_without_compaction_has_no_compaction_state_and_does_nothing(
     assert strategy.compact(params, optimizers, state, 0, lambda: 1.0, lambda: torch.zeros(N)) is None
 
 
+def approx_record(record: Dict[str, Any]) -> Dict[str, Any]:
+    """A record with its floats compared to 1e-9 (the scene's PSNRs are sums of float64 values)."""
+    return {k: pytest.approx(v, abs=1e-9) if isinstance(v, float) else v for k, v in record.items()}
+
+
+def test_every_round_record_and_the_summary_say_what_happened():
+    """The full record of a run that removes twice and undoes its third removal: every key of every
+    round and of the summary (the log, the checkpoint's metadata and garo-eval's JSON read them)."""
+    compaction = Compaction(start=0, every=1, fraction=0.2, tolerance_db=0.0, min_gaussians=0)
+    strategy = GaroStrategy(compaction=compaction)
+    params, optimizers, g = gaussians()
+    state = filled_state(strategy, N, g)
+    events = run_rounds(strategy, params, optimizers, state, Scene(value_40_percent_free()), range(20))
+    common = {"restored": 0, "psnr_before": 30.0, "psnr_after": 30.0}
+    expected = [
+        {"round": 0, "step": 0, "num_before": 100, "removed": 20, "num_after": 80, **common},
+        {"round": 1, "step": 1, "num_before": 80, "removed": 16, "num_after": 64, **common},
+        {"round": 2, "step": 2, "num_before": 64, "removed": 12, "restored": 12, "num_after": 64,
+         "psnr_before": 30.0, "psnr_after": 30.0 - 8 * 0.02, "stop": "tolerance"},
+    ]  # fmt: skip
+    assert events == [approx_record(e) for e in expected]
+    summary = state["compact"]
+    assert summary["rounds"] == events
+    assert {k: v for k, v in summary.items() if k not in ("rounds", "settings")} == {
+        "reference_psnr": 30.0,
+        "best_psnr": 30.0,
+        "final_psnr": 30.0,
+        "num_gaussians_start": 100,
+        "num_gaussians_end": 64,
+        "stopped_step": 2,
+        "reason": "tolerance",
+        "detail": "removing 12 Gaussians cost 0.16 dB; undone",
+    }
+    assert summary["settings"]["fraction"] == 0.2 and summary["settings"]["tolerance_db"] == 0.0
+
+
+def test_the_best_psnr_follows_fine_tuning_that_gains():
+    """A round measured above every earlier one raises the bar that later rounds are held to."""
+    compaction = Compaction(start=0, every=1, fraction=0.1, tolerance_db=0.05, max_rounds=2, min_gaussians=0)
+    strategy = GaroStrategy(compaction=compaction)
+    params, optimizers, g = gaussians()
+    state = filled_state(strategy, N, g)
+    scene = Scene(torch.zeros(N))
+    events = run_rounds(
+        strategy, params, optimizers, state, scene, range(5),
+        between=lambda step: setattr(scene, "drift", -0.3 * (step + 1)),
+    )  # fmt: skip
+    assert [e["psnr_before"] for e in events] == pytest.approx([30.0, 30.3, 30.6])
+    summary = state["compact"]
+    assert summary["reference_psnr"] == 30.0 and summary["best_psnr"] == pytest.approx(30.6)
+    assert summary["reason"] == "max_rounds" and summary["detail"] == "2 rounds"
+    assert summary["final_psnr"] == pytest.approx(30.6) and summary["stopped_step"] == 2
+    assert events[-1]["num_after"] == summary["num_gaussians_end"] == 81 == len(params["means"])
+
+
+def test_a_removal_undone_at_the_next_round_records_what_came_back_and_the_psnr_after():
+    compaction = Compaction(start=0, every=1, fraction=0.2, tolerance_db=0.5, min_gaussians=0)
+    strategy = GaroStrategy(compaction=compaction)
+    params, optimizers, g = gaussians()
+    state = filled_state(strategy, N, g)
+    scene = Scene(torch.zeros(N))
+    events = run_rounds(
+        strategy, params, optimizers, state, scene, range(5),
+        between=lambda step: setattr(scene, "drift", 0.6) if step == 0 else None,
+    )  # fmt: skip
+    assert len(events) == 2 and len(params["means"]) == N
+    assert events[1] == approx_record(
+        {"round": 1, "step": 1, "num_before": 80, "removed": 0, "restored": 20, "num_after": 100,
+         "psnr_before": 29.4, "psnr_after": 29.4, "stop": "tolerance"}
+    )  # fmt: skip
+    summary = state["compact"]
+    assert summary["detail"] == (
+        "PSNR 29.40 dB after fine-tuning, 0.60 dB below the best 30.00 dB; the last removal is undone"
+    )
+    assert summary["final_psnr"] == pytest.approx(29.4) and summary["num_gaussians_end"] == N
+    assert summary["stopped_step"] == 1 and state["compact_snapshot"] is None
+
+
+def test_a_resumed_run_without_its_undo_copy_stops_and_keeps_the_gaussians_it_has():
+    """A checkpoint does not keep the undo copy: a loss found after resuming stops the compaction
+    with the Gaussians as they are, and says so."""
+    compaction = Compaction(start=0, every=1, fraction=0.2, tolerance_db=0.5, min_gaussians=0)
+    strategy = GaroStrategy(compaction=compaction)
+    params, optimizers, g = gaussians()
+    state = filled_state(strategy, N, g)
+    scene = Scene(torch.zeros(N))
+
+    def resume(step):
+        state["compact_snapshot"] = None  # as loaded from a checkpoint
+        scene.drift = 0.6
+
+    events = run_rounds(strategy, params, optimizers, state, scene, range(5), between=resume)
+    assert [e.get("stop") for e in events] == [None, "tolerance"]
+    assert events[1]["restored"] == 0 and events[1]["num_after"] == 80 == len(params["means"])
+    assert events[1]["psnr_after"] is None
+    summary = state["compact"]
+    assert summary["detail"] == (
+        "PSNR 29.40 dB after fine-tuning, 0.60 dB below the best 30.00 dB; no copy to undo the last removal with"
+    )
+    assert summary["final_psnr"] == 30.0  # the last round's, before the loss was found
+    assert summary["num_gaussians_end"] == 80 and summary["stopped_step"] == 1
+
+
+@pytest.mark.parametrize("n,min_gaussians,reason,detail", [
+    (20, 20, "min_gaussians", "20 <= 20"),
+    (20, 0, "nothing_to_remove", "0.04 x 20 Gaussians"),
+    (21, 20, "nothing_to_remove", "0.04 x 21 Gaussians"),
+])  # fmt: skip
+def test_stop_details_of_a_model_too_small_to_cut(n, min_gaussians, reason, detail):
+    strategy = GaroStrategy(compaction=Compaction(start=0, fraction=0.04, min_gaussians=min_gaussians))
+    params, optimizers, g = gaussians(n)
+    state = filled_state(strategy, n, g)
+    scene = Scene(torch.zeros(n))
+    event = strategy.compact(params, optimizers, state, 0, lambda: scene.measure(params), lambda: torch.zeros(n))
+    assert event["stop"] == reason and state["compact"]["detail"] == detail
+    assert state["compact"]["final_psnr"] == 30.0 and state["compact"]["num_gaussians_end"] == n
+
+
+def test_stop_details_without_gaussians_without_views_and_at_the_last_step():
+    strategy = GaroStrategy(compaction=Compaction(start=0, every=10, fraction=0.2, min_gaussians=0))
+    params = torch.nn.ParameterDict({"means": torch.nn.Parameter(torch.zeros(0, 3))})
+    state = strategy.initialize_state()
+    strategy.compact(params, {}, state, 0, lambda: 0.0, lambda: torch.zeros(0))
+    assert state["compact"]["detail"] == "nothing to compact" and state["compact"]["num_gaussians_end"] == 0
+
+    params, optimizers, g = gaussians()
+    state = filled_state(strategy, N, g)
+    strategy.compact(params, optimizers, state, 0, None, lambda: torch.zeros(N))
+    assert state["compact"]["detail"] == "the model was given no training data"
+    assert state["compact"]["final_psnr"] is None and state["compact"]["stopped_step"] == 0
+
+    state = filled_state(strategy, N, g)
+    scene = Scene(torch.zeros(N))
+    events = run_rounds(strategy, params, optimizers, state, scene, range(20), last_step=15)
+    assert [(e["step"], e.get("stop")) for e in events] == [(0, None), (10, None), (15, "training_ended")]
+    summary = state["compact"]
+    assert summary["detail"] == "at step 15" and summary["final_psnr"] == 30.0
+    assert summary["stopped_step"] == 15 and summary["num_gaussians_end"] == 64 == len(params["means"])
+    assert summary["rounds"][-1] is events[-1] and events[-1]["num_after"] == 64
+
+
+def test_rounds_start_where_densification_stops_unless_told_otherwise():
+    strategy = GaroStrategy(refine_stop_iter=50, compaction=Compaction(every=10, fraction=0.2, min_gaussians=0))
+    params, optimizers, g = gaussians()
+    state = filled_state(strategy, N, g)
+    scene = Scene(torch.zeros(N))
+    events = run_rounds(strategy, params, optimizers, state, scene, range(75))
+    assert [e["step"] for e in events] == [50, 60, 70]
+    state = filled_state(strategy, N, g)
+    assert strategy.compact(params, optimizers, state, 40, None, None, last_step=40)["stop"] == "training_ended"
+    assert state["compact"]["detail"] == "before the first round (step 50)"
+
+
+def test_the_summary_after_each_kept_round_and_the_psnr_a_stop_reports():
+    """The summary is current after every kept round (a run stopped by the user keeps it), and a stop
+    reports the PSNR measured at that round, not the last kept round's."""
+    compaction = Compaction(start=0, every=1, fraction=0.2, tolerance_db=0.0, min_gaussians=0)
+    strategy = GaroStrategy(compaction=compaction)
+    params, optimizers, g = gaussians()
+    state = filled_state(strategy, N, g)
+    scene = Scene(value_40_percent_free())
+    seen = []
+
+    def fine_tune(step):
+        summary = state["compact"]
+        seen.append((summary["num_gaussians_end"], summary["final_psnr"], summary["reason"]))
+        scene.drift = -0.2 * (step + 1)  # fine-tuning gains 0.2 dB a round
+
+    run_rounds(strategy, params, optimizers, state, scene, range(10), between=fine_tune)
+    assert seen == [(80, 30.0, None), (64, pytest.approx(30.2), None)]
+    summary = state["compact"]  # round 2 measures 30.4 dB, and its removal (8 costly Gaussians) is undone
+    assert summary["reason"] == "tolerance" and summary["final_psnr"] == pytest.approx(30.4)
+    assert summary["detail"] == "removing 12 Gaussians cost 0.16 dB; undone"
+
+    strategy = GaroStrategy(compaction=Compaction(start=0, every=10, fraction=0.2, min_gaussians=0))
+    params, optimizers, g = gaussians()
+    state = filled_state(strategy, N, g)
+    scene = Scene(torch.zeros(N))
+    run_rounds(
+        strategy, params, optimizers, state, scene, range(20), last_step=15,
+        between=lambda step: setattr(scene, "drift", -0.1) if step == 12 else None,
+    )  # fmt: skip
+    assert state["compact"]["reason"] == "training_ended" and state["compact"]["final_psnr"] == pytest.approx(30.1)
+
+
+def test_a_stopped_compaction_and_a_state_without_its_summary_do_nothing():
+    def never():
+        raise AssertionError("measured")
+
+    strategy = GaroStrategy(compaction=Compaction(start=0, every=1, fraction=0.2, tolerance_db=0.0, min_gaussians=0))
+    params, optimizers, g = gaussians()
+    state = filled_state(strategy, N, g)
+    events = run_rounds(strategy, params, optimizers, state, Scene(value_40_percent_free()), range(20))
+    assert events[-1]["step"] == 2 and state["compact"]["reason"] == "tolerance"
+    assert strategy.compact(params, optimizers, state, 3, never, never) is None  # step 3 is a round step
+    assert len(state["compact"]["rounds"]) == 3
+    # A state written without compaction (an older checkpoint's): nothing runs, nothing is added.
+    plain = GaroStrategy().initialize_state()
+    assert strategy.compact(params, optimizers, plain, 0, never, never) is None and "compact" not in plain
+
+
+def test_lowest_marks_exactly_count_of_the_smallest_and_refuses_counts_out_of_range():
+    score = torch.tensor([3.0, 1.0, 2.0, 1.0, 5.0])
+    assert lowest(score, 0).tolist() == [False] * 5
+    assert lowest(score, 1).tolist() == [False, True, False, False, False]  # a tie goes to the lower index
+    assert lowest(score, 3).tolist() == [False, True, True, True, False]
+    assert lowest(score, 5).tolist() == [True] * 5
+    for count in (-1, 6):
+        with pytest.raises(ValueError, match=f"cannot mark {count} of 5 Gaussians"):
+            lowest(score, count)
+    assert lowest(torch.zeros(0), 0).shape == (0,)
+
+
+def test_copies_share_no_storage_and_keep_their_containers():
+    inner = torch.arange(3.0)
+    value = {"a": [inner, (inner, 2)], "b": {"c": inner}, "d": {"e": [1, 2]}}
+    copied = _copy(value)
+    assert type(copied["a"]) is list and type(copied["a"][1]) is tuple and copied["a"][1][1] == 2
+    inner.add_(10)
+    value["d"]["e"].append(3)
+    assert copied["a"][0].tolist() == copied["a"][1][0].tolist() == copied["b"]["c"].tolist() == [0.0, 1.0, 2.0]
+    assert copied["d"]["e"] == [1, 2]
+    odd = [[1, [2]]]
+    deep = _copy(odd)
+    odd[0][1].append(3)
+    assert deep == [[1, [2]]]
+    holder = types.SimpleNamespace(items=[1])  # neither a tensor nor a container: copied deeply
+    kept = _copy({"holder": holder})["holder"]
+    holder.items.append(2)
+    assert kept.items == [1]
+
+
 # --- settings and helpers ----------------------------------------------------------------------------------
 
 
@@ -448,9 +681,10 @@ def test_compaction_stops_by_itself_and_a_larger_tolerance_removes_more(compact_
     strict, loose = compact_runs[0.0]["summary"], compact_runs[50.0]["summary"]
     for summary in (strict, loose):
         assert summary["reason"] is not None and summary["rounds"], summary
-        assert summary["num_gaussians_end"] == compact_runs[0.0 if summary is strict else 50.0][
-            "trainer"
-        ].pipeline.model.num_points
+        assert (
+            summary["num_gaussians_end"]
+            == compact_runs[0.0 if summary is strict else 50.0]["trainer"].pipeline.model.num_points
+        )
     # Tolerance 0: no kept removal lowered the training-view PSNR.
     for event in strict["rounds"]:
         if event["removed"] > event["restored"]:

@@ -11,7 +11,7 @@ import pytest
 import torch
 from gsplat.strategy.ops import duplicate, remove, split
 
-from garo_ns.garo_strategy import GaroStrategy
+from garo_ns.garo_strategy import GaroSettings, GaroStrategy, garo_scalars
 from garo_ns.redundancy.activity import activity_candidates, mean_activity, record
 from garo_ns.redundancy.curvature import curvature
 from garo_ns.redundancy.knn import knn_brute, knn_grid
@@ -279,3 +279,30 @@ def test_model_config_declares_the_schedule_once():
         refine_start_iter=cfg.warmup_length, refine_stop_iter=cfg.stop_split_at, refine_every=cfg.refine_every
     )
     assert strategy.garo_schedule() == (cfg.warmup_length + 1, cfg.stop_split_at, cfg.refine_every)
+
+
+def test_the_settings_reach_the_strategy_under_their_own_names():
+    """Every GARO setting of the model config arrives in the strategy's field of the same meaning."""
+    settings = GaroSettings(
+        garo_mode="gca", tau_activity=1e-4, n_max=123, tau_curvature=0.25, rho_max=0.05, k_neighbors=7,
+        garo_start=300, garo_stop=9000, garo_every=200, garo_activity_window="garo_step",
+    )  # fmt: skip
+    strategy = GaroStrategy(**settings.garo_arguments())
+    got = {k: getattr(strategy, k) for k in settings.garo_arguments()}
+    assert got == {
+        "mode": "gca", "tau_activity": 1e-4, "n_max": 123, "tau_curvature": 0.25, "rho_max": 0.05,
+        "k_neighbors": 7, "garo_start_iter": 300, "garo_stop_iter": 9000, "garo_every": 200,
+        "activity_window": "garo_step",
+    }  # fmt: skip
+    assert strategy.garo_schedule() == (300, 9000, 200)
+
+
+def test_garo_scalars_report_the_step_that_ran_and_nothing_else():
+    state = {"garo_last": {"step": 600, "candidates": 40, "redundant": 12, "pruned": 3, "seconds": 0.25,
+                           "num_gaussians": 997}}  # fmt: skip
+    assert garo_scalars(state, 600) == {
+        "garo/candidates": 40.0, "garo/redundant": 12.0, "garo/pruned": 3.0, "garo/seconds": 0.25,
+        "garo/num_gaussians": 997.0,
+    }  # fmt: skip
+    assert garo_scalars(state, 700) == {}
+    assert garo_scalars({"garo_last": {}}, 600) == {} and garo_scalars({}, 0) == {}
