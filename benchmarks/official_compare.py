@@ -1,7 +1,7 @@
 """Our D-3DGS baseline against the official D-3DGS code, scene by scene.
 
-    python benchmarks/official_compare.py --ours benchmarks/results/recipe_<scene>_H200.json ... \
-        --official benchmarks/results/official_d3dgs_H200.json \
+    python benchmarks/official_compare.py --ours benchmarks/results/standup40k_H200.json ... \
+        --official benchmarks/results/official_d3dgs_standup40k_round2_H200.json \
         --output benchmarks/results/baseline_vs_official_H200.json
 
 `--ours` are result files of `python -m garo_ns.bench.benchmark` (variant `deform-splatfacto`);
