@@ -63,6 +63,9 @@ class GaroStrategy(DefaultStrategy):
         activity_window: "training" (mean over all visible iterations so far, the paper's g_i) or
             "garo_step" (mean since the last GARO step).
         compaction: rounds of removal after densification (None: none); see `compact`.
+        reset_at_start: also reset opacities at step 0. gsplat resets whenever
+            step % reset_every == 0, step 0 included; 3DGS and D-3DGS first reset at reset_every,
+            so by default (False) the initial opacities train untouched until then.
     """
 
     mode: Literal["off", "oaa", "gca", "full"] = "full"
@@ -76,6 +79,7 @@ class GaroStrategy(DefaultStrategy):
     garo_every: Optional[int] = None
     activity_window: Literal["training", "garo_step"] = "training"
     compaction: Optional[Compaction] = None
+    reset_at_start: bool = False
 
     def initialize_state(self, scene_scale: float = 1.0) -> Dict[str, Any]:
         """gsplat's state plus the keys this strategy owns. Per-Gaussian rows (None until first
@@ -122,6 +126,11 @@ class GaroStrategy(DefaultStrategy):
             keep = self.prune_redundant(params, optimizers, state, step, info)
             if keep is not None:
                 info = restrict_info(info, keep)
+        if step == 0 and not self.reset_at_start and self.refine_start_iter >= 0 and self.refine_stop_iter > 0:
+            # Step 0 never refines (refine_start_iter >= 0), so gsplat's step would only update the
+            # gradient record and reset the opacities: do the first alone.
+            self._update_state(params, state, info, packed=packed)
+            return
         super().step_post_backward(params, optimizers, state, step, info, packed)
 
     def gradient_norms(self, params: Params, info: Dict[str, Any], packed: bool = False) -> Tuple[Tensor, Tensor]:
