@@ -218,7 +218,9 @@ def fake_info(n, radii=None):
 def test_strategy_step_prunes_at_most_rho_and_keeps_everything_aligned():
     points, quats, scales = plane_and_sphere()
     params, optimizers = make_params(points, quats, scales)
-    strategy = GaroStrategy(garo_start_iter=10, garo_every=10, refine_start_iter=1000, rho_max=0.05)
+    strategy = GaroStrategy(
+        garo_start_iter=10, garo_every=10, refine_start_iter=1000, rho_max=0.05, activity_window="training"
+    )
     state = strategy.initialize_state()
     for step in range(1, 11):
         strategy.step_post_backward(params, optimizers, state, step, fake_info(len(params["means"])))
@@ -229,7 +231,7 @@ def test_strategy_step_prunes_at_most_rho_and_keeps_everything_aligned():
     for key, opt in optimizers.items():
         assert opt.state[opt.param_groups[0]["params"][0]]["exp_avg"].shape[0] == n
     assert (params["means"][:, 2].abs() > 0.1).sum() == 400  # the sphere is intact
-    assert torch.equal(state["garo_count"], torch.full((n,), 10.0))  # the paper's g_i: no reset at a GARO step
+    assert torch.equal(state["garo_count"], torch.full((n,), 10.0))  # the "training" window: no restart
 
 
 @pytest.mark.parametrize("window", ["training", "garo_step"])
@@ -262,6 +264,41 @@ def test_activity_is_the_mean_over_visible_steps_across_garo_steps(window):
     assert torch.isfinite(got).sum() >= 6
 
 
+@pytest.mark.parametrize("mode", ["off", "full"])
+def test_opacities_are_first_reset_at_reset_every_not_at_step_0(mode):
+    """gsplat resets whenever step % reset_every == 0, step 0 included; 3DGS and D-3DGS first reset
+    at reset_every. Step 0 still records the gradients densification will read."""
+    n = 30
+    points, quats, scales = plane_and_sphere(20, 10)
+    params, optimizers = make_params(points, quats, scales)
+    with torch.no_grad():
+        params["opacities"].fill_(2.0)  # sigmoid 0.88, far above the reset value
+    strategy = GaroStrategy(
+        mode=mode, refine_start_iter=500, refine_stop_iter=15_000, reset_every=3000, prune_opa=0.005
+    )
+    state = strategy.initialize_state()
+    strategy.step_post_backward(params, optimizers, state, 0, fake_info(n))
+    assert torch.equal(params["opacities"].detach(), torch.full((n, 1), 2.0))
+    assert torch.equal(state["count"], torch.ones(n))  # step 0's gradients are recorded
+    strategy.step_post_backward(params, optimizers, state, 3000, fake_info(n))
+    reset = torch.sigmoid(params["opacities"].detach())
+    torch.testing.assert_close(reset, torch.full((n, 1), 0.01), rtol=1e-5, atol=0)  # min(p, 2 x prune_opa)
+    # reset_at_start keeps gsplat's behaviour.
+    params, optimizers = make_params(points, quats, scales)
+    with torch.no_grad():
+        params["opacities"].fill_(2.0)
+    gsplat_like = GaroStrategy(mode=mode, refine_start_iter=500, reset_every=3000, reset_at_start=True)
+    gsplat_like.step_post_backward(params, optimizers, gsplat_like.initialize_state(), 0, fake_info(n))
+    assert torch.sigmoid(params["opacities"].detach()).max() < 0.011
+
+
+def test_the_recipe_resets_opacity_where_the_official_code_does():
+    from garo_ns.garo_model import GaroModelConfig
+
+    strategy = GaroModelConfig().make_strategy()
+    assert (strategy.reset_every, strategy.reset_at_start, strategy.refine_stop_iter) == (3000, False, 15_000)
+
+
 def test_default_schedule_prunes_at_every_refinement_step_and_only_there():
     strategy = GaroStrategy(refine_start_iter=500, refine_stop_iter=15_000, refine_every=100)
     steps = [s for s in range(0, 20_000) if strategy.is_garo_step(s)]
@@ -285,14 +322,14 @@ def test_the_settings_reach_the_strategy_under_their_own_names():
     """Every GARO setting of the model config arrives in the strategy's field of the same meaning."""
     settings = GaroSettings(
         garo_mode="gca", tau_activity=1e-4, n_max=123, tau_curvature=0.25, rho_max=0.05, k_neighbors=7,
-        garo_start=300, garo_stop=9000, garo_every=200, garo_activity_window="garo_step",
+        garo_start=300, garo_stop=9000, garo_every=200, garo_activity_window="training",
     )  # fmt: skip
     strategy = GaroStrategy(**settings.garo_arguments())
     got = {k: getattr(strategy, k) for k in settings.garo_arguments()}
     assert got == {
         "mode": "gca", "tau_activity": 1e-4, "n_max": 123, "tau_curvature": 0.25, "rho_max": 0.05,
         "k_neighbors": 7, "garo_start_iter": 300, "garo_stop_iter": 9000, "garo_every": 200,
-        "activity_window": "garo_step",
+        "activity_window": "training",
     }  # fmt: skip
     assert strategy.garo_schedule() == (300, 9000, 200)
 

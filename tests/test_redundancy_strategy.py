@@ -270,7 +270,7 @@ def test_no_garo_step_and_no_activity_at_garo_stop():
     for step in range(1, 9):
         strategy.step_post_backward(params, optimizers, state, step, fake_info(len(params["means"])))
     assert state["garo_last"]["step"] == 4 and len(params["means"]) == 20  # pruned at 4 only, not at 8
-    assert state["garo_count"].tolist() == [7.0] * 20  # steps 1-7 counted, 8 (= stop) not
+    assert state["garo_count"].tolist() == [3.0] * 20  # steps 5-7 counted (window since step 4), 8 (= stop) not
 
 
 def test_activity_state_restarts_when_the_count_of_gaussians_changed_outside_it():

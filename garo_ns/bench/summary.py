@@ -34,6 +34,9 @@ class SummaryArgs:
     """Summary JSON; the .md table and .png plot go next to it."""
     variants: List[str] = field(default_factory=lambda: ["garo-deform"])
     """Variants set against the baseline (each must be in every file)."""
+    aliases: List[str] = field(default_factory=list)
+    """`ROW=VARIANT`: a file without VARIANT's row is read from its ROW instead, for a run made under
+    another name with the settings VARIANT has now (e.g. garo-window=garo-deform); recorded per scene."""
 
 
 def _mean(values: List[Optional[float]]) -> Optional[float]:
@@ -41,9 +44,28 @@ def _mean(values: List[Optional[float]]) -> Optional[float]:
     return sum(kept) / len(kept) if kept and len(kept) == len(values) else None
 
 
-def scene_rows(result: Dict[str, Any], variants: List[str], source: str) -> Dict[str, Any]:
-    """Baseline and compared variants of one scene, with speed-up and PSNR drop per variant."""
-    found = result.get("variants", {})
+def parse_aliases(aliases: List[str]) -> Dict[str, str]:
+    """{variant: row read in its place} from `ROW=VARIANT` strings."""
+    out: Dict[str, str] = {}
+    for alias in aliases:
+        row, sep, variant = alias.partition("=")
+        if not (sep and row and variant):
+            raise ValueError(f"alias {alias!r} is not of the form ROW=VARIANT")
+        out[variant] = row
+    return out
+
+
+def scene_rows(
+    result: Dict[str, Any], variants: List[str], source: str, aliases: Optional[Dict[str, str]] = None
+) -> Dict[str, Any]:
+    """Baseline and compared variants of one scene, with speed-up and PSNR drop per variant. A variant
+    missing from the file is read from the row `aliases` names for it, if the file has that row."""
+    found = dict(result.get("variants", {}))
+    used = {}
+    for variant, row_name in (aliases or {}).items():
+        if variant not in found and row_name in found:
+            found[variant] = found[row_name]
+            used[variant] = row_name
     missing = [v for v in [BASELINE, *variants] if v not in found]
     if missing:
         raise ValueError(f"{source}: no result for {missing} (has {sorted(found)})")
@@ -56,6 +78,8 @@ def scene_rows(result: Dict[str, Any], variants: List[str], source: str) -> Dict
         "source": source,
         BASELINE: {k: base.get(k) for k in (*METRICS, "iterations", "shortened")},
     }
+    if used:
+        row["read_from"] = used
     for name in variants:
         v = found[name]
         row[name] = {
@@ -67,11 +91,13 @@ def scene_rows(result: Dict[str, Any], variants: List[str], source: str) -> Dict
     return row
 
 
-def summarise(results: List[Tuple[str, Dict[str, Any]]], variants: List[str]) -> Dict[str, Any]:
+def summarise(
+    results: List[Tuple[str, Dict[str, Any]]], variants: List[str], aliases: Optional[Dict[str, str]] = None
+) -> Dict[str, Any]:
     """Per-scene rows and their average (the average of per-scene ratios, as papers report it)."""
     if not results:
         raise ValueError("no result files given")
-    rows = [scene_rows(r, variants, src) for src, r in results]
+    rows = [scene_rows(r, variants, src, aliases) for src, r in results]
     scenes = [r["scene"] for r in rows]
     if len(set(scenes)) != len(scenes):
         raise ValueError(f"a scene appears twice: {scenes}")
@@ -140,6 +166,9 @@ def write_report(summary: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
         )
     if summary["shortened_scenes"]:
         lines += ["", f"Shortened schedules in: {', '.join(summary['shortened_scenes'])}."]
+    for row in summary["rows"]:
+        for variant, read in row.get("read_from", {}).items():
+            lines += ["", f"{row['scene']}: {variant} is the run named {read} in {row['source']}."]
     md = output.with_suffix(".md")
     md.write_text("\n".join(lines) + "\n")
 
@@ -174,7 +203,7 @@ def main(args: SummaryArgs) -> Dict[str, Any]:
         except (OSError, json.JSONDecodeError) as err:
             raise SystemExit(f"error: cannot read benchmark result {path}: {err}") from None
     try:
-        summary = summarise(loaded, list(args.variants))
+        summary = summarise(loaded, list(args.variants), parse_aliases(args.aliases))
     except ValueError as err:
         raise SystemExit(f"error: {err}") from None
     publish(summary, args.output, write_report)
