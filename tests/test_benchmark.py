@@ -20,7 +20,7 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
         split="val",
         output=out,
         work_dir=tmp_path / "runs",
-        variants=["deform-splatfacto", "garo-deform", "garo-prune0.3", "garo-deform+static4x"],
+        variants=["deform-splatfacto", "garo-deform", "garo-prune0.3", "garo-deform+static4x", "garo-deform+auto"],
         speed=True,
         iterations=40,
         device="cpu",
@@ -38,7 +38,7 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
     rows = ["", *SPEED_ROWS]
     assert "+graph" in rows and "+lean" in rows and "+static+graph+tf32+lean+fp16" in rows
     expected = [t + r for t in trained for r in rows]
-    assert list(result["variants"]) == expected + ["garo-deform+static4x"]
+    assert list(result["variants"]) == expected + ["garo-deform+static4x", "garo-deform+auto"]
     # Render-time rows reuse their variant's training: one run per trained variant.
     assert sorted(p.name for p in (tmp_path / "runs").glob("*.record.json")) == sorted(
         f"{t}.record.json" for t in trained
@@ -90,6 +90,12 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
         "storage_fp16": False,
     }
     assert settings["garo-deform+static4x"]["static_threshold"] == 4 * default
+    # +auto leaves every switch to the finished model: on a CPU no graph, no lean path, fp32 field.
+    used = variants["garo-deform+auto"]["render_switches_used"]
+    assert settings["garo-deform+auto"]["static_skip"] is None and settings["garo-deform+auto"]["cuda_graph"] is None
+    assert (used["cuda_graph"], used["lean_raster"], used["render_precision"]) == (False, False, "fp32")
+    assert variants["garo-deform"]["render_switches_used"]["static_skip"] is False  # an explicit row as set
+    assert variants["garo-deform+static"]["render_switches_used"]["static_skip"] is True
     # A looser threshold never finds fewer static Gaussians (measured after the fp16 row: the
     # trained parameters were put back).
     assert variants["garo-deform+static4x"]["static_fraction"] >= variants["garo-deform+static"]["static_fraction"]
@@ -112,6 +118,13 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
     assert result["split"] == "val" and "fps_ratio" in result["garo_vs_baseline"]
     assert out.with_suffix(".md").read_text().count("|") > 20
     assert out.with_suffix(".png").stat().st_size > 1000
+
+
+def test_auto_row_leaves_every_switch_to_the_model():
+    base, render = split_variant("garo-compact+auto")
+    assert base == "garo-compact"
+    assert all(render[k] is None for k in ("static_skip", "render_precision", "cuda_graph", "lean_raster"))
+    assert render["storage"] == "fp32" and render["static_threshold_factor"] == 1.0
 
 
 def test_half_row_selects_render_precision_fp16_and_is_compared_view_by_view():

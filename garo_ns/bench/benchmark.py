@@ -16,7 +16,9 @@ A name may carry render-time switches after `+`: `+static`
 position part cached, garo_ns.render.half_field), `+fused` (`render_precision=fp16-fused`: the same arithmetic as
 one Triton kernel, garo_ns.render.fused_field), `+graph` (everything before the rasterizer as one CUDA
 graph), `+lean` (gsplat's kernels called directly), `+fp16` (parameters rounded to the compact
-half-precision file of garo_ns.storage; its size is the model size), e.g. `garo-deform+static+graph+tf32`;
+half-precision file of garo_ns.storage; its size is the model size), `+auto` (every switch left to the
+finished model, as ns-viewer, ns-render and garo-eval render it without flags; the row records the
+switches it chose in `render_switches_used`), e.g. `garo-deform+static+graph+tf32`;
 such variants reuse the training of the name before the first `+` and differ only at render time. Every
 such row records `psnr_vs_plain`: its PSNR minus the plain row's (the name before the first `+`), view by
 view (`+half`'s and `+fused`'s bound: within 0.02 dB on every view).
@@ -30,7 +32,7 @@ import platform
 import subprocess
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Tuple
 
@@ -52,6 +54,9 @@ RENDER_SWITCHES: Dict[str, Dict[str, Any]] = {
     "graph": {"cuda_graph": True},
     "lean": {"lean_raster": True},
     "fp16": {"storage": "fp16"},
+    # What a user of ns-viewer, ns-render or garo-eval gets without flags: every switch left to the
+    # finished model, which decides from the losses it measured at the end of training.
+    "auto": {"static_skip": None, "render_precision": None, "cuda_graph": None, "lean_raster": None},
 }
 # Render-time rows added by --speed for every trained variant: each switch alone, then together.
 SPEED_ROWS = (
@@ -270,7 +275,9 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
                 storage.restore(model, original)
             state["rounded"] = half
             state["classified_at"] = None  # the field changed: classify again from it
-        if settings["static_skip"] and threshold != state["classified_at"]:
+        if settings["static_skip"] is None:  # +auto: classified where training left it
+            threshold = trained_threshold
+        if settings["static_skip"] is not False and threshold != state["classified_at"]:
             model.config.static_threshold = threshold
             model.refresh_static(train_times)
             state["classified_at"] = threshold
@@ -291,6 +298,8 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
             "num_gaussians": result["num_gaussians"],
             "static_fraction": model.static_fraction(),
             "render_settings": {**settings, "static_threshold": model.config.static_threshold, "storage_fp16": half},
+            # The switches the frame path used: the row's own, or with +auto the model's choice.
+            "render_switches_used": asdict(model.render_settings()),
             "peak_memory_mb": {
                 "training": record["train_peak_memory_mb"],
                 "rendering": timing["render_peak_memory_mb"],
