@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import sys
 from pathlib import Path
@@ -113,7 +114,7 @@ def render_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
         f"ratios) at {-dpsnr:.2f} dB average loss: the claim is {'met' if met else 'not met'} on these scenes."
     )
     sources = "; ".join(
-        f"{r['scene']}: [`{r['file'].name}`]({r['file'].relative_to(readme_dir).as_posix()}), "
+        f"{r['scene']}: [`{r['file'].name}`]({Path(os.path.relpath(r['file'], readme_dir)).as_posix()}), "
         f"commit {r['commit']}, {r['base']['iterations']:,} / {r['garo']['iterations']:,} steps"
         for r in rows
     )

@@ -50,7 +50,10 @@ def test_readme_results_block_is_up_to_date():
 def test_readme_results_check_fails_on_a_stale_block(tmp_path):
     readme = tmp_path / "README.md"
     readme.write_text((ROOT / "README.md").read_text().replace("| standup (test) |", "| standup (test) | stale"))
-    assert _script("readme_results.py", "--check", "--readme", str(readme)).returncode != 0
+    stale = _script("readme_results.py", "--check", "--readme", str(readme))
+    assert stale.returncode == 1 and "out of date" in stale.stdout, stale.stdout + stale.stderr
+    assert _script("readme_results.py", "--readme", str(readme)).returncode == 0  # rewrites the block
+    assert "| standup (test) | 4" in readme.read_text()
 
 
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: p.relative_to(ROOT).as_posix())
