@@ -235,13 +235,14 @@ def floor_sentence(check: Optional[Dict[str, Any]]) -> str:
         return "floor: no Gaussians found on the floor away from the moving objects"
     share = check["floor_static_fraction"]
     line = f"floor: {share:.0%} of its {check['floor_gaussians']:,} Gaussians (away from the ball and box)"
-    line += " classified static"
+    line += " classified static (the floor never moves, so ideally all of them)"
     if share < 0.9:
         line += (
-            f"; their median movement with offsets frozen would be {check['floor_median_move']:.2g} scene units "
-            f"({check['floor_median_move_px']:.2f} px at the views' distance) against a threshold of "
-            f"{check['static_threshold']:.2g} ({check['threshold_px']:.3f} px): the field still nudges the "
-            "floor a little over time, so frozen offsets would shift it"
+            f"; held at their average position, the floor's Gaussians would move by {check['floor_median_move']:.2g} "
+            f"scene units ({check['floor_median_move_px']:.2f} px in the test views; median over the floor) "
+            f"against a static threshold of {check['static_threshold']:.2g} ({check['threshold_px']:.3f} px): "
+            "the deformation network still nudges the floor a little over time, and a Gaussian it moves by more "
+            "than the threshold is not static"
         )
     return line
 
@@ -342,6 +343,32 @@ def results_table(arms: List[Dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def figure_notes(arms: List[Dict[str, Any]], args: DemoArgs) -> str:
+    """What each figure of the table (and the end-of-training lines) means, in words."""
+    rasterizer = arms[0]["rasterizer"] if arms else "the"
+    views = arms[0]["n_images"] if arms else args.n_test
+    return "\n".join(
+        [
+            "What the figures mean:",
+            f"- test PSNR (dB): how closely the renders of the {views} test views (views never used in training) "
+            "match the true images; higher is better, and 1 dB more means about 20% less squared error.",
+            "- SSIM: similarity of structure to the true images, from 0 to 1 (identical).",
+            "- Gaussians: the 3D Gaussians in the finished model; fewer render faster and take less memory. "
+            "Both remove transparent or oversized ones; garo-deform also removes redundant ones (GARO).",
+            "- model MB: size of the model's parameters (the Gaussians and the deformation network).",
+            f"- render ms/view: time to render one test view at {args.resolution} px with the {rasterizer} rasterizer, "
+            "deforming the Gaussians to the view's time included; lower is faster.",
+            "- static: share of the Gaussians that the deformation network barely moves (less than "
+            "the static threshold); a finished model may skip the network for them.",
+            "- train s: how long the training took.",
+            "- 'Render switches on N training views (PSNR loss against plain): static_skip X dB', printed at the end "
+            "of training: how much PSNR the worst of those training views would lose if the static Gaussians "
+            "skipped the deformation network (and, on a GPU, with a faster network precision); a finished model "
+            "turns such a switch on only when that loss is tiny (switch-bound-db, 0.02 dB by default).",
+        ]
+    )
+
+
 def _arm_process(args: DemoArgs, method: Method, scene: Path, out: Path, device: str, log: Optional[Path]) -> None:
     """One arm in a process of its own: train and measure it, and leave its figures and strip frames in
     `out/<method>/arm.pt` for the parent. With `log`, its output goes there instead of the terminal."""
@@ -419,6 +446,7 @@ def run(args: DemoArgs) -> Dict[str, Any]:
     floors = [f"{a['method']} {floor_sentence(a['floor'])}." for a in arms if a.get("floor") is not None]
     if floors:
         table += "\n\n" + "\n".join(floors)
+    table += "\n\n" + figure_notes(arms, args)
     public = [{k: v for k, v in a.items() if not k.startswith("_")} for a in arms]
     summary = {"scene": str(scene), "resolution": args.resolution, "steps": args.steps, "device": device}
     summary["args"] = {
@@ -437,10 +465,12 @@ def run(args: DemoArgs) -> Dict[str, Any]:
         f"Built-in scene, {args.resolution} px, {args.steps} steps per arm, {device}.\n\n{table}\n"
     )
     print(f"\nBuilt-in scene ({args.resolution} px, {args.steps} steps per arm, {device}):\n\n{table}\n")
-    print(f"picture:  {strip}")
-    print(f"plot:     {plot}")
-    print(f"results:  {out / 'demo_results.json'}")
-    print(f"took {summary['wall_seconds'] / 60:.1f} min, peak memory {summary['peak_rss_mb']:.0f} MB")
+    print(f"picture:  {strip}  (test views over time: the true images on top, each method's renders below)")
+    print(f"plot:     {plot}  (render time per view against test PSNR, one point per method)")
+    print(f"results:  {out / 'demo_results.json'}  (every figure above, per test view too)")
+    memory = "the sum of the processes' peaks, an upper bound" if parallel else "the largest the process held"
+    print(f"took {summary['wall_seconds'] / 60:.1f} min; peak memory {summary['peak_rss_mb']:.0f} MB ({memory})")
+    print("open a trained model in the viewer (time slider in its Control tab):")
     for a in public:
         print(f"{a['method']}: ns-viewer --load-config {a['config']} --viewer.websocket-host 127.0.0.1")
     return summary

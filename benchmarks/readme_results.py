@@ -1,0 +1,178 @@
+"""Writes the README's headline results block from the committed Table 1 result files.
+
+    python benchmarks/readme_results.py            # rewrite the block between the markers in README.md
+    python benchmarks/readme_results.py --check    # exit 1 if README.md's block differs from what it would write
+
+Reads every `benchmarks/results/table1_<scene>_<GPU>.json` (written by `python -m garo_ns.bench.benchmark`;
+see docs/benchmarks.md) and makes one row per scene: the baseline (`deform-splatfacto`) against GARO
+(`garo-deform`; in a file without that row, `garo-window`, the same method under its name at the time),
+their ratio of FPS and their PSNR difference, then the average over the scenes present, the paper's claim
+checked against that average, and a line naming the commits, GPU, steps and the scenes still missing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import sys
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "benchmarks" / "results"
+README = ROOT / "README.md"
+BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
+SCENES = ("jumpingjacks", "mutant", "standup")
+"""The D-NeRF scenes the headline table is meant to cover (the paper's Table 1 scenes run here)."""
+BASELINE = "deform-splatfacto"
+GARO = ("garo-deform", "garo-window")
+"""GARO's row names, preferred first: `garo-window` is what commit 37fe2da called today's default."""
+CLAIM_SPEEDUP, CLAIM_LOSS_DB = 2.0, 0.5
+"""The paper's claim: about 2x FPS at no more than 0.5 dB average PSNR loss."""
+
+
+def find_files(results: Path) -> Dict[str, Path]:
+    """One result file per scene (`table1_<scene>_<GPU>.json`); with several GPUs for a scene, the first by name."""
+    found: Dict[str, Path] = {}
+    for path in sorted(results.glob("table1_*_*.json")):
+        scene = path.stem[len("table1_") :].rsplit("_", 1)[0]
+        found.setdefault(scene, path)
+    return found
+
+
+def scene_row(path: Path) -> Dict[str, Any]:
+    """The baseline and GARO rows of one result file, with where they came from."""
+    data = json.loads(path.read_text())
+    variants = data["variants"]
+    name = next((n for n in GARO if n in variants), None)
+    if BASELINE not in variants or name is None:
+        raise ValueError(f"{path.name}: needs a {BASELINE} row and one of {GARO}")
+    base, garo = variants[BASELINE], variants[name]
+    for row in (base, garo):
+        if row.get("shortened") or row.get("stopped_by_deadline"):
+            raise ValueError(f"{path.name}: a row was stopped before the full schedule")
+    return {
+        "scene": data["scene"],
+        "split": data["split"],
+        "gpu": data["gpu"],
+        "commit": data["git_commit"],
+        "file": path,
+        "garo_name": name,
+        "base": base,
+        "garo": garo,
+        "speedup": garo["fps"] / base["fps"],
+        "dpsnr": garo["psnr"] - base["psnr"],
+    }
+
+
+def _lpips(value: Optional[float]) -> str:
+    return "-" if value is None else f"{value:.4f}"
+
+
+def render_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
+    """The Markdown between the markers (without them)."""
+    files = find_files(results)
+    rows = [scene_row(files[s]) for s in sorted(files)]
+    lines = [
+        "| scene (split) | PSNR base / GARO | LPIPS base / GARO | FPS base / GARO | speed-up | PSNR change "
+        "| Gaussians base / GARO |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        b, g = r["base"], r["garo"]
+        mark = "*" if r["garo_name"] != GARO[0] else ""
+        lines.append(
+            f"| {r['scene']}{mark} ({r['split']}) | {b['psnr']:.2f} / {g['psnr']:.2f} "
+            f"| {_lpips(b.get('lpips'))} / {_lpips(g.get('lpips'))} | {b['fps']:.1f} / {g['fps']:.1f} "
+            f"| {r['speedup']:.2f}x | {r['dpsnr']:+.2f} dB | {b['num_gaussians']:,} / {g['num_gaussians']:,} |"
+        )
+    if not rows:
+        return "\nNo Table 1 result file yet (`benchmarks/results/table1_<scene>_<GPU>.json`).\n"
+    n = len(rows)
+
+    def mean(values: Sequence[float]) -> float:
+        return sum(values) / len(values)
+
+    speedup = mean([r["speedup"] for r in rows])
+    dpsnr = mean([r["dpsnr"] for r in rows])
+    lpips_b = [r["base"].get("lpips") for r in rows]
+    lpips_g = [r["garo"].get("lpips") for r in rows]
+    lp = f"{mean(lpips_b):.4f} / {mean(lpips_g):.4f}" if None not in lpips_b and None not in lpips_g else "- / -"
+    lines.append(
+        f"| average of {n} | {mean([r['base']['psnr'] for r in rows]):.2f} / "
+        f"{mean([r['garo']['psnr'] for r in rows]):.2f} | {lp} | {mean([r['base']['fps'] for r in rows]):.1f} / "
+        f"{mean([r['garo']['fps'] for r in rows]):.1f} | {speedup:.2f}x | {dpsnr:+.2f} dB "
+        f"| {mean([r['base']['num_gaussians'] for r in rows]):,.0f} / "
+        f"{mean([r['garo']['num_gaussians'] for r in rows]):,.0f} |"
+    )
+    met = speedup >= CLAIM_SPEEDUP and -dpsnr <= CLAIM_LOSS_DB
+    claim = (
+        f"The paper claims about {CLAIM_SPEEDUP:g}x FPS at no more than {CLAIM_LOSS_DB:g} dB average PSNR loss; "
+        f"over the {n} scene{'s' if n != 1 else ''} here GARO is {speedup:.2f}x faster (mean of the per-scene "
+        f"ratios) at {-dpsnr:.2f} dB average loss: the claim is {'met' if met else 'not met'} on these scenes."
+    )
+    sources = "; ".join(
+        f"{r['scene']}: [`{r['file'].name}`]({Path(os.path.relpath(r['file'], readme_dir)).as_posix()}), "
+        f"commit {r['commit']}, {r['base']['iterations']:,} / {r['garo']['iterations']:,} steps"
+        for r in rows
+    )
+    gpus = sorted({r["gpu"] for r in rows})
+    switches = any(
+        r[arm].get("render_settings", {}).get(k)
+        for r in rows
+        for arm in ("base", "garo")
+        for k in ("static_skip", "cuda_graph", "lean_raster", "storage_fp16")
+    ) or any(
+        r[arm].get("render_settings", {}).get("render_precision", "fp32") != "fp32"
+        for r in rows
+        for arm in ("base", "garo")
+    )
+    protocol = "with render switches on (see the files)" if switches else "plain fp32 render, no speed switches"
+    missing = [s for s in SCENES if s not in files]
+    out = ["", *lines, "", claim, ""]
+    out.append(
+        f"Sources: {sources}. GPU: {', '.join(gpus)}. Each file holds both arms of one scene, trained to the "
+        "full schedule with the same code on the same GPU and timed one at a time (FPS: the deformation "
+        f"MLP plus rasterization per test view at full resolution, {protocol}; see "
+        "[docs/benchmarks.md](docs/benchmarks.md))." + (f" No row yet: {', '.join(missing)}." if missing else "")
+    )
+    if any(r["garo_name"] != GARO[0] for r in rows):
+        out += [
+            "",
+            "\\* GARO's row is named `garo-window` in this file: at its commit that was the name of reading "
+            "activity since the last GARO step, which is `garo-deform`'s default now.",
+        ]
+    out.append("")
+    return "\n".join(out)
+
+
+def split_readme(text: str) -> Tuple[str, str, str]:
+    """README text before the block (through BEGIN), the block, and the rest (from END)."""
+    match = re.search(re.escape(BEGIN) + r"(.*?)" + re.escape(END), text, flags=re.S)
+    if match is None:
+        raise ValueError(f"README.md has no {BEGIN} ... {END} block")
+    return text[: match.start(1)], match.group(1), text[match.end(1) :]
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--check", action="store_true", help="exit 1 if README.md's block is not up to date")
+    parser.add_argument("--readme", type=Path, default=README)
+    parser.add_argument("--results", type=Path, default=RESULTS)
+    args = parser.parse_args(argv)
+    text = args.readme.read_text()
+    head, block, tail = split_readme(text)
+    new = render_block(args.results, args.readme.resolve().parent)
+    if args.check:
+        if block != new:
+            print(f"{args.readme}: the results block is out of date; run python benchmarks/readme_results.py")
+            return 1
+        return 0
+    args.readme.write_text(head + new + tail)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,74 @@
+"""The README and docs/ stay true to the code and the result files: the generated settings page and the
+README's results block are current, every relative link points to a file, and the README stays short."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+
+
+def _script(name: str, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / name), *args], cwd=ROOT, capture_output=True, text=True
+    )
+
+
+def test_settings_page_regenerates_without_a_diff():
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import settings_page
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    assert settings_page.render_page() == (ROOT / "docs" / "settings.md").read_text(), (
+        "docs/settings.md is out of date: run python benchmarks/settings_page.py"
+    )
+
+
+def test_settings_page_lists_every_model_option():
+    import dataclasses
+
+    from garo_ns.garo_model import GaroModelConfig
+
+    page = (ROOT / "docs" / "settings.md").read_text()
+    for f in dataclasses.fields(GaroModelConfig):
+        if not f.name.startswith("_"):
+            assert f"| `{f.name.replace('_', '-')}` |" in page, f.name
+
+
+def test_readme_results_block_is_up_to_date():
+    result = _script("readme_results.py", "--check")
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_readme_results_check_fails_on_a_stale_block(tmp_path):
+    readme = tmp_path / "README.md"
+    readme.write_text((ROOT / "README.md").read_text().replace("| standup (test) |", "| standup (test) | stale"))
+    stale = _script("readme_results.py", "--check", "--readme", str(readme))
+    assert stale.returncode == 1 and "out of date" in stale.stdout, stale.stdout + stale.stderr
+    assert _script("readme_results.py", "--readme", str(readme)).returncode == 0  # rewrites the block
+    assert "| standup (test) | 4" in readme.read_text()
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: p.relative_to(ROOT).as_posix())
+def test_relative_links_point_to_files(page):
+    text = re.sub(r"```.*?```", "", page.read_text(), flags=re.S)  # not links inside code blocks
+    targets = re.findall(r"\]\(([^)\s]+)\)", text)
+    missing = []
+    for target in targets:
+        if re.match(r"[a-z][a-z0-9+.-]*:", target) or target.startswith("#"):
+            continue  # an absolute URL or an anchor on the same page
+        path = (page.parent / target.split("#")[0]).resolve()
+        if not path.exists():
+            missing.append(target)
+    assert not missing, f"{page.name}: links to missing files {missing}"
+
+
+def test_readme_is_at_most_15_kb():
+    assert (ROOT / "README.md").stat().st_size <= 15_000
