@@ -100,8 +100,12 @@ def fake_info(n: int, ndc=None, radii=None, **geometry) -> dict:
 
 
 def garo(**kw) -> GaroStrategy:
-    """A strategy that runs GARO at step 1 only and never densifies (refine_start_iter is far away)."""
-    args = dict(garo_start_iter=1, garo_stop_iter=2, garo_every=1, refine_start_iter=10_000, tau_activity=1.0)
+    """A strategy that runs GARO at step 1 only and never densifies (refine_start_iter is far away); its
+    activity record is not restarted by the GARO step (window "training"), so tests can read it after."""
+    args = dict(
+        garo_start_iter=1, garo_stop_iter=2, garo_every=1, refine_start_iter=10_000, tau_activity=1.0,
+        activity_window="training",
+    )  # fmt: skip
     args.update(kw)
     return GaroStrategy(**args)
 
