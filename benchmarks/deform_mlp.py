@@ -15,7 +15,7 @@ Paths (each one computes the three offsets at a time for all N Gaussians):
   fp32           the field as the product runs it (`DeformationField.forward`, position encoded every frame)
   tf32           the same with TF32 tensor-core matrix products (`render_precision=tf32`; CUDA only)
   fp16           half weights and activations (encoding computed in fp32, then rounded), the three heads as
-                 one matrix product; cuBLAS accumulates in fp32 with
+                 one matrix product in fp32 (as the product's half field); cuBLAS accumulates in fp32 with
                  torch.backends.cuda.matmul.allow_fp16_reduced_precision_reduction=False
   <p>_cached     (p in fp32, tf32, fp16) the first layer and the skip layer split into a position part,
                  computed once per Gaussian (fixed until the parameters change; `prepare_ms`, `cache_mb`),
@@ -88,7 +88,7 @@ from garo_ns.render.half_field import (
     PositionCache,
     cached_forward,
     fp32_accumulation,
-    split_heads,
+    heads,
     time_features,
 )
 
@@ -187,7 +187,7 @@ def plain_forward(w: FieldWeights, x: Tensor) -> Offsets:
         h = F.linear(h, weight, bias).relu_()
         if i == w.skip:
             h = torch.cat([x, h], dim=-1)
-    return split_heads(F.linear(h, w.head_w, w.head_b))
+    return heads(w, h)
 
 
 @dataclass
@@ -243,7 +243,7 @@ def path_specs() -> List[PathSpec]:
     specs = [
         PathSpec("fp32", "fp32", False, False, "the product's forward in fp32 (reference)"),
         PathSpec("tf32", "tf32", False, True, "the product's forward with TF32 matrix products"),
-        PathSpec("fp16", "fp16", False, False, "half weights and activations, fp32 accumulation, heads fused"),
+        PathSpec("fp16", "fp16", False, False, "half weights and activations, fp32 accumulation, heads in fp32"),
     ]
     for base in list(specs):
         desc = f"{base.name} with the position parts of the first and skip layers cached per Gaussian"

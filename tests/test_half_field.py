@@ -71,6 +71,22 @@ def test_half_field_is_within_its_bound_of_fp32() -> None:
 
 
 @torch.no_grad()
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_heads_run_in_fp32_and_halve_the_offsets_error(seed: int) -> None:
+    """The heads write the offsets: in fp32 (the default) the offsets' largest error against the fp32 field is
+    well under that of half heads (measured here 30-55% lower), the hidden layers still in half."""
+    field, xyz = _field(seed=seed), torch.rand(2000, 3, generator=torch.Generator().manual_seed(seed)) * 2 - 1
+    fast = HalfField(devices=ON_CPU)
+    weights = fast.copy_weights(field)
+    assert weights.head_w.dtype == torch.float32 and weights.head_b.dtype == torch.float32
+    assert all(w.dtype == torch.float16 for w, _ in weights.layers)
+    want = field(xyz, 0.3)
+    fp32_heads = _max_diff(fast(field, xyz, 0.3, "points"), want)
+    half_heads = _max_diff(HalfField(devices=ON_CPU, head_dtype=torch.float16)(field, xyz, 0.3, "points"), want)
+    assert 0 < fp32_heads < 0.8 * half_heads
+
+
+@torch.no_grad()
 def test_half_field_refreshes_when_the_weights_change() -> None:
     """The weight copies and the position cache follow in-place updates (an optimizer step) of any weight,
     and a replaced storage (checkpoint loading assigns `.data`), even with an unchanged points key."""
