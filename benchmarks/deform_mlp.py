@@ -14,21 +14,14 @@ through several times so that nothing can be reused between calls.
 Paths (each one computes the three offsets at a time for all N Gaussians):
   fp32           the field as the product runs it (`DeformationField.forward`, position encoded every frame)
   tf32           the same with TF32 tensor-core matrix products (`render_precision=tf32`; CUDA only)
-  bf16           the same under bf16 autocast (`render_precision=bf16` today)
   fp16           half weights and activations (encoding computed in fp32, then rounded), the three heads as
-                 one matrix product; cuBLAS accumulates in fp32 with
+                 one matrix product in fp32 (as the product's half field); cuBLAS accumulates in fp32 with
                  torch.backends.cuda.matmul.allow_fp16_reduced_precision_reduction=False
-  <p>_cached     (p in fp32, tf32, bf16, fp16) the first layer and the skip layer split into a position part,
+  <p>_cached     (p in fp32, tf32, fp16) the first layer and the skip layer split into a position part,
                  computed once per Gaussian (fixed until the parameters change; `prepare_ms`, `cache_mb`),
                  plus a time part that is one row per frame; exact up to float reassociation
   render_fp16    fp16_cached as the product runs it (`render_precision=fp16`: garo_ns.render.half_field.HalfField,
                  its parameter-version checks and its outputs cast back to fp32 included)
-  fused          the same arithmetic as one Triton kernel (`render_precision=fp16-fused`:
-                 garo_ns.render.fused_field.FusedField as the product runs it) at its default launch config or
-                 --fused-config (`config`); CUDA only (on a CPU under TRITON_INTERPRET=1, for tests)
-  fused_tuned    the same at the fastest of garo_ns.render.fused_field.TUNE_CONFIGS at this N (`config`; `tune_ms`:
-                 every config's ms per launch, or why it did not run; `tune_s`, also inside `prepare_ms`); CUDA
-                 only, skipped with --no-tune
   <p>+graph      each of the above replayed as one CUDA graph (garo_ns.render.graphs.TimeGraph; CUDA only)
   compile        torch.compile(mode="max-autotune-no-cudagraphs") of the fastest eager path whose error is
                  within --compile-max-error (or of --compile-from; `compiled_from`, `compile_s`), and
@@ -57,12 +50,10 @@ torch.compile's autotuning, which stops starting new compiles at --compile-budge
     command (one line):
       source .device/prelude.sh && timeout 400 python3 benchmarks/deform_mlp.py --output $OUT 2>&1 | tee $OUT/log
 
-The fused kernel alone, with its GPU tests first (same kind, carry and timeout; the autotune of fused_tuned
-compiles the 10 TUNE_CONFIGS once, about a minute, then times them at every N):
+The product's half path alone (issue 31's yardstick: render_fp16 <= 0.25 ms at 50k on an H200):
 
-      source .device/prelude.sh && python3 -m pytest -q -p no:cacheprovider tests/test_fused_field.py 2>&1 | tail -5
-      && timeout 360 python3 benchmarks/deform_mlp.py --no-compile --paths fp16_cached render_fp16 fused fused_tuned
-      --output $OUT 2>&1 | tee $OUT/log
+      source .device/prelude.sh && timeout 360 python3 benchmarks/deform_mlp.py --no-compile
+      --paths fp16_cached render_fp16 --output $OUT 2>&1 | tee $OUT/log
 
 The result comes back as $OUT/deform_mlp_<GPU>.json (written after every N, so a cut-off run keeps what it
 measured) with the log: copy the JSON to benchmarks/results/. Do not set TORCHDYNAMO_DISABLE (tests/conftest.py
@@ -90,7 +81,6 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from garo_ns.deformation import DeformationField, precision
-from garo_ns.render import fused_field
 from garo_ns.render.graphs import TimeGraph, graphs_available
 from garo_ns.render.half_field import (
     FieldWeights,
@@ -98,7 +88,7 @@ from garo_ns.render.half_field import (
     PositionCache,
     cached_forward,
     fp32_accumulation,
-    split_heads,
+    heads,
     time_features,
 )
 
@@ -197,7 +187,7 @@ def plain_forward(w: FieldWeights, x: Tensor) -> Offsets:
         h = F.linear(h, weight, bias).relu_()
         if i == w.skip:
             h = torch.cat([x, h], dim=-1)
-    return split_heads(F.linear(h, w.head_w, w.head_b))
+    return heads(w, h)
 
 
 @dataclass
@@ -206,21 +196,13 @@ class PathSpec:
     `prepare_ms`) and returns the per-frame step `inner(time)`; `mode` is the matmul precision set around it."""
 
     name: str
-    mode: str  # fp32, tf32, bf16 or fp16: the precision context and the peak rate it is held against
+    mode: str  # fp32, tf32 or fp16: the precision context and the peak rate it is held against
     cached: bool
     cuda_only: bool
     description: str
 
     def skip_reason(self, device: torch.device, a: Optional[argparse.Namespace] = None) -> Optional[str]:
         """Why this path cannot run on `device` (None: it can)."""
-        if self.name.startswith("fused"):
-            if not fused_field.triton_available():
-                return "Triton is not installed"
-            if self.name == "fused_tuned" and (device.type != "cuda" or (a is not None and a.no_tune)):
-                return "--no-tune" if device.type == "cuda" else "CUDA only (autotune times CUDA kernels)"
-            if not fused_field.FusedField(devices=(device.type,)).runs_on(device):
-                return "CUDA only (a Triton kernel; on a CPU only under TRITON_INTERPRET=1)"
-            return None
         if self.cuda_only and device.type != "cuda":
             return "CUDA only (tf32 is a no-op elsewhere)"
         return None
@@ -230,8 +212,6 @@ class PathSpec:
     ) -> Tuple[Step, Dict[str, Any]]:
         device = xyz.device
         extra: Dict[str, Any] = {}
-        if self.name.startswith("fused"):
-            return self._build_fused(field, xyz, a)
         if not self.cached and self.mode != "fp16":
             return (lambda t: field(xyz, t)), extra  # the product's forward; precision() set by `context`
         if self.name == "render_fp16":  # the product's render_precision=fp16, checks and all
@@ -247,27 +227,9 @@ class PathSpec:
         extra["cache_mb"] = round(cache.megabytes(), 4)
         return (lambda t: cached_forward(w, cache, time_features(field, t, device))), extra
 
-    def _build_fused(
-        self, field: DeformationField, xyz: Tensor, a: Optional[argparse.Namespace]
-    ) -> Tuple[Step, Dict[str, Any]]:
-        """The product's render_precision=fp16-fused at the default (or --fused-config) launch config, or for
-        fused_tuned at the fastest config of an autotune at this N."""
-        extra: Dict[str, Any] = {}
-        config = fused_field.DEFAULT_CONFIG
-        if a is not None and getattr(a, "fused_config", None):
-            config = fused_field.parse_config(a.fused_config)
-        if self.name == "fused_tuned":
-            t0 = time.perf_counter()
-            config, table = fused_field.autotune(field, xyz)
-            extra.update(tune_ms=table, tune_s=round(time.perf_counter() - t0, 1))
-        fast = fused_field.FusedField(config, devices=(xyz.device.type,))
-        fast(field, xyz, EVAL_TIME, "points")  # compiles the kernel, builds its weight copies and position cache
-        extra.update(config=fused_field.config_name(config), cache_mb=round(fast.cache_megabytes(), 4))
-        return (lambda t: fast(field, xyz, t, "points")), extra
-
     @contextlib.contextmanager
     def context(self, device: torch.device) -> Iterator[None]:
-        """The precision of the matrix products: `garo_ns.deformation.precision` for fp32/tf32/bf16 (what
+        """The precision of the matrix products: `garo_ns.deformation.precision` for fp32/tf32 (what
         `render_precision` does), and for fp16 fp32 accumulation in cuBLAS (no reduced-precision reduction)."""
         if self.mode != "fp16":
             with precision(self.mode, device):  # type: ignore[arg-type]
@@ -281,17 +243,13 @@ def path_specs() -> List[PathSpec]:
     specs = [
         PathSpec("fp32", "fp32", False, False, "the product's forward in fp32 (reference)"),
         PathSpec("tf32", "tf32", False, True, "the product's forward with TF32 matrix products"),
-        PathSpec("bf16", "bf16", False, False, "the product's forward under bf16 autocast (render_precision=bf16)"),
-        PathSpec("fp16", "fp16", False, False, "half weights and activations, fp32 accumulation, heads fused"),
+        PathSpec("fp16", "fp16", False, False, "half weights and activations, fp32 accumulation, heads in fp32"),
     ]
     for base in list(specs):
         desc = f"{base.name} with the position parts of the first and skip layers cached per Gaussian"
         specs.append(PathSpec(base.name + "_cached", base.mode, True, base.cuda_only, desc))
     desc = "render_precision=fp16 as the frame path runs it (garo_ns.render.half_field.HalfField: fp16_cached)"
     specs.append(PathSpec("render_fp16", "fp16", True, False, desc))
-    desc = "render_precision=fp16-fused: fp16_cached as one Triton kernel (garo_ns.render.fused_field.FusedField)"
-    specs.append(PathSpec("fused", "fp16", True, True, desc))
-    specs.append(PathSpec("fused_tuned", "fp16", True, True, desc + ", its launch config autotuned at this N"))
     return specs
 
 
@@ -510,14 +468,10 @@ def compile_rows(
             f"compile budget: {budget['spent']:.0f} s spent, the last compile took {budget['last']:.0f} s, "
             f"--compile-budget-s {a.compile_budget_s:.0f}"
         )
-    # Not the product's paths (render_fp16, fused*): they check parameter versions in Python on every call, which is
-    # no graph to compile (and the fused ones are a hand-written kernel already).
+    # Not the product's path (render_fp16): it checks parameter versions in Python on every call, which is
+    # no graph to compile.
     eligible = [
-        k
-        for k in steps
-        if k != "render_fp16"
-        and not k.startswith("fused")
-        and rows[k].get("relative_error", math.inf) <= a.compile_max_error
+        k for k in steps if k != "render_fp16" and rows[k].get("relative_error", math.inf) <= a.compile_max_error
     ]
     if a.compile_from is not None:
         eligible = [k for k in steps if k == a.compile_from]
@@ -610,12 +564,10 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
         "--compile-max-error",
         type=float,
         default=5e-4,
-        help="the largest relative_error of a path that may be compiled (bf16 is about 1e-3 of the extent,\n"
-        "some 0.8 px of an 800 px view across the extent; fp16 about 1e-4)",
+        help="the largest relative_error of a path that may be compiled (1e-3 of the extent is\n"
+        "some 0.8 px of an 800 px view across the extent; fp16 is about 1e-4)",
     )
     p.add_argument("--compile-from", default=None, help="compile this path instead of the fastest eligible one")
-    p.add_argument("--fused-config", default=None, help="the fused path's launch config, e.g. m64-n64-w8-s2")
-    p.add_argument("--no-tune", action="store_true", help="skip fused_tuned (its autotune compiles every config)")
     p.add_argument("--output", default="benchmarks/results", help="a .json file, or a folder for deform_mlp_<GPU>.json")
     return p.parse_args(argv)
 

@@ -41,7 +41,6 @@ gputests)
   export CUDA_VISIBLE_DEVICES=$1
   cd $W/src
   python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py tests/test_rendering_cuda.py tests/test_half_field.py \
-      tests/test_fused_field.py \
       2>&1 | tail -6 ;;
 smoke)
   scene=$1; export CUDA_VISIBLE_DEVICES=$2
@@ -59,7 +58,7 @@ for name, row in v.items():
         plain = v.get(name.replace(switch, ""), {}) if switch in name and "error" not in row else {}
         if "psnr" in plain:
             print(f"{name}: psnr {row['psnr']:.4f} vs {plain['psnr']:.4f} without {switch}, fps {row['fps']:.0f} vs {plain['fps']:.0f}")
-    if ("+half" in name or "+fused" in name) and "psnr_vs_plain" in row:  # fp16, fp16-fused: within 0.02 dB, every view
+    if "+half" in name and "psnr_vs_plain" in row:  # fp16: within 0.02 dB, every view
         worst = row["psnr_vs_plain"]["max_abs_db"]
         print(f"{name}: worst view {worst:.4f} dB from the plain row ({'ok' if worst <= 0.02 else 'OVER 0.02 dB'})")
     if "error" in row:

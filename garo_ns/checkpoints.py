@@ -18,7 +18,8 @@ folder whatever state it is in. Here:
 The model's state (`GaroModel.load_state_dict` and its extra state): a checkpoint holds as many
 Gaussians as it was trained to, so the model's are resized before loading; very old splatfacto
 checkpoints name the Gaussians without `gauss_params.`; fields written before the deformation field
-had its time network have none; the strategy's running state comes back key by key.
+had its time network have none; the strategy's running state comes back key by key; a config naming a
+render path since deleted renders on the exact path, with a warning.
 """
 
 from __future__ import annotations
@@ -255,6 +256,22 @@ def field_for(state_dict: Dict[str, Any], field: nn.Module, settings: Any) -> nn
     CONSOLE.print("[yellow]Checkpoint has no deformation time network: loading the field without it[/yellow]")
     settings.deform_time_net = 0
     return settings.make_deformation().to(next(field.parameters()).device)
+
+
+DELETED_RENDER_PRECISIONS = ("bf16", "fp16-fused")  # benchmarks/HISTORY.md, issue 31
+
+
+def upgrade_render_settings(settings: Any) -> List[str]:
+    """Map, in place, render switches an older config.yml may name but that were deleted to the exact
+    path (`render_precision` fp32), and return one warning for each."""
+    value = getattr(settings, "render_precision", None)
+    if value not in DELETED_RENDER_PRECISIONS:
+        return []
+    settings.render_precision = "fp32"
+    return [
+        f"render_precision={value} was deleted (benchmarks/HISTORY.md: never the fastest within the 0.02 dB bound); "
+        "rendering with the exact fp32 field instead"
+    ]
 
 
 def restore_strategy_state(state: Dict[str, Any], saved: Dict[str, Any], device: Union[str, torch.device]) -> None:

@@ -15,16 +15,16 @@ from typing import Dict, Iterator, List, Literal, Tuple
 import torch
 from torch import Tensor, nn
 
-Precision = Literal["fp32", "tf32", "bf16"]
-PRECISIONS = ("fp32", "tf32", "bf16")
+Precision = Literal["fp32", "tf32"]
+PRECISIONS = ("fp32", "tf32")
 HeadInit = Literal["zero", "default"]
 HEAD_INITS = ("zero", "default")
 
 
 @contextlib.contextmanager
 def precision(mode: Precision, device: torch.device) -> Iterator[None]:
-    """Matrix products of the MLP in `mode`: fp32 (exact), tf32 (tensor cores, fp32 storage; CUDA
-    only, a no-op elsewhere) or bf16 (autocast; encodings and heads' outputs stay fp32)."""
+    """Matrix products of the MLP in `mode`: fp32 (exact) or tf32 (tensor cores, fp32 storage; CUDA
+    only, a no-op elsewhere)."""
     if mode not in PRECISIONS:
         raise ValueError(f"precision must be one of {PRECISIONS}, got {mode!r}")
     device = torch.device(device)
@@ -35,11 +35,6 @@ def precision(mode: Precision, device: torch.device) -> Iterator[None]:
             yield
         finally:
             torch.backends.cuda.matmul.allow_tf32 = previous
-    elif mode == "bf16":
-        # No cast cache: it saves nothing with one forward per context, and a cached cast must not
-        # be captured into a CUDA graph (garo_ns.render.graphs), which would replay a freed weight copy.
-        with torch.autocast(device_type=device.type, dtype=torch.bfloat16, cache_enabled=False):
-            yield
     else:
         yield
 
@@ -142,7 +137,7 @@ class DeformationField(nn.Module):
             d_xyz [N, 3], d_rot [N, 4], d_log_scale [N, 3].
         """
         h = self.hidden(xyz, time)[-1]
-        dt = xyz.dtype  # bf16 autocast hands back bf16; callers get their own dtype
+        dt = xyz.dtype  # callers get their own dtype
         return self.d_xyz(h).to(dt), self.d_rot(h).to(dt), self.d_scale(h).to(dt)
 
 

@@ -84,9 +84,12 @@ class GaroModel(SplatfactoModel):
         self.register_buffer("background_rgb", cfg.background_for(metadata).clone())
         self._extent_from_data = cfg.scene_extent is None and "camera_extent" in metadata
         self.strategy = cfg.make_strategy()
-        self.compaction_guard: Optional[TrainingViewGuard] = None  # training views (compaction, switches)
+        self.compaction_guard: Optional[TrainingViewGuard] = None  # training views compaction is judged on
+        self.switch_guard: Optional[TrainingViewGuard] = None  # training views the render switches are measured on
         self.training_run = False  # set when the model gets training callbacks
         self.switches = SwitchDecision()  # what each approximate switch cost, and what that decides
+        for warning in checkpoints.upgrade_render_settings(cfg):  # an old config.yml naming a deleted path
+            CONSOLE.print(f"[yellow]{warning}[/yellow]")
         self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene_extent)
         self.train_times: Optional[Tensor] = None
         self.train_cameras: Optional[Cameras] = None
@@ -129,6 +132,7 @@ class GaroModel(SplatfactoModel):
         self.compaction_guard = TrainingViewGuard.from_datamanager(
             pipeline.datamanager, self.config.compact_guard_views
         )
+        self.switch_guard = TrainingViewGuard.from_datamanager(pipeline.datamanager, self.config.switch_views)
 
     # ------------------------------------------------------------------ training callbacks
     def get_training_callbacks(
@@ -164,8 +168,8 @@ class GaroModel(SplatfactoModel):
             if fraction is not None:
                 writer.put_scalar("garo/static_fraction", fraction, step)
         self.check_health(step)
-        if step == self._last_step and self.compaction_guard is not None and self.deformation_active():
-            CONSOLE.print(self.switches.measure_on_training_views(self, self.compaction_guard, step))
+        if step == self._last_step and self.switch_guard is not None and self.deformation_active():
+            CONSOLE.print(self.switches.measure_on_training_views(self, self.switch_guard, step))
 
     def check_health(self, step: int) -> None:
         """Every `health_every` steps after the warm-up, measure whether the deformation field
@@ -209,6 +213,10 @@ class GaroModel(SplatfactoModel):
         """The render switches outside training: the config's, those left to None decided by
         garo_ns.render.switches (from the losses recorded at the end of training)."""
         return self.switches.settings(self.config, self.training_run, self.device)
+
+    def render_switch_summary(self) -> Dict[str, Any]:
+        """The switches in use and what each approximate one was measured to change (garo-eval's JSON)."""
+        return self.switches.summary(self.config, self.training_run, self.device)
 
     # ------------------------------------------------------------------ static classification
     def static_fraction(self) -> Optional[float]:
@@ -340,3 +348,5 @@ class GaroModel(SplatfactoModel):
     def set_extra_state(self, state: Dict[str, Any]) -> None:
         checkpoints.restore_strategy_state(self.strategy_state, (state or {}).get("strategy_state") or {}, self.device)
         self.switches.record = (state or {}).get("render_switches")
+        if not self.training:  # loaded to render (ns-viewer, ns-render, garo-eval load in eval mode)
+            CONSOLE.print(self.switches.line(self.config, self.training_run, self.device), soft_wrap=True)

@@ -21,7 +21,7 @@ def _field() -> DeformationField:
 
 
 @torch.no_grad()
-@pytest.mark.parametrize("mode", ["fp32", "tf32", "bf16"])
+@pytest.mark.parametrize("mode", ["fp32", "tf32"])
 def test_replay_matches_eager(mode):
     field, xyz = _field(), torch.rand(20_000, 3, device="cuda")
 

@@ -71,6 +71,22 @@ def test_half_field_is_within_its_bound_of_fp32() -> None:
 
 
 @torch.no_grad()
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_heads_run_in_fp32_and_halve_the_offsets_error(seed: int) -> None:
+    """The heads write the offsets: in fp32 (the default) the offsets' largest error against the fp32 field is
+    well under that of half heads (measured here 30-55% lower), the hidden layers still in half."""
+    field, xyz = _field(seed=seed), torch.rand(2000, 3, generator=torch.Generator().manual_seed(seed)) * 2 - 1
+    fast = HalfField(devices=ON_CPU)
+    weights = fast.copy_weights(field)
+    assert weights.head_w.dtype == torch.float32 and weights.head_b.dtype == torch.float32
+    assert all(w.dtype == torch.float16 for w, _ in weights.layers)
+    want = field(xyz, 0.3)
+    fp32_heads = _max_diff(fast(field, xyz, 0.3, "points"), want)
+    half_heads = _max_diff(HalfField(devices=ON_CPU, head_dtype=torch.float16)(field, xyz, 0.3, "points"), want)
+    assert 0 < fp32_heads < 0.8 * half_heads
+
+
+@torch.no_grad()
 def test_half_field_refreshes_when_the_weights_change() -> None:
     """The weight copies and the position cache follow in-place updates (an optimizer step) of any weight,
     and a replaced storage (checkpoint loading assigns `.data`), even with an unchanged points key."""
@@ -254,16 +270,15 @@ def test_half_field_on_cuda_is_within_its_bound_and_replays_as_eager() -> None:
 @requires_cuda
 @torch.no_grad()
 @pytest.mark.parametrize("static_skip", [False, True])
-@pytest.mark.parametrize("precision", ["fp16", "fp16-fused"])
-def test_frame_path_graph_in_fp16_equals_its_eager_frames(precision: str, static_skip: bool) -> None:
-    """Both half-precision fields (the torch one and the fused Triton kernel) through the frame path."""
+def test_frame_path_graph_in_fp16_equals_its_eager_frames(static_skip: bool) -> None:
+    """The half-precision field through the frame path: a CUDA graph replays its eager frames exactly."""
     field = _field().cuda()
     canonical = Canonical(*(x.detach().cuda() for x in _canonical()))
     static = torch.zeros(400, dtype=torch.bool, device="cuda")
     static[::3] = True
     offset = torch.zeros(400, 10, device="cuda")
     graphed, eager = FramePath(), FramePath()
-    settings = dict(render_precision=precision, static_skip=static_skip, cache_deformation=False)
+    settings = dict(render_precision="fp16", static_skip=static_skip, cache_deformation=False)
     for t in (0.2, 0.7):
         got = graphed.splats(field, canonical, static, offset, t, FrameSettings(cuda_graph=True, **settings))
         want = eager.splats(field, canonical, static, offset, t, FrameSettings(**settings))
@@ -275,7 +290,4 @@ def test_frame_path_graph_in_fp16_equals_its_eager_frames(precision: str, static
     want = FramePath().splats(field, canonical, static, offset, 0.7, FrameSettings(**settings))
     for a, b in zip(got[:5], want[:5]):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
-    if precision == "fp16-fused":
-        assert graphed.fused_field.builds == 2 and graphed.half_field.builds == 0
-    else:
-        assert graphed.half_field.builds == 2
+    assert graphed.half_field.builds == 2

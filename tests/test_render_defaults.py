@@ -38,20 +38,27 @@ def trained(tmp_path_factory):
 def test_training_measures_the_switches_and_its_own_renders_stay_plain(trained):
     model = trained["trainer"].pipeline.model
     record = model.switches.record
-    assert record is not None and record["views"] == 3 and record["step"] == 59
-    # On a CPU only the static skip is measured (no CUDA precision), as a finite loss.
-    assert set(record["tried"]) == {"static_skip"} and math.isfinite(record["tried"]["static_skip"])
+    # Every training view (8, fewer than switch_views), not compaction's 3: measured with the current check.
+    assert record is not None and record["views"] == 8 and record["step"] == 59
+    assert record["measure"] == "view_change_db"
+    # On a CPU only the static skip is measured (no CUDA precision), as a finite change (never negative).
+    assert set(record["tried"]) == {"static_skip"} and 0 <= record["tried"]["static_skip"] < math.inf
     assert model.training_run
     assert model.render_settings() == FrameSettings()  # a viewer attached to training sees what trains
 
 
 @pytest.mark.slow
-def test_a_loaded_model_follows_the_record_and_flags_override(trained):
+def test_a_loaded_model_follows_the_record_and_flags_override(trained, capsys):
     from garo_ns.tools.eval import load_run
 
     config_path = trained["config"].get_base_dir() / "config.yml"
     _, pipeline, _, _ = load_run(config_path)
     model = pipeline.model
+    # Loading says, in one line, which switches are in use and what each approximate one was measured to change.
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("Render switches:")]
+    loss = model.switches.record["tried"]["static_skip"]
+    assert len(lines) == 1 and f"static_skip {loss:.4f} dB" in lines[0] and "render_precision=fp32" in lines[0]
+    assert "8 training views at step 59" in lines[0]
     assert not model.training_run
     assert model.switches.record == trained["trainer"].pipeline.model.switches.record  # through the checkpoint
     loss = model.switches.record["tried"]["static_skip"]
@@ -74,3 +81,20 @@ def test_a_loaded_model_follows_the_record_and_flags_override(trained):
     with torch.no_grad():
         out = model.get_outputs(camera)
     assert torch.isfinite(out["rgb"]).all()
+
+
+@pytest.mark.slow
+def test_garo_eval_records_the_switches_it_rendered_with(trained, tmp_path):
+    import json
+
+    from garo_ns.tools.eval import EvalArgs, run
+
+    out = tmp_path / "eval.json"
+    run(EvalArgs(load_config=trained["config"].get_base_dir() / "config.yml", split="test", output_path=out))
+    switches = json.loads(out.read_text())["render_switches"]
+    record = trained["trainer"].pipeline.model.switches.record
+    assert switches["measured_db"] == pytest.approx(record["tried"])
+    assert switches["measured_views"] == 8 and switches["measured_at_step"] == 59 and switches["bound_db"] == 0.02
+    in_use = switches["in_use"]
+    assert in_use["render_precision"] == "fp32" and not in_use["cuda_graph"]  # a CPU
+    assert in_use["static_skip"] == (record["tried"]["static_skip"] <= 0.02)

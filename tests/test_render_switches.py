@@ -6,7 +6,16 @@ import pytest
 import torch
 
 from garo_ns.render.frame import FrameSettings
-from garo_ns.render.switches import measure_on_views, replay, resolve, worst_psnr_loss
+from garo_ns.render.switches import (
+    MEASURE_VERSION,
+    RenderSettings,
+    SwitchDecision,
+    measure_on_views,
+    replay,
+    resolve,
+    view_change_db,
+    worst_view_change_db,
+)
 
 AUTO = {"render_precision": None, "static_skip": None, "cuda_graph": None, "lean_raster": None}
 
@@ -49,10 +58,13 @@ def test_a_switch_that_costs_more_than_the_bound_stays_off():
 
 
 def test_precisions_are_tried_fastest_first_and_the_first_within_the_bound_wins():
-    measure, calls = losses(static_skip=1.0, bf16=0.3, tf32=0.001)
-    settings, _ = resolve(AUTO, training_run=False, cuda=True, measure=measure, precisions=("bf16", "tf32"))
-    assert settings.render_precision == "tf32"
-    assert [c.render_precision for c in calls] == ["fp32", "bf16", "tf32"]
+    measure, calls = losses(static_skip=1.0, fp16=0.3, tf32=0.001)
+    settings, _ = resolve(AUTO, training_run=False, cuda=True, measure=measure)
+    assert settings.render_precision == "tf32"  # the fallback where fp16 misses the bound
+    assert [c.render_precision for c in calls] == ["fp32", "fp16", "tf32"]
+    measure, calls = losses(static_skip=1.0, fp16=0.01, tf32=0.001)
+    settings, _ = resolve(AUTO, training_run=False, cuda=True, measure=measure)
+    assert settings.render_precision == "fp16" and len(calls) == 2  # fastest first: tf32 never tried
 
 
 def test_on_cpu_no_cuda_switch_and_no_reduced_precision():
@@ -64,13 +76,13 @@ def test_on_cpu_no_cuda_switch_and_no_reduced_precision():
 
 
 def test_explicit_flags_override_in_both_directions():
-    requested = dict(AUTO, cuda_graph=False, static_skip=False, render_precision="bf16", lean_raster=True)
+    requested = dict(AUTO, cuda_graph=False, static_skip=False, render_precision="fp16", lean_raster=True)
     measure, calls = losses(static_skip=0.0, tf32=0.0)
     finished, tried = resolve(requested, training_run=False, cuda=True, measure=measure)
     assert (finished.cuda_graph, finished.lean_raster, finished.static_skip) == (False, True, False)
-    assert finished.render_precision == "bf16" and calls == [] and tried == {}
+    assert finished.render_precision == "fp16" and calls == [] and tried == {}
     training, _ = resolve(requested, training_run=True, cuda=True, measure=measure)
-    assert training.lean_raster and training.render_precision == "bf16"
+    assert training.lean_raster and training.render_precision == "fp16"
 
 
 def test_without_a_measure_the_approximate_switches_stay_off():
@@ -90,18 +102,40 @@ def test_unknown_switch_is_a_clear_error():
         resolve(dict(AUTO, cuda_graphs=True), training_run=False, cuda=True)
 
 
-def test_worst_psnr_loss_is_the_largest_loss_over_views():
+def test_worst_view_change_is_the_largest_change_over_views_in_either_direction():
     torch.manual_seed(0)
     targets = torch.rand(3, 8, 8, 3)
     reference = targets + 0.01  # MSE 1e-4 on every view
     trial = reference.clone()
-    trial[1] = targets[1] + 0.02  # MSE 4e-4 on view 1: 10 log10(4) dB worse
-    assert worst_psnr_loss(reference, trial, targets) == pytest.approx(10 * math.log10(4), rel=1e-4)
-    assert worst_psnr_loss(reference, reference, targets) == pytest.approx(0.0, abs=1e-6)
-    better = targets.clone()
-    assert worst_psnr_loss(reference, better, targets) < 0
+    trial[1] = targets[1] + 0.02  # MSE 4e-4 on view 1: 10 log10(4) dB worse (and as far from the plain render)
+    assert worst_view_change_db(reference, trial, targets) == pytest.approx(10 * math.log10(4), rel=1e-4)
+    assert worst_view_change_db(reference, reference, targets) == pytest.approx(0.0, abs=1e-6)
+    # A render closer to the ground truth than the plain one changed the view too: no negative "loss".
+    better = reference.clone()
+    better[0] = targets[0] + 0.005  # MSE 2.5e-5: 6 dB better, pixels 0.005 from the plain render
+    assert worst_view_change_db(reference, better, targets) == pytest.approx(10 * math.log10(4), rel=1e-4)
     trial[2, 0, 0, 0] = float("nan")
-    assert worst_psnr_loss(reference, trial, targets) == math.inf
+    assert worst_view_change_db(reference, trial, targets) == math.inf
+
+
+def test_the_bound_catches_pixels_that_change_while_the_error_stays_the_same():
+    """A trial whose error against the ground truth equals the plain render's (here: the error's sign
+    flipped on half the pixels) scores the same PSNR, but its pixels moved: the change is caught."""
+    torch.manual_seed(2)
+    targets = torch.rand(2, 8, 8, 3) * 0.5 + 0.25
+    reference = targets + 0.01
+    flip = torch.ones_like(targets)
+    flip[:, :, :4] = -1
+    trial = targets + 0.01 * flip
+    mse = lambda a: ((a - targets) ** 2).mean(dim=(1, 2, 3))  # noqa: E731
+    assert torch.allclose(mse(trial), mse(reference))  # the same error against the ground truth
+    change = view_change_db(reference, trial, targets)
+    # Half the pixels moved by 0.02: MSE(trial, plain) = 2e-4 = 2 x the plain error, 10 log10(3) dB.
+    assert torch.allclose(change, torch.full((2,), 10 * math.log10(3)), rtol=1e-4)
+    # Through `resolve`: a static skip rendering these pixels stays off.
+    measure = measure_on_views(lambda i, switches: reference[i] if switches is None else trial[i], list(targets))
+    settings, tried = resolve(AUTO, training_run=False, cuda=False, measure=measure)
+    assert not settings.static_skip and tried["static_skip"] > 0.02
 
 
 def test_a_loss_equal_to_the_bound_is_within_it():
@@ -132,4 +166,42 @@ def test_measure_on_views_compares_each_trial_with_the_plain_renders():
 
     measure = measure_on_views(render, targets)
     assert measure(FrameSettings(static_skip=True)) == pytest.approx(0.0, abs=1e-6)
+    # 0.03 against 0.01 off the ground truth: 10 log10(9) dB worse, pixels 0.02 from the plain render
+    # (10 log10(1 + 4) dB on the plain error's scale): the larger counts.
     assert measure(FrameSettings(render_precision="tf32")) == pytest.approx(10 * math.log10(9), rel=1e-4)
+
+
+def test_the_line_on_load_names_the_switches_and_each_measured_change():
+    decision = SwitchDecision()
+    config = RenderSettings()
+    cpu = torch.device("cpu")
+    assert "none measured" in decision.line(config, False, cpu)
+    decision.record = {"step": 99, "views": 32, "tried": {"static_skip": 0.004}, "measure": MEASURE_VERSION}
+    line = decision.line(config, False, cpu)
+    assert "render_precision=fp32" in line and "static_skip" in line.split(";")[0]  # in use
+    assert "static_skip 0.0040 dB" in line and "32 training views at step 99" in line and "bound 0.02 dB" in line
+    summary = decision.summary(config, False, cpu)
+    assert summary["in_use"]["static_skip"] and summary["measured_db"] == {"static_skip": 0.004}
+    assert summary["measured_views"] == 32 and summary["bound_db"] == 0.02
+    # A record of the older one-sided check is not trusted: the switches it allowed stay off.
+    decision.record = {"step": 99, "views": 16, "tried": {"static_skip": -0.5}}
+    assert not decision.settings(config, False, cpu).static_skip
+    assert "older one-sided check" in decision.line(config, False, cpu)
+    assert decision.summary(config, False, cpu)["untrusted_record"]
+
+
+@pytest.mark.parametrize("deleted", ["bf16", "fp16-fused"])
+def test_an_old_config_naming_a_deleted_precision_loads_with_a_warning_and_renders_exactly(deleted, capsys):
+    import yaml
+    from nerfstudio.data.scene_box import SceneBox
+
+    from garo_ns.garo_model import GaroModelConfig
+
+    config = GaroModelConfig(num_random=50, deform_width=16, deform_depth=2, deform_skip=0)
+    config.render_precision = deleted  # as a config.yml written before the deletion holds it
+    config = yaml.load(yaml.dump(config), Loader=yaml.Loader)
+    box = SceneBox(torch.tensor([[-1.5] * 3, [1.5] * 3]))
+    model = config.setup(scene_box=box, num_train_data=1, metadata={"camera_extent": 4.0})
+    assert model.config.render_precision == "fp32"
+    out = capsys.readouterr().out
+    assert f"render_precision={deleted} was deleted" in out and "exact fp32" in out

@@ -28,14 +28,10 @@ def test_precision_modes_match_fp32():
     exact = torch.cat(field(xyz, 0.3), -1)
     with precision("tf32", torch.device("cpu")):  # no tensor cores on a CPU: must stay exact
         assert torch.equal(torch.cat(field(xyz, 0.3), -1), exact)
-    with precision("bf16", torch.device("cpu")):
-        low = torch.cat(field(xyz, 0.3), -1)
-    assert low.dtype == torch.float32
-    assert not torch.equal(low, exact)  # it did run in bf16
-    assert (low - exact).abs().max() < 0.02 * exact.abs().max()
-    with pytest.raises(ValueError, match="precision"):
-        with precision("fp16", torch.device("cpu")):  # type: ignore[arg-type]
-            pass
+    for deleted in ("fp16", "bf16"):  # fp16 is the half field's (garo_ns.render.half_field); bf16 was deleted
+        with pytest.raises(ValueError, match="precision"):
+            with precision(deleted, torch.device("cpu")):  # type: ignore[arg-type]
+                pass
 
 
 def test_motion_statistics_find_the_moving_half():

@@ -10,18 +10,17 @@ Variants: deform-splatfacto (baseline), garo-deform (full GARO), and on request 
 (the paper's ablations), garo-rho<value> (rho_max sweep), garo-prune<ratio> (GARO plus pruning
 of a fixed share of the least contributing Gaussians) and garo-compact / garo-compact<dB> (GARO plus
 compaction under a training-view PSNR guard, at its default tolerance or the one given).
-A name may carry render-time switches after `+`: `+static`
-(static Gaussians skip the MLP), `+static4x` (the same with a 4x looser threshold), `+tf32` /
-`+bf16` (MLP precision), `+half` (`render_precision=fp16`: the half-precision field with each Gaussian's
-position part cached, garo_ns.render.half_field), `+fused` (`render_precision=fp16-fused`: the same arithmetic as
-one Triton kernel, garo_ns.render.fused_field), `+graph` (everything before the rasterizer as one CUDA
-graph), `+lean` (gsplat's kernels called directly), `+fp16` (parameters rounded to the compact
-half-precision file of garo_ns.storage; its size is the model size), `+auto` (every switch left to the
-finished model, as ns-viewer, ns-render and garo-eval render it without flags; the row records the
-switches it chose in `render_switches_used`), e.g. `garo-deform+static+graph+tf32`;
-such variants reuse the training of the name before the first `+` and differ only at render time. Every
-such row records `psnr_vs_plain`: its PSNR minus the plain row's (the name before the first `+`), view by
-view (`+half`'s and `+fused`'s bound: within 0.02 dB on every view).
+A name may carry render-time switches after `+`: `+static` (static Gaussians skip the MLP), `+tf32` (MLP
+precision), `+half` (`render_precision=fp16`: the half-precision field with each Gaussian's position part
+cached, garo_ns.render.half_field), `+graph` (everything before the rasterizer as one CUDA graph), `+lean`
+(gsplat's kernels called directly), `+fp16` (parameters rounded to the compact half-precision file of
+garo_ns.storage; its size is the model size), `+auto` (every switch left to the finished model, as ns-viewer,
+ns-render and garo-eval render without flags; the row records what it chose in `render_switches_used`), e.g.
+`garo-deform+static+graph+tf32`; such variants reuse the
+training of the name before the first `+` and differ only at render time. Every such row records
+`psnr_vs_plain`: its PSNR minus the plain row's (the name before the first `+`), view by view (`+half`'s
+bound: within 0.02 dB on every view). Deleted paths (`+bf16`, `+fused`, `+static4x`) and what they
+measured: benchmarks/HISTORY.md.
 """
 
 from __future__ import annotations
@@ -46,11 +45,7 @@ FULL_ITERATIONS = 40_000
 RENDER_SWITCHES: Dict[str, Dict[str, Any]] = {
     "static": {"static_skip": True},
     "tf32": {"render_precision": "tf32"},
-    "bf16": {"render_precision": "bf16"},
     "half": {"render_precision": "fp16"},
-    "fused": {"render_precision": "fp16-fused"},
-    # A looser static threshold (4x the default): more Gaussians skip the MLP, at some error.
-    "static4x": {"static_skip": True, "static_threshold_factor": 4.0},
     "graph": {"cuda_graph": True},
     "lean": {"lean_raster": True},
     "fp16": {"storage": "fp16"},
@@ -61,7 +56,6 @@ RENDER_SWITCHES: Dict[str, Dict[str, Any]] = {
 # Render-time rows added by --speed for every trained variant: each switch alone, then together.
 SPEED_ROWS = (
     "+tf32",
-    "+bf16",
     "+static",
     "+graph",
     "+lean",
@@ -72,8 +66,6 @@ SPEED_ROWS = (
     "+half",
     "+graph+half",
     "+static+graph+half+lean",
-    "+graph+fused",
-    "+static+graph+fused+lean",
 )
 
 
@@ -83,7 +75,6 @@ def split_variant(name: str) -> Tuple[str, Dict[str, Any]]:
     render: Dict[str, Any] = {
         "static_skip": False,
         "render_precision": "fp32",
-        "static_threshold_factor": 1.0,
         "cuda_graph": False,
         "lean_raster": False,
         "storage": "fp32",
@@ -266,7 +257,7 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
 
     def score(name: str) -> Dict[str, Any]:
         settings = dict(split_variant(name)[1])
-        threshold = trained_threshold * settings.pop("static_threshold_factor")
+        threshold = trained_threshold
         half = settings.pop("storage") == "fp16"
         if half != state["rounded"]:  # parameters as the compact file holds them, or back to the trained ones
             if half:

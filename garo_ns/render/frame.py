@@ -2,8 +2,7 @@
 
 During training every frame is the plain D-3DGS composition in fp32 (`compose`). Outside training
 (the viewer, `ns-render`, `garo-eval`, the benchmark) `FramePath` renders the same model with the
-render switches: the MLP in another precision (fp16: `garo_ns.render.half_field`; fp16-fused: the same
-arithmetic as one Triton kernel, `garo_ns.render.fused_field`), static Gaussians
+render switches: the MLP in another precision (fp16: `garo_ns.render.half_field`), static Gaussians
 with frozen offsets (only the dynamic ones go through the MLP), a cache of the last time rendered,
 and CUDA graphs of the deformation and of the camera's projection. It holds only caches: everything
 it renders from is passed in, so it knows nothing of the model.
@@ -20,18 +19,16 @@ from torch import Tensor
 
 from garo_ns.deformation import DeformationField, Precision, precision
 from garo_ns.render.backend import Backend, lean_front, rasterize
-from garo_ns.render.fused_field import FusedField
 from garo_ns.render.graphs import InputGraph, TimeGraph, graphs_available, versions
 from garo_ns.render.half_field import HalfField
 from garo_ns.render.view import RenderView
 
-# The deformation MLP's precision outside training: fp32 (exact), tf32 and bf16 (garo_ns.deformation.precision
-# around the fp32 field), fp16 (HalfField: half weights, per-Gaussian position part cached; CUDA and no
-# gradients only, the plain fp32 field elsewhere), fp16-fused (FusedField: the same in one Triton kernel that keeps
-# the activations on chip; CUDA with Triton, else as fp16).
-RenderPrecision = Literal["fp32", "tf32", "bf16", "fp16", "fp16-fused"]
-RENDER_PRECISIONS = ("fp32", "tf32", "bf16", "fp16", "fp16-fused")
-HALF_PRECISIONS = ("fp16", "fp16-fused")  # the render-time fields with a position cache
+# The deformation MLP's precision outside training: fp32 (exact), tf32 (garo_ns.deformation.precision around
+# the fp32 field; the fallback when fp16 misses the bound), fp16 (HalfField: half weights, per-Gaussian position
+# part cached, heads in fp32; CUDA and no gradients only, the plain fp32 field elsewhere). bf16 and fp16-fused
+# were deleted (benchmarks/HISTORY.md, issue 31); garo_ns.checkpoints maps them to fp32 in old configs.
+RenderPrecision = Literal["fp32", "tf32", "fp16"]
+RENDER_PRECISIONS = ("fp32", "tf32", "fp16")
 
 
 class Canonical(NamedTuple):
@@ -96,10 +93,9 @@ def activate(canonical: Canonical, deformed: Deformed) -> Splats:
 class FramePath:
     """Caches and CUDA graphs of the render-time frame (one per model)."""
 
-    def __init__(self, half_field: Optional[HalfField] = None, fused_field: Optional[FusedField] = None) -> None:
-        # render_precision fp16's and fp16-fused's fields (weight copies and position cache); by default CUDA only.
+    def __init__(self, half_field: Optional[HalfField] = None) -> None:
+        # render_precision fp16's field (weight copies and position cache); by default CUDA only.
         self.half_field = HalfField() if half_field is None else half_field
-        self.fused_field = FusedField() if fused_field is None else fused_field
         self._deformed: Optional[Tuple[Any, Splats]] = None
         self._static: Optional[Tuple[Any, Tensor, Deformed, Deformed]] = None
         self._graph = TimeGraph()
@@ -171,19 +167,12 @@ class FramePath:
         device: torch.device,
     ) -> Tuple[OffsetField, Precision]:
         """What computes the offsets, and the matrix-product precision to run it in: for fp16 the half
-        field where it runs (CUDA, no gradients), else the fp32 field as trained; for fp16-fused the
-        fused field where it runs (CUDA with Triton), else as fp16; the other modes are the fp32 field
-        in that precision."""
-        fast: Optional[HalfField] = None
-        if render_precision == "fp16-fused" and self.fused_field.runs_on(device):
-            fast = self.fused_field
-        elif render_precision in HALF_PRECISIONS:
-            fast = self.half_field
-        for other in (self.half_field, self.fused_field):
-            if other is not fast:
-                other.release()  # not the field rendering now: no cache to hold
-        if fast is None:
-            return field, render_precision  # type: ignore[return-value]
+        field where it runs (CUDA, no gradients), else the fp32 field as trained; the other modes are
+        the fp32 field in that precision."""
+        if render_precision != "fp16":
+            self.half_field.release()  # not the field rendering now: no cache to hold
+            return field, render_precision
+        fast = self.half_field
         if not fast.runs_on(device) or torch.is_grad_enabled():
             return field, "fp32"
         # The position cache belongs to these Gaussians: the parameters' versions (in `key`) and

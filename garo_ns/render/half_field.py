@@ -4,7 +4,11 @@ The field's first layer and its skip layer read [position encoding, time feature
 split into a position part, fixed per Gaussian until the means or the weights change, and a time
 part, one row per frame. `HalfField` computes the position parts once (in fp32, stored in half) and
 then runs every frame as half-precision matrix products with fp32 accumulation: the two split
-layers become an addition of one row, the three heads one product.
+layers become an addition of one row, the three heads one product, kept in fp32 (`head_dtype`). The
+heads write the offsets themselves: in half, their weights' and outputs' rounding (11 bits) lands on
+every position unattenuated, while in fp32 they cost 10 of the field's ~1M FLOPs per Gaussian. Issue
+#31 measured fp16 with half heads at 0.030 dB from the plain render on standup's worst test view, over
+the 0.02 dB bound; the fp32 heads are the candidate fix, to be measured on a GPU (`+half` rows).
 
 Chosen by `benchmarks/deform_mlp.py` (`benchmarks/results/deform_mlp_H100.json`, the recipe's field,
 50k / 200k moving Gaussians, ms per frame): fp32 1.93 / 6.98; tf32 + CUDA graph 0.94 / 3.50; half
@@ -47,7 +51,7 @@ def has_skip(field: DeformationField) -> bool:
 @dataclass
 class FieldWeights:
     """The field's weights in one dtype: every layer, the first and skip layers also split into
-    position / time / hidden columns, and the three heads stacked into one matrix."""
+    position / time / hidden columns, and the three heads stacked into one matrix (in `head_dtype`)."""
 
     layers: List[Tuple[Tensor, Tensor]]
     first_pos: Tensor
@@ -61,13 +65,14 @@ class FieldWeights:
 
     @classmethod
     @torch.no_grad()
-    def of(cls, field: DeformationField, dtype: torch.dtype) -> "FieldWeights":
-        """Copies of `field`'s weights in `dtype` (detached; in fp32 they may share the parameters' storage)."""
+    def of(cls, field: DeformationField, dtype: torch.dtype, head_dtype: torch.dtype = torch.float32) -> "FieldWeights":
+        """Copies of `field`'s weights in `dtype`, the heads in `head_dtype` (detached; in fp32 they may
+        share the parameters' storage)."""
         p = position_dims(field)
         t = field.layers[0].in_features  # position + time columns, the skip layer's first t columns too
         layers = [(m.weight.detach().to(dtype), m.bias.detach().to(dtype)) for m in field.layers]
         skip_w = layers[field.skip + 1][0] if has_skip(field) else None
-        heads = (field.d_xyz, field.d_rot, field.d_scale)
+        head_layers = (field.d_xyz, field.d_rot, field.d_scale)
         return cls(
             layers=layers,
             first_pos=layers[0][0][:, :p],
@@ -75,8 +80,8 @@ class FieldWeights:
             skip_pos=skip_w[:, :p] if skip_w is not None else None,
             skip_time=skip_w[:, p:t] if skip_w is not None else None,
             skip_hidden=skip_w[:, t:].contiguous() if skip_w is not None else None,
-            head_w=torch.cat([h.weight.detach() for h in heads]).to(dtype),
-            head_b=torch.cat([h.bias.detach() for h in heads]).to(dtype),
+            head_w=torch.cat([h.weight.detach() for h in head_layers]).to(head_dtype),
+            head_b=torch.cat([h.bias.detach() for h in head_layers]).to(head_dtype),
             skip=field.skip if skip_w is not None else -1,
         )
 
@@ -117,10 +122,16 @@ def split_heads(out: Tensor) -> Offsets:
     return out[:, :3], out[:, 3:7], out[:, 7:]
 
 
+def heads(w: FieldWeights, h: Tensor) -> Offsets:
+    """The three heads on the last hidden layer `h`, in the heads' dtype (the activations cast up to it)."""
+    return split_heads(F.linear(h.to(w.head_w.dtype), w.head_w, w.head_b))
+
+
 def cached_forward(w: FieldWeights, cache: PositionCache, tfeat: Tensor) -> Offsets:
     """The field's offsets from the cached position parts and the time features `tfeat` [1, T]: the
     first and the skip layer add one per-frame row to the cached per-Gaussian part (the same sums as
-    the full products, reassociated), every other layer runs as the field does, in `w`'s dtype."""
+    the full products, reassociated), every other layer runs as the field does, in `w`'s dtype, the
+    heads in theirs."""
     tfeat = tfeat.to(w.first_time.dtype)
     h = (cache.first + F.linear(tfeat, w.first_time)).relu_()
     for i in range(1, len(w.layers)):
@@ -129,7 +140,7 @@ def cached_forward(w: FieldWeights, cache: PositionCache, tfeat: Tensor) -> Offs
             h = torch.addmm(base.to(h.dtype), h, w.skip_hidden.t()).relu_()  # type: ignore[union-attr]
         else:
             h = F.linear(h, *w.layers[i]).relu_()
-    return split_heads(F.linear(h, w.head_w, w.head_b))
+    return heads(w, h)
 
 
 @contextlib.contextmanager
@@ -145,17 +156,23 @@ def fp32_accumulation() -> Iterator[None]:
 
 
 class HalfField:
-    """Render-time offsets of a `DeformationField`: weights in `dtype` (half by default), the position
-    parts cached per Gaussian. Holds the copies and the cache of one field and one set of Gaussians;
-    both are rebuilt when the field's weights change (checked on every call) or when the caller's
-    `points_key` does.
+    """Render-time offsets of a `DeformationField`: weights in `dtype` (half by default) except the
+    heads, in `head_dtype` (fp32 by default), the position parts cached per Gaussian. Holds the copies
+    and the cache of one field and one set of Gaussians; both are rebuilt when the field's weights
+    change (checked on every call) or when the caller's `points_key` does.
 
     `devices`: the device types it runs on; elsewhere the frame path keeps the plain fp32 field (a
     CPU gains nothing from half products). Tests ask for the CPU explicitly.
     """
 
-    def __init__(self, dtype: torch.dtype = torch.float16, devices: Sequence[str] = ("cuda",)):
+    def __init__(
+        self,
+        dtype: torch.dtype = torch.float16,
+        devices: Sequence[str] = ("cuda",),
+        head_dtype: torch.dtype = torch.float32,
+    ):
         self.dtype = dtype
+        self.head_dtype = head_dtype
         self.devices = tuple(devices)
         self._weights: Optional[Tuple[Any, FieldWeights]] = None
         self._cache: Optional[Tuple[Any, PositionCache]] = None
@@ -186,7 +203,7 @@ class HalfField:
 
     def copy_weights(self, field: DeformationField) -> Any:
         """The weight copies `forward` runs with (rebuilt whenever a parameter of `field` changes)."""
-        return FieldWeights.of(field, self.dtype)
+        return FieldWeights.of(field, self.dtype, self.head_dtype)
 
     def forward(
         self,

@@ -3,16 +3,18 @@
 A finished model renders fast without flags. Outside a training run (ns-viewer, ns-render,
 garo-eval, the benchmark loading a checkpoint) the exact switches (`cuda_graph`, `lean_raster`: same
 arithmetic, fewer launches) are on wherever CUDA runs, and the approximate ones (`static_skip`, a
-lower MLP `render_precision`) are on when, measured on training views, they cost at most
-`bound_db` of PSNR against the plain render on every view checked. During a training run, and so
-for a viewer attached to one, every switch left to auto stays off: what the user watches is what
+lower MLP `render_precision`) are on when, measured at the end of training on training views spread
+over time, they change the render by at most `bound_db` against the plain render of the same view,
+on every view checked (`view_change_db`). A loaded model says in one line which switches it uses and
+what each approximate one was measured to change. During a training run, and so for a viewer
+attached to one, every switch left to auto stays off: what the user watches is what
 trains. A switch set explicitly is used as set, in both cases.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields, replace
+from dataclasses import asdict, dataclass, fields, replace
 from typing import Any, Callable, Dict, Mapping, Optional, Sequence, Tuple
 
 import torch
@@ -25,12 +27,17 @@ EXACT = ("cuda_graph", "lean_raster")
 """Switches that change no pixel: on by default outside training wherever CUDA runs."""
 
 DEFAULT_BOUND_DB = 0.02
-"""Largest PSNR loss on any checked training view for which an approximate switch is turned on by
-default: well below what a viewer can see, and the bound the benchmark holds render paths to."""
+"""Largest change (dB, `worst_view_change_db`) on any checked training view for which an approximate
+switch is turned on by default: well below what a viewer can see, and the bound the benchmark holds
+render paths to."""
+
+DEFAULT_SWITCH_VIEWS = 32
+"""Training views the approximate switches are measured on (all of them when there are fewer), spread
+over time: one bad frame of a motion is what the bound must catch."""
 
 Measure = Callable[[FrameSettings], float]
-"""Renders training views with the given switches and returns the largest PSNR loss (dB) of any
-view against the same views rendered plain."""
+"""Renders training views with the given switches and returns the largest change (dB) of any view
+against the same views rendered plain (`worst_view_change_db`)."""
 
 
 def label(trial: FrameSettings) -> str:
@@ -48,7 +55,7 @@ def resolve(
     precisions: Sequence[str] = ("fp16", "tf32"),
     bound_db: float = DEFAULT_BOUND_DB,
 ) -> Tuple[FrameSettings, Dict[str, float]]:
-    """The switches to render with, and the measured PSNR loss of each approximate switch tried.
+    """The switches to render with, and the measured change (dB) of each approximate switch tried.
 
     Args:
         requested: the config's value of each FrameSettings field; None leaves it to this function.
@@ -56,7 +63,7 @@ def resolve(
         cuda: whether the model renders on CUDA (graphs, the lean path and tf32 need it).
         measure: see `Measure`; without one the approximate switches left to auto stay off.
         precisions: the MLP precisions to try, fastest first (benchmarks/results/deform_mlp_H100.json);
-            the first within the bound is used.
+            the first within the bound is used (tf32: the fallback where fp16 misses it).
         bound_db: see DEFAULT_BOUND_DB.
     """
     if not (bound_db >= 0 and math.isfinite(bound_db)):
@@ -103,19 +110,38 @@ def measure_on_views(render: Callable[[int, Optional[FrameSettings]], Tensor], t
     `render(i, trial)` the same view with the trial's switches; `targets[i]` its ground truth."""
     gt = torch.stack([t.float() for t in targets])
     reference = torch.stack([render(i, None).float() for i in range(len(targets))])
-    return lambda trial: worst_psnr_loss(reference, torch.stack([render(i, trial).float() for i in range(len(gt))]), gt)
+    return lambda trial: worst_view_change_db(
+        reference, torch.stack([render(i, trial).float() for i in range(len(gt))]), gt
+    )
 
 
-def worst_psnr_loss(reference: Tensor, trial: Tensor, targets: Tensor) -> float:
-    """Largest PSNR loss (dB) over views of `trial` renders against `reference` renders, both
-    scored on `targets` ([V, H, W, 3] each, values in [0, 1]). A trial render that is not finite
-    anywhere counts as an infinite loss."""
+def view_change_db(reference: Tensor, trial: Tensor, targets: Tensor) -> Tensor:
+    """Per view, how far (dB, >= 0) `trial` renders are from the plain `reference` renders of the same
+    views, with `targets` their ground truth ([V, H, W, 3] each, values in [0, 1]): the larger of
+
+    * the change of PSNR against the ground truth, in either direction (a switch that makes a view
+      "better" changed it as much as one that makes it worse), and
+    * 10 log10(1 + MSE(trial, reference) / MSE(reference, targets)): the PSNR change the trial's pixel
+      change would cause if it were unrelated to the plain render's error. It is the PSNR of one render
+      against the other, put on the scale of the view's own error, and is zero only when no pixel
+      changes, so a trial cannot pass by moving pixels in a way that happens to leave its error
+      against this ground truth as it was.
+    """
+    dims = tuple(range(1, reference.dim()))
+    mse_plain = ((reference - targets) ** 2).mean(dim=dims).clamp_min(1e-12)
+    mse_trial = ((trial - targets) ** 2).mean(dim=dims).clamp_min(1e-12)
+    mse_change = ((trial - reference) ** 2).mean(dim=dims)
+    shift = (10 * torch.log10(mse_trial / mse_plain)).abs()
+    spread = 10 * torch.log10(1 + mse_change / mse_plain)
+    return torch.maximum(shift, spread)
+
+
+def worst_view_change_db(reference: Tensor, trial: Tensor, targets: Tensor) -> float:
+    """The largest `view_change_db` over views; a trial render that is not finite anywhere counts as
+    an infinite change."""
     if not bool(torch.isfinite(trial).all()):
         return math.inf
-    dims = tuple(range(1, reference.dim()))
-    mse_ref = ((reference - targets) ** 2).mean(dim=dims).clamp_min(1e-12)
-    mse_trial = ((trial - targets) ** 2).mean(dim=dims).clamp_min(1e-12)
-    return float((10 * torch.log10(mse_trial / mse_ref)).max())
+    return float(view_change_db(reference, trial, targets).max())
 
 
 @dataclass
@@ -123,8 +149,8 @@ class RenderSettings:
     """The rasterizer and the render-time speed switches, part of the model config. Each switch is
     measured by the benchmark. None (the default) leaves a switch to `resolve`: off in a training run
     (and for a viewer attached to it); for a finished model, the exact ones (cuda_graph, lean_raster)
-    on where CUDA runs, static_skip and a lower render_precision on when their PSNR loss on training
-    views, measured at the end of training, is within switch_bound_db. A value set is used as set."""
+    on where CUDA runs, static_skip and a lower render_precision on when their change against the plain
+    render on training views, measured at the end of training, is within switch_bound_db. A value set is used as set."""
 
     rasterizer: Backend = "auto"
     """'cuda' (gsplat kernels), 'reference' (pure torch), or 'auto': cuda when it can run."""
@@ -132,13 +158,12 @@ class RenderSettings:
     """When not training, Gaussians classified static skip the MLP; their offsets are frozen at
     their time average (the classification itself always runs during training; it is cheap)."""
     render_precision: Optional[RenderPrecision] = None
-    """Precision of the deformation MLP when not training: fp32, tf32 (CUDA tensor cores), bf16, or fp16
+    """Precision of the deformation MLP when not training: fp32, tf32 (CUDA tensor cores), or fp16
     (CUDA: half weights with fp32 accumulation, each Gaussian's position part of the first and skip
-    layers cached; garo_ns.render.half_field), or fp16-fused (the same arithmetic as one Triton kernel that
-    keeps the activations on chip; garo_ns.render.fused_field; CUDA with Triton, elsewhere as fp16; never
-    chosen when left to None). Offsets differ from fp32 by at most about 2e-4 of the scene extent (tf32
-    alike, bf16 1.5e-3; benchmarks/deform_mlp.py); the bound checked on real scenes is a rendered PSNR
-    within 0.02 dB of fp32 on every view (the benchmark's `+half` and `+fused` rows)."""
+    layers cached, the heads in fp32; garo_ns.render.half_field). Offsets differ from fp32 by at most
+    about 2e-4 of the scene extent (tf32 alike; benchmarks/deform_mlp.py); the bound checked on real
+    scenes is a rendered PSNR within 0.02 dB of fp32 on every view (the benchmark's `+half` rows).
+    bf16 and fp16-fused were deleted (benchmarks/HISTORY.md): an old config naming them renders fp32."""
     cache_deformation: bool = True
     """When not training, reuse the deformed Gaussians if the same time is rendered again and no
     parameter changed (the viewer re-renders one time for every camera move). Exact."""
@@ -152,8 +177,12 @@ class RenderSettings:
     """When not training on CUDA, call gsplat's kernels directly instead of its general Python
     wrapper (garo_ns.render.backend.rasterize_lean): same kernels and pixels, less Python per frame."""
     switch_bound_db: float = DEFAULT_BOUND_DB
-    """Largest PSNR loss, on any training view measured at the end of training, with which an
-    approximate switch left to None is turned on for a finished model."""
+    """Largest change against the plain render (dB, garo_ns.render.switches.view_change_db), on any
+    training view measured at the end of training, with which an approximate switch left to None is
+    turned on for a finished model."""
+    switch_views: int = DEFAULT_SWITCH_VIEWS
+    """Training views, spread over time, on which the approximate switches are measured at the end of
+    training (all of them when there are fewer)."""
 
     def requested_switches(self) -> Dict[str, Any]:
         """The config's value of each render switch (None: left to `resolve`)."""
@@ -164,8 +193,14 @@ class RenderSettings:
         return resolve_backend(self.rasterizer, device) == "cuda"
 
 
+MEASURE_VERSION = "view_change_db"
+"""Names the check a record's losses come from (`worst_view_change_db`). Records written before it
+(a one-sided PSNR loss on 16 views, which a render could pass by changing pixels without raising its
+error) are not trusted: their approximate switches stay off unless set."""
+
+
 class SwitchDecision:
-    """The switches one model renders with outside training: the losses measured at the end of its
+    """The switches one model renders with outside training: the changes measured at the end of its
     training (`record`, kept in checkpoints) and the settings they give, decided once per change of
     the config, the record or the bound (a frame asks twice)."""
 
@@ -173,16 +208,52 @@ class SwitchDecision:
         self.record: Optional[Dict[str, Any]] = None
         self._cache: Optional[Tuple[Any, Any, FrameSettings]] = None
 
+    def trusted_record(self) -> Optional[Dict[str, Any]]:
+        """The record, when it was measured with the current check (see MEASURE_VERSION)."""
+        if self.record and self.record.get("measure") == MEASURE_VERSION:
+            return self.record
+        return None
+
     def settings(self, config: RenderSettings, training_run: bool, device: torch.device) -> FrameSettings:
         """The switches to render with (see `resolve`)."""
         requested, bound = config.requested_switches(), config.switch_bound_db
         key = (tuple(requested.values()), training_run, bound, torch.device(device).type, config.rasterizer)
         if self._cache is not None and self._cache[0] == key and self._cache[1] is self.record:
             return self._cache[2]
-        measure = replay(self.record["tried"]) if self.record else None
+        record = self.trusted_record()
+        measure = replay(record["tried"]) if record else None
         settings = resolve(requested, training_run, config.renders_on_cuda(device), measure, bound_db=bound)[0]
         self._cache = (key, self.record, settings)
         return settings
+
+    def summary(self, config: RenderSettings, training_run: bool, device: torch.device) -> Dict[str, Any]:
+        """What a user is told on load, and garo-eval records: the switches in use, each approximate
+        switch's measured change against the plain render, the bound and where the measurement comes from."""
+        record = self.trusted_record()
+        return {
+            "in_use": asdict(self.settings(config, training_run, device)),
+            "measured_db": dict(record["tried"]) if record else {},
+            "bound_db": config.switch_bound_db,
+            "measured_at_step": record["step"] if record else None,
+            "measured_views": record["views"] if record else None,
+            "untrusted_record": bool(self.record) and record is None,
+        }
+
+    def line(self, config: RenderSettings, training_run: bool, device: torch.device) -> str:
+        """One line naming the switches in use and each approximate switch's measured change."""
+        info = self.summary(config, training_run, device)
+        used = info["in_use"]
+        on = [k for k in ("static_skip", "cache_deformation", "cuda_graph", "lean_raster") if used[k]]
+        names = ", ".join([f"render_precision={used['render_precision']}"] + on)
+        if info["measured_db"]:
+            changes = ", ".join(f"{k} {v:.4f} dB" for k, v in info["measured_db"].items())
+            where = f"measured on {info['measured_views']} training views at step {info['measured_at_step']}"
+            measured = f"{changes} ({where}; bound {info['bound_db']} dB)"
+        elif info["untrusted_record"]:
+            measured = "none trusted (measured by an older one-sided check; approximate switches off unless set)"
+        else:
+            measured = "none measured (approximate switches off unless set)"
+        return f"Render switches: {names}; change against the plain render: {measured}"
 
     def measure(
         self,
@@ -192,22 +263,22 @@ class SwitchDecision:
         targets: Sequence[Tensor],
         step: int,
     ) -> str:
-        """Measure on training views what each approximate switch left to the plugin costs against the
+        """Measure on training views how much each approximate switch left to the plugin changes the
         plain render (`render` and `targets` as in `measure_on_views`), keep it as the record, and
         return the line to tell the user."""
         measure = measure_on_views(render, targets)
         requested, bound = config.requested_switches(), config.switch_bound_db
         tried = resolve(requested, False, config.renders_on_cuda(device), measure, bound_db=bound)[1]
-        self.record = {"step": step, "views": len(targets), "tried": tried}
+        self.record = {"step": step, "views": len(targets), "tried": tried, "measure": MEASURE_VERSION}
         losses = ", ".join(f"{k} {v:.4f} dB" for k, v in tried.items()) or "none left to the plugin"
-        return f"Render switches on {len(targets)} training views (PSNR loss against plain): {losses}"
+        return f"Render switches on {len(targets)} training views (worst change against plain): {losses}"
 
     @torch.no_grad()
     def measure_on_training_views(self, model: Any, guard: Any, step: int) -> str:
-        """`measure` on a model's training views: `guard` (a compaction TrainingViewGuard) renders and
-        holds the ground truth; the exact switches stay off in the trials (they change no pixel). A
-        failed measurement leaves the record as it was and says so: it must never cost a training run
-        its final checkpoint."""
+        """`measure` on a model's training views: `guard` (a compaction TrainingViewGuard over
+        `switch_views` views) renders and holds the ground truth; the exact switches stay off in the
+        trials (they change no pixel). A failed measurement leaves the record as it was and says so: it
+        must never cost a training run its final checkpoint."""
         was_training = model.training
         model.eval()  # no time noise
         try:

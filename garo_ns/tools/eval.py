@@ -3,7 +3,8 @@
 `ns-eval` always scores the `test` split; D-3DGS scores lego on `val`. This command renders the
 chosen split itself (cameras and times from the transforms file, images composited on the
 model's background) and writes PSNR, SSIM, LPIPS (null without offline weights), the number of
-Gaussians, the split, and for a `garo-compact` run what its compaction decided.
+Gaussians, the split, the render switches used (and what each approximate one was measured to change
+against the plain render), and for a `garo-compact` run what its compaction decided.
 """
 
 from __future__ import annotations
@@ -143,6 +144,8 @@ def run(args: EvalArgs) -> Dict[str, Any]:
     config, pipeline, ckpt, step = load_run(args.load_config)
     result = evaluate(pipeline, args.data or scene_dir(config), args.split)
     result.update({"method": config.method_name, "step": int(step), "checkpoint": str(ckpt)})
+    # The switches these scores were rendered with, and their measured change against the plain render.
+    result["render_switches"] = pipeline.model.render_switch_summary()
     # What compaction decided during training (None for a run without it).
     result["compaction"] = summary_for_json(pipeline.model.strategy_state.get("compact"))
     args.output_path.parent.mkdir(parents=True, exist_ok=True)
