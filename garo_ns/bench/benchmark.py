@@ -92,9 +92,9 @@ def split_variant(name: str) -> Tuple[str, Dict[str, Any]]:
 
 def variant_settings(name: str) -> Tuple[str, Dict[str, Any]]:
     """(method, model-config overrides) of a trained variant name."""
-    if name.startswith("garo-compact"):  # garo-compact (its defaults) or garo-compact<tolerance in dB>
-        tolerance = name[len("garo-compact") :]
-        return "garo-compact", {"compact_tolerance_db": float(tolerance)} if tolerance else {}
+    if name.startswith("garo-compact"):  # garo-compact (its defaults) or garo-compact<total budget in dB>
+        budget = name[len("garo-compact") :]
+        return "garo-compact", {"compact_budget_db": float(budget)} if budget else {}
     if name.startswith("garo-prune"):
         return "garo-deform", {"garo_mode": "full", "prune_contribution_ratio": float(name[len("garo-prune") :])}
     if name == "deform-splatfacto":
