@@ -9,7 +9,7 @@ against PSNR, marker area by Gaussian count) are written next to it.
 Variants: deform-splatfacto (baseline), garo-deform (full GARO), and on request garo-oaa, garo-gca
 (the paper's ablations), garo-rho<value> (rho_max sweep), garo-prune<ratio> (GARO plus pruning
 of a fixed share of the least contributing Gaussians) and garo-compact / garo-compact<dB> (GARO plus
-compaction under a training-view PSNR guard, at its default tolerance or the one given).
+compaction measured on training views, with its default total budget or the one given in dB).
 A name may carry render-time switches after `+`: `+static`
 (static Gaussians skip the MLP), `+static4x` (the same with a 4x looser threshold), `+tf32` /
 `+bf16` (MLP precision), `+half` (`render_precision=fp16`: the half-precision field with each Gaussian's
