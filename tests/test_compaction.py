@@ -7,6 +7,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+import types
 from typing import Any, Dict, List
 
 import pytest
@@ -82,7 +83,7 @@ def assert_same(params, optimizers, state, expected):
     for k, v in e_state.items():
         if isinstance(v, torch.Tensor):
             assert torch.equal(state[k], v), k
-        elif k not in ("compact", "compact_snapshot"):
+        elif k != "compact":
             assert state[k] == v, k
 
 
@@ -397,6 +398,130 @@ def test_lowest_marks_exactly_count_of_the_smallest_and_refuses_counts_out_of_ra
         with pytest.raises(ValueError, match=f"cannot mark {count} of 5 Gaussians"):
             lowest(score, count)
     assert lowest(torch.zeros(0), 0).shape == (0,)
+
+
+# --- on a model: the field and the optimizers, and a resumed run's end ------------------------------------
+
+
+def tiny_model(**settings):
+    """A small GaroModel with the field on, three training cameras around the origin and an Adam state in
+    every optimizer (the Gaussians' and the field's)."""
+    from nerfstudio.cameras.cameras import Cameras
+    from nerfstudio.data.scene_box import SceneBox
+
+    from garo_ns.garo_model import GaroModelConfig
+
+    cfg = GaroModelConfig(
+        num_random=200, deform_width=16, deform_depth=2, deform_skip=0, deform_warmup=0, sh_degree=0,
+        rasterizer="reference", **settings,
+    )  # fmt: skip
+    model = cfg.setup(scene_box=SceneBox(torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=3, metadata={})
+    model.step = 100
+    c2w = torch.eye(4)[:3].repeat(3, 1, 1)
+    c2w[:, :, 3] = torch.tensor([[0.0, 0.0, 3.0], [0.3, 0.0, 3.0], [-0.3, 0.0, 3.0]])
+    size = dict(fx=20.0, fy=20.0, cx=8.0, cy=8.0, width=16, height=16)
+    model.train_cameras = Cameras(camera_to_worlds=c2w, times=torch.tensor([[0.0], [0.5], [1.0]]), **size)
+    model.train_times = torch.tensor([0.0, 0.5, 1.0])
+    groups = model.get_param_groups()
+    model.optimizers = {name: torch.optim.Adam(params, lr=1e-3) for name, params in groups.items() if params}
+    g = torch.Generator().manual_seed(3)
+    for name, optimizer in model.optimizers.items():
+        for p in groups[name]:
+            p.grad = torch.randn(p.shape, generator=g)
+        optimizer.step()
+        optimizer.zero_grad()
+    return model
+
+
+def model_copy(model) -> Dict[str, Any]:
+    return {
+        "params": {k: p.detach().clone() for k, p in model.named_parameters()},
+        "optimizers": {k: copy.deepcopy(o.state_dict()) for k, o in model.optimizers.items()},
+        "state": copy.deepcopy(model.strategy_state),
+    }
+
+
+def assert_model_unchanged(model, before: Dict[str, Any]) -> None:
+    now = model_copy(model)
+    assert now["params"].keys() == before["params"].keys()
+    for k, p in before["params"].items():
+        assert torch.equal(now["params"][k], p), k  # the Gaussians and the deformation field
+    for name, saved in before["optimizers"].items():
+        got = now["optimizers"][name]
+        assert got["param_groups"] == saved["param_groups"], name
+        assert got["state"].keys() == saved["state"].keys(), name
+        for i, moments in saved["state"].items():
+            for key, value in moments.items():
+                assert torch.equal(got["state"][i][key], value), (name, i, key)
+    groups = model.get_param_groups()
+    for name, optimizer in model.optimizers.items():  # still bound to the model's parameters
+        assert [p for g in optimizer.param_groups for p in g["params"]] == groups[name], name
+
+
+def test_a_round_over_the_bound_leaves_the_gaussians_their_optimizers_and_the_field_exactly_as_before():
+    model = tiny_model(compact=True, compact_start=100, compact_min_gaussians=0, compact_guard_views=3)
+    from garo_ns.compaction.guard import TrainingViewGuard
+    from garo_ns.compaction.training import run_round  # after the model: nerfstudio's writer is not imported first
+
+    model.train()
+    guard = TrainingViewGuard(model.train_cameras, images=[torch.zeros(16, 16, 3)] * 3, indices=[0, 1, 2])
+    with torch.no_grad():
+        model.eval()
+        images = [guard.render(model, i) for i in range(3)]
+        everything = torch.ones(model.num_points, dtype=torch.bool)
+        background = guard.render(model, 0, without=everything)
+        model.train()
+    assert not torch.equal(images[0], background)  # the Gaussians show...
+    assert torch.equal(background, model.background_color.expand(16, 16, 3))  # ...and a render without them is bare
+    guard.images = [image + 0.05 for image in images]  # the truth: close to the renders, not equal
+    real = guard.psnrs
+
+    def psnrs(model, without=None):  # every Gaussian left out costs view 1 another 0.1 dB
+        extra = torch.zeros(3, dtype=torch.float64)
+        if without is not None:
+            extra[1] = 0.1 * float(without.sum())
+        return real(model, without) - extra
+
+    guard.psnrs = psnrs
+    model.compaction_guard = guard
+    before = model_copy(model)
+    event = run_round(model, 100, last_step=None)
+    assert event["stop"] == "round_bound" and event["removed"] == 0
+    assert [t["count"] for t in event["tries"]] == [30, 15, 7, 4]  # 0.15, 0.075, 0.0375, 0.02 of 200
+    assert all(t["cost_worst_db"] > 0.1 for t in event["tries"])
+    assert model.training and model.num_points == 200
+    assert_model_unchanged(model, before)
+
+
+def test_a_resumed_run_ends_and_measures_its_render_switches_at_its_real_last_step():
+    """nerfstudio runs max_num_iterations steps after the loaded one: resumed at step 40 (a checkpoint of
+    step 39) for 20 steps, training ends at 59, not 19; the switches' record the checkpoint brought (from
+    the first part's end) is measured again there."""
+    from nerfstudio.engine.callbacks import TrainingCallbackAttributes
+
+    from garo_ns.compaction.guard import TrainingViewGuard
+
+    model = tiny_model(compact=True, compact_start=45, compact_every=5, compact_guard_views=3)
+    trainer = types.SimpleNamespace(_start_step=40, config=types.SimpleNamespace(max_num_iterations=20))
+    pipeline = types.SimpleNamespace(datamanager=types.SimpleNamespace(train_dataparser_outputs=None))
+    attributes = TrainingCallbackAttributes(optimizers=None, grad_scaler=None, pipeline=pipeline, trainer=trainer)
+    model.get_training_callbacks(attributes)
+    assert model._last_step == 59
+    guard = TrainingViewGuard(model.train_cameras, images=[torch.rand(16, 16, 3)] * 3, indices=[0, 1, 2])
+    model.compaction_guard = guard
+    stale = {"step": 19, "views": 3, "tried": {"static_skip": 0.5}}
+    model.switches.record = stale
+    for step in (58, 59):
+        model.train()
+        model.step = step
+        outputs = model.get_outputs(model.train_cameras[0:1])
+        outputs["rgb"].mean().backward()
+        model.after_iteration(step)
+        if step == 58:
+            assert model.switches.record is stale
+    assert model.switches.record is not stale and model.switches.record["step"] == 59
+    assert model.switches.record["views"] == 3
+    assert model.strategy_state["compact"]["stopped_step"] == 59  # compaction ends there too, not at 19
 
 
 # --- settings and helpers ----------------------------------------------------------------------------------
