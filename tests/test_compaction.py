@@ -370,10 +370,13 @@ def test_every_round_record_and_the_summary_say_what_happened():
         "detail": "removing 4 Gaussians would cost 2.000 dB (worst view), over the round bound 0.1 dB",
     }
     assert summary["settings"]["round_bound_db"] == 0.1 and summary["settings"]["budget_db"] == 1
-    assert scalars(events[1]) == {
-        "compact/removed": 0.0, "compact/num_gaussians": 90.0, "compact/share": 0.05,
-        "compact/cost_mean_db": 2.0 / V, "compact/cost_worst_db": 2.0,
+    assert scalars(events[1], summary["spent_db"]) == {
+        "compact/removed": 0.0, "compact/num_gaussians": 90.0, "compact/spent_db": 0.0, "compact/share": 0.05,
+        "compact/cost_mean_db": 2.0 / V, "compact/cost_worst_db": 2.0, "compact/stop_round_bound": 1.0,
     }  # fmt: skip
+    assert scalars(events[0], 0.25)["compact/spent_db"] == 0.25 and "compact/stop_round_bound" not in scalars(
+        events[0], 0.0
+    )
     assert "nothing removed" in round_line(events[1]) and "2.000 dB worst view" in round_line(events[1])
     assert "kept 90 of 100 Gaussians (90%), 0.000 dB of the 1 dB budget" in stop_line(summary)
     assert summary_for_json(summary)["reason_text"].startswith("even the smallest share")

@@ -34,15 +34,20 @@ def stop_line(summary: Dict[str, Any]) -> str:
     )
 
 
-def scalars(event: Dict[str, Any]) -> Dict[str, float]:
-    """The round's numbers for nerfstudio's writer (name -> value; the share and costs only when measured)."""
+def scalars(event: Dict[str, Any], spent_db: float) -> Dict[str, float]:
+    """The round's numbers for nerfstudio's writer (name -> value; the share and costs only when measured),
+    the budget spent so far, and at the round that ends compaction `compact/stop_<reason>` (a writer keeps
+    numbers only, so the name says why)."""
     out = {
         "compact/removed": float(event["removed"]),
         "compact/num_gaussians": float(event["num_after"]),
+        "compact/spent_db": float(spent_db),
     }
     for key in ("share", "cost_mean_db", "cost_worst_db"):
         if event[key] is not None:
             out[f"compact/{key}"] = float(event[key])
+    if "stop" in event:
+        out[f"compact/stop_{event['stop']}"] = 1.0
     return out
 
 

@@ -42,7 +42,7 @@ def run_round(model: Any, step: int, last_step: Optional[int]) -> Optional[Dict[
     )
     if event is None:
         return None
-    for name, value in scalars(event).items():
+    for name, value in scalars(event, model.strategy_state["compact"]["spent_db"]).items():
         writer.put_scalar(name=name, scalar=value, step=step)
     CONSOLE.print(round_line(event))
     if "stop" in event:
