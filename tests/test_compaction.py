@@ -1,4 +1,5 @@
-"""Compaction after densification: the exact undo, the rounds' stopping rule, bad settings, and a short
+"""Compaction after densification: rounds decided before they remove (noise between rounds, the per-round
+bound, the total budget, a resume), the model left untouched by a refused round, bad settings, and a short
 `garo-compact` training on the built-in scene (the guard reads training views only; the summary reaches
 the checkpoint and garo-eval's JSON)."""
 
