@@ -10,8 +10,9 @@ the dataparser):
   positions 1.6e-4 x 5 -> 1.6e-6 x 5 over 30k steps, deformation 1.6e-4 x 5 -> 1.6e-6 over 40k
   steps, colour 2.5e-3 (rest 1/20 of it), opacity 0.05, scale 1e-3 x 5, rotation 1e-3.
 `garo-compact` is `garo-deform` followed by compaction after densification (garo_ns.compaction):
-rounds of removing the least important Gaussians, with fine-tuning in between, while the PSNR on
-training views holds within `--pipeline.model.compact-tolerance-db`.
+rounds of removing the least important Gaussians, with fine-tuning in between, each measured on training
+views before it removes, within `--pipeline.model.compact-round-bound-db` per round and
+`--pipeline.model.compact-budget-db` in all.
 """
 
 from __future__ import annotations

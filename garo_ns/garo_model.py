@@ -24,11 +24,11 @@ from torch.nn import Parameter
 
 from garo_ns import checkpoints
 from garo_ns.compaction.guard import TrainingViewGuard
-from garo_ns.compaction.schedule import CompactionSettings
+from garo_ns.compaction.schedule import CompactionSettings, last_training_step
 from garo_ns.compaction.training import fixed_ratio_round, run_round
 from garo_ns.deformation import DeformationSettings, collapse_warning, health_check, health_due, time_noise
 from garo_ns.errors import GaroTrainingError
-from garo_ns.garo_strategy import TRANSIENT_STATE, GaroSettings, GaroStrategy, garo_scalars
+from garo_ns.garo_strategy import GaroSettings, GaroStrategy, garo_scalars
 from garo_ns.initialisation import initial_gaussians
 from garo_ns.metrics import image_metrics, metric_modules
 from garo_ns.recipe import D3dgsRecipe
@@ -141,8 +141,9 @@ class GaroModel(SplatfactoModel):
         attributes = training_callback_attributes
         self.training_run = True
         self.adopt_training_data(attributes.pipeline)
-        if attributes.trainer is not None:
-            self._last_step = int(attributes.trainer.config.max_num_iterations) - 1
+        trainer = attributes.trainer
+        if trainer is not None:  # the checkpoint is loaded by now: a resumed run starts after its step
+            self._last_step = last_training_step(getattr(trainer, "_start_step", 0), trainer.config.max_num_iterations)
         before, after = TrainingCallbackLocation.BEFORE_TRAIN_ITERATION, TrainingCallbackLocation.AFTER_TRAIN_ITERATION
         return [
             TrainingCallback([before], self.step_cb, args=[attributes.optimizers]),
@@ -340,10 +341,8 @@ class GaroModel(SplatfactoModel):
         return torch.nn.Module.load_state_dict(self, state_dict, strict=strict)
 
     def get_extra_state(self) -> Dict[str, Any]:
-        """The densification strategy's running state (the compaction's summary too, not its undo copy)
-        travels with the checkpoint."""
-        state = {k: v for k, v in self.strategy_state.items() if k not in TRANSIENT_STATE}
-        return {"strategy_state": state, "render_switches": self.switches.record}
+        """The densification strategy's running state (the compaction's summary too) travels with the checkpoint."""
+        return {"strategy_state": dict(self.strategy_state), "render_switches": self.switches.record}
 
     def set_extra_state(self, state: Dict[str, Any]) -> None:
         checkpoints.restore_strategy_state(self.strategy_state, (state or {}).get("strategy_state") or {}, self.device)

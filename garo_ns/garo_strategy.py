@@ -23,14 +23,13 @@ that choose the normal's axis are the strategy's own `params["scales"]`.
 This strategy is the one place where the number of Gaussians changes: densification (gsplat's),
 GARO (mode "off" turns it off: the D-3DGS baseline), pruning by contribution, whose per-Gaussian
 contribution the model passes in (as gsplat's MCMC strategy takes the learning rate), and compaction
-after densification (`compaction`, garo_ns.compaction): rounds of removal judged by a training-view
-PSNR the model measures, each undone exactly (`snapshot`/`restore`) when it costs too much. It reports
+after densification (`compaction`, garo_ns.compaction): rounds of removal, each decided before it removes
+from what leaving its candidates out of the render costs on training views (the model measures it). It reports
 what it did in `state["garo_last"]`, `state["compact"]` and return values; logging is the caller's.
 """
 
 from __future__ import annotations
 
-import copy
 import time
 from dataclasses import dataclass
 from typing import Any, Callable, Dict, Literal, Optional, Tuple, Union
@@ -40,16 +39,15 @@ from gsplat.strategy import DefaultStrategy
 from gsplat.strategy.ops import remove
 from torch import Tensor
 
+from garo_ns.compaction.decision import CostFn, committed_cost, decide
 from garo_ns.compaction.schedule import Compaction
 from garo_ns.redundancy.activity import mean_activity, record
 from garo_ns.redundancy.normals import normals
-from garo_ns.redundancy.select import least_contributing, lowest, select_redundant
+from garo_ns.redundancy.select import least_contributing, select_redundant
 
 Params = Union[Dict[str, torch.nn.Parameter], torch.nn.ParameterDict]
-# State keys of the compaction itself: its summary and its undo copy are not rolled back by `restore`,
-# and the undo copy (the size of the model and its Adam moments) stays out of checkpoints.
-COMPACT_SUMMARY, COMPACT_SNAPSHOT = "compact", "compact_snapshot"
-TRANSIENT_STATE = (COMPACT_SNAPSHOT,)
+# State key of the compaction's summary (what each round did and why it stopped; it travels with checkpoints).
+COMPACT_SUMMARY = "compact"
 
 
 @dataclass
@@ -95,7 +93,7 @@ class GaroStrategy(DefaultStrategy):
             state.update({"garo_grad": None, "garo_count": None, "garo_last": {}})
         state.update({"static": None, "static_offset": None, "static_step": -1})
         if self.compaction is not None:
-            state.update({COMPACT_SUMMARY: self.compaction.initial_state(), COMPACT_SNAPSHOT: None})
+            state[COMPACT_SUMMARY] = self.compaction.initial_state()
         return state
 
     def garo_schedule(self) -> Tuple[int, int, int]:
@@ -225,146 +223,82 @@ class GaroStrategy(DefaultStrategy):
             remove(params=params, optimizers=optimizers, state=state, mask=mask)
         return int(mask.sum())
 
-    @torch.no_grad()
-    def snapshot(
-        self, params: Params, optimizers: Dict[str, torch.optim.Optimizer], state: Dict[str, Any]
-    ) -> Dict[str, Any]:
-        """Copies of the Gaussians, their optimizer states (Adam's moments and step) and the strategy's
-        state (every per-Gaussian row), from which `restore` puts all of them back exactly."""
-        return {
-            "params": {k: p.detach().clone() for k, p in params.items()},
-            "optimizers": {k: _copy(dict(optimizers[k].state.get(p, {}))) for k, p in params.items()},
-            "state": {k: _copy(v) for k, v in state.items() if k not in (COMPACT_SUMMARY, COMPACT_SNAPSHOT)},
-        }
-
-    @torch.no_grad()
-    def restore(
-        self,
-        params: Params,
-        optimizers: Dict[str, torch.optim.Optimizer],
-        state: Dict[str, Any],
-        saved: Dict[str, Any],
-    ) -> None:
-        """Put back what `snapshot` copied, whatever the number of Gaussians now. As gsplat's ops do,
-        each optimizer is rebound to the new Parameter, which carries the saved moments."""
-        for name, value in saved["params"].items():
-            optimizer = optimizers[name]
-            new = torch.nn.Parameter(value.clone(), requires_grad=params[name].requires_grad)
-            for group in optimizer.param_groups:
-                optimizer.state.pop(group["params"][0], None)
-                group["params"] = [new]
-            if saved["optimizers"][name]:
-                optimizer.state[new] = _copy(saved["optimizers"][name])
-            params[name] = new
-        for key, value in saved["state"].items():
-            state[key] = _copy(value)
-
     def compact(
         self,
         params: Params,
         optimizers: Dict[str, torch.optim.Optimizer],
         state: Dict[str, Any],
         step: int,
-        measure: Optional[Callable[[], float]],
+        cost: Optional[CostFn],
         importance: Callable[[], Tensor],
         last_step: Optional[int] = None,
     ) -> Optional[Dict[str, Any]]:
-        """A compaction round, if one falls on `step` (garo_ns.compaction.schedule says what a round
-        does), or the final check at `last_step`. `measure` gives the guard's training-view PSNR of the
-        Gaussians as they are now (None: there are no training views), `importance` a score [N] of
-        each (the lowest are removed). Returns the round's record (None when nothing ran); a record
-        with `stop` ends the compaction, whose summary is `state["compact"]`."""
+        """The compaction round of `step`, if one falls on it, or the end of compaction at `last_step`
+        (garo_ns.compaction.schedule says what a round does). `cost(mask)` gives each guard view's PSNR
+        loss, in dB, of rendering the Gaussians now without those of `mask` (None: there are no training
+        views); `importance` a score [N] of each (the lowest are the candidates). The round decides
+        before it removes (garo_ns.compaction.decision): nothing is removed unless its measured cost is
+        within bounds. Returns the round's record (None when nothing ran); a record with `stop` ends the
+        compaction, whose summary is `state["compact"]`."""
         c = self.compaction
         summary = state.get(COMPACT_SUMMARY) if c is not None else None
-        if c is None or summary is None or summary["reason"] is not None:
+        if c is None or summary is None or summary.get("reason") is not None:
             return None
         at_round = c.is_round(step, self.refine_stop_iter)
         at_end = last_step is not None and step >= last_step
         if not (at_round or at_end):
             return None
         n = len(params["means"])
-        started = summary["reference_psnr"] is not None
+        summary.setdefault("spent_db", 0.0)  # a summary written before the budget existed
+        if summary["num_gaussians_start"] is None:
+            summary["num_gaussians_start"] = n
         event: Dict[str, Any] = {
             "round": len(summary["rounds"]),
             "step": step,
             "num_before": n,
+            "share": None,
+            "cost_mean_db": None,
+            "cost_worst_db": None,
             "removed": 0,
-            "restored": 0,
-            "psnr_before": None,
-            "psnr_after": None,
             "num_after": n,
+            "tries": [],
         }
-        if not started:
-            summary["num_gaussians_start"] = n
-            if not at_round:
+        if at_end:  # every kept round was measured when made: nothing is left to check
+            if not summary["rounds"]:
                 first = c.first_step(self.refine_stop_iter)
                 return self._stop(state, event, "training_ended", f"before the first round (step {first})")
-            if n == 0:
-                return self._stop(state, event, "empty_model", "nothing to compact")
-        if measure is None:
-            return self._stop(state, event, "no_training_views", "the model was given no training data")
-        psnr = float(measure())
-        event["psnr_before"] = psnr
-        tol = c.tolerance_db
-        if not started:
-            summary.update(reference_psnr=psnr, best_psnr=psnr)
-        elif not summary["best_psnr"] - psnr <= tol:  # NaN counts as a loss
-            # The last removal did not recover in the fine-tuning since: undo it (the Gaussians as before it).
-            best, saved = summary["best_psnr"], state.get(COMPACT_SNAPSHOT)
-            detail = f"PSNR {psnr:.2f} dB after fine-tuning, {best - psnr:.2f} dB below the best {best:.2f} dB"
-            if saved is None:  # resumed from a checkpoint, which does not keep the undo copy
-                return self._stop(state, event, "tolerance", detail + "; no copy to undo the last removal with")
-            self.restore(params, optimizers, state, saved)
-            after = float(measure())
-            event.update(restored=len(params["means"]) - n, num_after=len(params["means"]), psnr_after=after)
-            return self._stop(state, event, "tolerance", detail + "; the last removal is undone", after)
-        summary["best_psnr"] = max(summary["best_psnr"], psnr)
-        if at_end:
-            return self._stop(state, event, "training_ended", f"at step {step}", psnr)
+            return self._stop(state, event, "training_ended", f"at step {step}")
+        if n == 0:
+            return self._stop(state, event, "empty_model", "nothing to compact")
         if event["round"] >= c.max_rounds:
-            return self._stop(state, event, "max_rounds", f"{c.max_rounds} rounds", psnr)
+            return self._stop(state, event, "max_rounds", f"{c.max_rounds} rounds")
         if n <= c.min_gaussians:
-            return self._stop(state, event, "min_gaussians", f"{n} <= {c.min_gaussians}", psnr)
-        count = c.removal_count(n)
-        if count == 0:
-            return self._stop(state, event, "nothing_to_remove", f"{c.fraction} x {n} Gaussians", psnr)
-        saved = self.snapshot(params, optimizers, state)
+            return self._stop(state, event, "min_gaussians", f"{n} <= {c.min_gaussians}")
+        if cost is None:
+            return self._stop(state, event, "no_training_views", "the model was given no training data")
         with torch.no_grad():
-            mask = lowest(importance(), count)
-            remove(params=params, optimizers=optimizers, state=state, mask=mask)
-        after = float(measure())
-        event.update(removed=count, num_after=n - count, psnr_after=after)
-        if not psnr - after <= tol:
-            self.restore(params, optimizers, state, saved)
-            event.update(restored=count, num_after=n)
-            detail = f"removing {count} Gaussians cost {psnr - after:.2f} dB; undone"
-            return self._stop(state, event, "tolerance", detail, psnr)
-        state[COMPACT_SNAPSHOT] = saved
+            decision = decide(importance(), n, c, summary["spent_db"], cost)
+        tries = decision["tries"]
+        event["tries"] = tries
+        if tries:
+            last = tries[-1]
+            event.update(share=last["share"], cost_mean_db=last["cost_mean_db"], cost_worst_db=last["cost_worst_db"])
+        if decision["mask"] is None:
+            return self._stop(state, event, decision["stop"], decision["detail"])
+        with torch.no_grad():
+            remove(params=params, optimizers=optimizers, state=state, mask=decision["mask"])
+        event.update(removed=tries[-1]["count"], num_after=len(params["means"]))
+        summary["spent_db"] += committed_cost(tries[-1]["cost_worst_db"])
         summary["rounds"].append(event)
         summary["num_gaussians_end"] = event["num_after"]
-        summary["final_psnr"] = after
         return event
 
-    def _stop(
-        self,
-        state: Dict[str, Any],
-        event: Dict[str, Any],
-        reason: str,
-        detail: str,
-        final_psnr: Optional[float] = None,
-    ) -> Dict[str, Any]:
-        """End the compaction: record the last round and why it stopped; free the undo copy."""
+    def _stop(self, state: Dict[str, Any], event: Dict[str, Any], reason: str, detail: str) -> Dict[str, Any]:
+        """End the compaction: record the last round (nothing removed in it) and why it stopped."""
         summary = state[COMPACT_SUMMARY]
         event["stop"] = reason
         summary["rounds"].append(event)
-        summary.update(
-            reason=reason,
-            detail=detail,
-            stopped_step=event["step"],
-            num_gaussians_end=event["num_after"],
-            final_psnr=final_psnr if final_psnr is not None else summary["final_psnr"],
-        )
-        state[COMPACT_SNAPSHOT] = None
+        summary.update(reason=reason, detail=detail, stopped_step=event["step"], num_gaussians_end=event["num_after"])
         return event
 
 
@@ -376,17 +310,6 @@ def garo_scalars(state: Dict[str, Any], step: int) -> Dict[str, float]:
     return {
         f"garo/{key}": float(last[key]) for key in ("candidates", "redundant", "pruned", "seconds", "num_gaussians")
     }
-
-
-def _copy(value: Any) -> Any:
-    """A copy that shares no tensor storage with `value` (tensors cloned, containers rebuilt)."""
-    if isinstance(value, Tensor):
-        return value.detach().clone()
-    if isinstance(value, dict):
-        return {k: _copy(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return type(value)(_copy(v) for v in value)
-    return copy.deepcopy(value)
 
 
 def restrict_info(info: Dict[str, Any], keep: Tensor) -> Dict[str, Any]:

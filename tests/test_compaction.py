@@ -1,4 +1,5 @@
-"""Compaction after densification: the exact undo, the rounds' stopping rule, bad settings, and a short
+"""Compaction after densification: rounds decided before they remove (noise between rounds, the per-round
+bound, the total budget, a resume), the model left untouched by a refused round, bad settings, and a short
 `garo-compact` training on the built-in scene (the guard reads training views only; the summary reaches
 the checkpoint and garo-eval's JSON)."""
 
@@ -13,11 +14,13 @@ from typing import Any, Dict, List
 import pytest
 import torch
 
+from garo_ns.checkpoints import restore_strategy_state
 from garo_ns.compaction import Compaction, importance
-from garo_ns.compaction.guard import spread_indices
-from garo_ns.compaction.report import round_line, stop_line, summary_for_json
+from garo_ns.compaction.guard import removal_cost, spread_indices
+from garo_ns.compaction.report import round_line, scalars, stop_line, summary_for_json
+from garo_ns.compaction.schedule import last_training_step
 from garo_ns.errors import GaroConfigError
-from garo_ns.garo_strategy import GaroStrategy, _copy
+from garo_ns.garo_strategy import GaroStrategy
 from garo_ns.redundancy.select import lowest
 
 N = 100
@@ -81,7 +84,7 @@ def assert_same(params, optimizers, state, expected):
     for k, v in e_state.items():
         if isinstance(v, torch.Tensor):
             assert torch.equal(state[k], v), k
-        elif k not in ("compact", "compact_snapshot"):
+        elif k != "compact":
             assert state[k] == v, k
 
 
@@ -100,84 +103,45 @@ def adam_step(params, optimizers, seed: int = 5):
         optimizers[k].step()
 
 
-# --- snapshot and restore ---------------------------------------------------------------------------
-
-
-def test_restore_puts_back_params_adam_and_state_rows_exactly_and_training_goes_on_alike():
-    strategy = GaroStrategy(compaction=Compaction(start=0))
-    params, optimizers, g = gaussians()
-    state = filled_state(strategy, N, g)
-    before = copy_of(params, optimizers, state)
-    twin_params, twin_opt, _ = gaussians()  # the same Gaussians and moments, never touched below
-    saved = strategy.snapshot(params, optimizers, state)
-    mask = torch.zeros(N, dtype=torch.bool)
-    mask[::3] = True
-    from gsplat.strategy.ops import remove
-
-    remove(params=params, optimizers=optimizers, state=state, mask=mask)
-    adam_step(params, optimizers, seed=9)  # training after the removal changes what is left
-    assert len(params["means"]) == N - 34
-    strategy.restore(params, optimizers, state, saved)
-    assert_same(params, optimizers, state, before)
-    assert state["static_step"] == 7
-    # The restored Gaussians train exactly as the untouched twin: moments and step counts came back.
-    adam_step(params, optimizers)
-    adam_step(twin_params, twin_opt)
-    for k in params:
-        assert torch.equal(params[k].detach(), twin_params[k].detach()), k
-    # The snapshot holds copies: training the restored parameters did not change it.
-    assert torch.equal(saved["params"]["means"], before[0]["means"])
-
-
-def test_restore_rebinds_an_optimizer_that_had_no_state_yet():
-    strategy = GaroStrategy()
-    params = torch.nn.ParameterDict({"means": torch.nn.Parameter(torch.zeros(4, 3))})
-    optimizers = {"means": torch.optim.Adam([params["means"]], lr=0.1)}
-    state = strategy.initialize_state()
-    saved = strategy.snapshot(params, optimizers, state)
-    params["means"] = torch.nn.Parameter(torch.ones(2, 3))
-    strategy.restore(params, optimizers, state, saved)
-    assert optimizers["means"].param_groups[0]["params"][0] is params["means"]
-    assert torch.equal(params["means"].detach(), torch.zeros(4, 3))
-    params["means"].grad = torch.ones(4, 3)
-    optimizers["means"].step()
-    assert torch.allclose(params["means"].detach(), torch.full((4, 3), -0.1))
-
-
 # --- the rounds ----------------------------------------------------------------------------------------
+
+V = 16  # guard views
 
 
 class Scene:
-    """A model whose training-view PSNR is 30 dB less the summed value of the Gaussians it lost (by row id);
-    `drift` lowers every later measurement (fine-tuning that does not recover)."""
+    """A model's guard views: view v's PSNR is 30 dB, plus `swing` (the reading's noise at this step, the
+    same for every render of one step), less the summed `value[:, v]` of the Gaussians missing from the
+    render (removed, or left out by `without`). It stands in for TrainingViewGuard (`psnrs`)."""
 
-    def __init__(self, value: torch.Tensor):
-        self.value = value
-        self.drift = 0.0
-        self.measured = 0
+    def __init__(self, value: torch.Tensor, params):
+        self.value = value  # [N, V] dB per Gaussian (by row id) and view
+        self.params = params
+        self.swing = 0.0
+        self.renders = 0
 
-    def measure(self, params) -> float:
-        self.measured += 1
+    def psnrs(self, model: Any, without=None) -> torch.Tensor:
+        self.renders += 1
+        present = self.params["opacities"].detach().long()
+        if without is not None:
+            present = present[~without]
         lost = torch.ones(len(self.value), dtype=torch.bool)
-        lost[params["opacities"].detach().long()] = False
-        return 30.0 - float(self.value[lost].sum()) - self.drift
+        lost[present] = False
+        return 30.0 + self.swing - self.value[lost].sum(0)
 
-    def importance(self, params) -> torch.Tensor:
-        return self.value[params["opacities"].detach().long()]
+    def importance(self) -> torch.Tensor:
+        """Scores by worth (ties by row id), so the cheapest Gaussians are the candidates."""
+        return self.value[self.params["opacities"].detach().long()].sum(1)
+
+    def loss(self) -> torch.Tensor:
+        """What every removal so far costs each view, in dB."""
+        return 30.0 + self.swing - self.psnrs(None)
 
 
 def run_rounds(strategy, params, optimizers, state, scene, steps, last_step=None, between=None):
     events = []
     for step in steps:
-        event = strategy.compact(
-            params,
-            optimizers,
-            state,
-            step,
-            lambda: scene.measure(params),
-            lambda: scene.importance(params),
-            last_step,
-        )
+        cost = removal_cost(None, scene)
+        event = strategy.compact(params, optimizers, state, step, cost, scene.importance, last_step)
         if event is not None:
             events.append(event)
             if "stop" in event:
@@ -187,342 +151,245 @@ def run_rounds(strategy, params, optimizers, state, scene, steps, last_step=None
     return events
 
 
-def value_40_percent_free(n: int = N) -> torch.Tensor:
-    """The first 40 Gaussians are worth nothing (the lowest scores), the rest 0.02 dB each."""
-    value = torch.full((n,), 0.02, dtype=torch.float64)
-    value[:40] = 0.0
+def worth(n: int, free: int, per_gaussian: float, views: int = V) -> torch.Tensor:
+    """[n, views]: the first `free` Gaussians cost nothing, each other one `per_gaussian` dB on view 0 only."""
+    value = torch.zeros(n, views, dtype=torch.float64)
+    value[free:, 0] = per_gaussian
     return value
 
 
-def test_tolerance_zero_removes_only_what_costs_nothing_and_undoes_the_round_that_costs():
-    strategy = GaroStrategy(compaction=Compaction(start=0, every=1, fraction=0.2, tolerance_db=0.0, min_gaussians=0))
+def compaction(**settings) -> Compaction:
+    return Compaction(**{"start": 0, "every": 1, "fraction": 0.2, "min_gaussians": 0, **settings})
+
+
+def test_a_training_psnr_that_swings_by_a_db_between_rounds_does_not_stop_free_removals():
+    """The failure of the GPU run: the training-view PSNR read 1000 steps apart swung by ~1 dB, and a round
+    that cost nothing was undone. Each round now compares two renders of its own step: the swing cancels."""
+    strategy = GaroStrategy(compaction=compaction(max_rounds=6, round_bound_db=0.1, budget_db=0.3))
     params, optimizers, g = gaussians()
     state = filled_state(strategy, N, g)
-    scene = Scene(value_40_percent_free())
-    copies = {}
+    scene = Scene(worth(N, N, 0.0), params)
 
-    def keep_copy(step):
-        copies[step] = copy_of(params, optimizers, state)
-
-    keep_copy(-1)
-    events = run_rounds(strategy, params, optimizers, state, scene, range(20), between=keep_copy)
-    # 100 -> 80 -> 64 (free Gaussians only); the third round would take 12 with only 4 free left: undone.
-    assert [e["removed"] for e in events] == [20, 16, 12]
-    assert events[-1]["stop"] == "tolerance" and events[-1]["restored"] == 12
-    assert len(params["means"]) == 64
-    assert set(range(36, 100)) == set(ids(params))  # every lost Gaussian was worth nothing
-    assert_same(params, optimizers, state, copies[1])  # exactly as before the undone round
-    summary = state["compact"]
-    assert summary["reason"] == "tolerance" and summary["num_gaussians_end"] == 64
-    assert summary["reference_psnr"] == summary["final_psnr"] == 30.0
-    assert state["compact_snapshot"] is None  # the undo copy is freed
-    assert "put back" in round_line(events[-1], 0.0)
-    line = stop_line(summary)
-    assert "tolerance" in line and "kept 64 of 100" in line and "undone" in line
-    # Stopped for good: later steps do nothing.
-    assert strategy.compact(params, optimizers, state, 30, lambda: 0.0, lambda: torch.zeros(64)) is None
-
-
-def test_a_larger_tolerance_removes_more_and_says_it_stopped_at_the_round_limit():
-    ends = {}
-    for tol in (0.0, 0.25, 100.0):
-        compaction = Compaction(start=0, every=1, fraction=0.2, tolerance_db=tol, max_rounds=5, min_gaussians=0)
-        strategy = GaroStrategy(compaction=compaction)
-        params, optimizers, g = gaussians()
-        state = filled_state(strategy, N, g)
-        run_rounds(strategy, params, optimizers, state, Scene(value_40_percent_free()), range(20))
-        ends[tol] = (len(params["means"]), state["compact"]["reason"], state["compact"]["final_psnr"])
-    assert ends[0.0] == (64, "tolerance", 30.0)
-    # 0.25 dB: the third round's 8 Gaussians (0.16 dB) stay; the fourth round's 10 cost 0.20 dB at once (within
-    # the tolerance) but 0.36 dB in all, which the next round finds and undoes.
-    assert ends[0.25][:2] == (52, "tolerance") and math.isclose(ends[0.25][2], 29.84, abs_tol=1e-5)
-    assert ends[100.0][:2] == (34, "max_rounds")  # 100, 80, 64, 52, 42, 34
-
-
-def test_a_removal_that_does_not_recover_in_fine_tuning_is_undone_at_the_next_round():
-    compaction = Compaction(start=10, every=5, fraction=0.2, tolerance_db=0.5, min_gaussians=0)
-    strategy = GaroStrategy(compaction=compaction)
-    params, optimizers, g = gaussians()
-    state = filled_state(strategy, N, g)
-    scene = Scene(torch.zeros(N))  # every removal is free at once...
-    copies = {}
-
-    def train(step):
+    def fine_tune(step):
         adam_step(params, optimizers, seed=step)
-        copies[step] = copy_of(params, optimizers, state)  # as the next step starts
-        if step == 15:  # ...but after the second removal the training-view PSNR falls by 0.6 dB
-            scene.drift = 0.6
+        scene.swing = 1.0 if step % 2 == 0 else -0.2  # ~1 dB between consecutive readings
 
-    events = run_rounds(strategy, params, optimizers, state, scene, range(10, 40), between=train)
-    assert [(e["step"], e["removed"]) for e in events[:2]] == [(10, 20), (15, 16)]
-    last = events[-1]
-    assert last["step"] == 20 and last["stop"] == "tolerance" and last["restored"] == 16
-    assert_same(params, optimizers, state, copies[14])  # as before round 15's removal
-    assert "below the best" in state["compact"]["detail"]
-
-
-def test_the_last_training_step_checks_the_pending_removal():
-    for drift, reason, n in ((0.0, "training_ended", 80), (1.0, "tolerance", 100)):
-        compaction = Compaction(start=0, every=100, tolerance_db=0.5, fraction=0.2, min_gaussians=0)
-        strategy = GaroStrategy(compaction=compaction)
-        params, optimizers, g = gaussians()
-        state = filled_state(strategy, N, g)
-        scene = Scene(torch.zeros(N))
-        events = run_rounds(
-            strategy, params, optimizers, state, scene, range(50), last_step=49,
-            between=lambda s: setattr(scene, "drift", drift) if s == 0 else None,
-        )  # fmt: skip
-        assert [e["step"] for e in events] == [0, 49]
-        assert state["compact"]["reason"] == reason and len(params["means"]) == n
+    events = run_rounds(strategy, params, optimizers, state, scene, range(20), between=fine_tune)
+    assert [e["removed"] for e in events] == [20, 16, 12, 10, 8, 6, 0]  # every round, then the limit
+    assert [e["cost_worst_db"] for e in events[:-1]] == [0.0] * 6
+    summary = state["compact"]
+    assert summary["reason"] == "max_rounds" and summary["stopped_step"] == 6 and summary["spent_db"] == 0.0
+    assert len(params["means"]) == summary["num_gaussians_end"] == 28
+    assert all(len(e["tries"]) == 1 and e["share"] == 0.2 for e in events[:-1])
 
 
-def test_stops_without_measuring_on_an_empty_model_without_views_or_before_its_start():
-    def never():
+def test_a_removal_over_the_bound_is_never_made_and_nothing_changes():
+    """Every Gaussian costs 0.2 dB on one of 16 views: even the smallest share (2 Gaussians, 0.4 dB on that
+    view) is over the 0.1 dB bound, though its mean over the views (0.025 dB) is not. Nothing is removed:
+    the Gaussians, their Adam moments and the strategy's rows stay exactly as they were."""
+    strategy = GaroStrategy(compaction=compaction(round_bound_db=0.1, budget_db=0.3))
+    params, optimizers, g = gaussians()
+    state = filled_state(strategy, N, g)
+    scene = Scene(worth(N, 0, 0.2), params)
+    before = copy_of(params, optimizers, state)
+    events = run_rounds(strategy, params, optimizers, state, scene, range(3))
+    assert len(events) == 1 and events[0]["stop"] == "round_bound" and events[0]["removed"] == 0
+    assert_same(params, optimizers, state, before)
+    tries = events[0]["tries"]
+    # Shares 0.2, 0.1, 0.05, 0.025 and the floor 0.02 (2 Gaussians again: not measured twice).
+    assert [(t["share"], t["count"]) for t in tries] == [(0.2, 20), (0.1, 10), (0.05, 5), (0.025, 2)]
+    assert [t["cost_worst_db"] for t in tries] == pytest.approx([4.0, 2.0, 1.0, 0.4])
+    assert tries[-1]["cost_mean_db"] == pytest.approx(0.4 / V)
+    assert scene.renders == 1 + len(tries)  # the plain renders once, each try once
+    summary = state["compact"]
+    assert summary["num_gaussians_end"] == N and summary["spent_db"] == 0.0
+    assert "over the round bound 0.1 dB" in summary["detail"] and "kept 100 of 100" in stop_line(summary)
+
+
+def test_a_round_halves_its_share_until_the_cost_is_within_the_bound():
+    strategy = GaroStrategy(compaction=compaction(max_rounds=1, round_bound_db=0.1, budget_db=0.3))
+    params, optimizers, g = gaussians()
+    state = filled_state(strategy, N, g)
+    scene = Scene(worth(N, 9, 0.05), params)
+    events = run_rounds(strategy, params, optimizers, state, scene, range(3))
+    # 20 Gaussians (11 costly: 0.55 dB), then 10 (1 costly: 0.05 dB, within the bound)
+    assert [t["count"] for t in events[0]["tries"]] == [20, 10]
+    assert [t["cost_worst_db"] for t in events[0]["tries"]] == pytest.approx([0.55, 0.05])
+    assert events[0]["share"] == 0.1 and events[0]["removed"] == 10 and len(params["means"]) == 90
+    assert set(ids(params)) == set(range(10, 100))
+    assert "removed 10 of 100" in round_line(events[0])
+
+
+def test_many_cheap_rounds_spend_at_most_the_total_budget():
+    n = 1000
+    strategy = GaroStrategy(compaction=compaction(max_rounds=100, round_bound_db=0.1, budget_db=0.3))
+    params, optimizers, g = gaussians(n)
+    state = filled_state(strategy, n, g)
+    scene = Scene(worth(n, 0, 0.003), params)
+    events = run_rounds(strategy, params, optimizers, state, scene, range(200))
+    kept = [e for e in events if e["removed"]]
+    assert len(kept) >= 3 and all(0 < e["cost_worst_db"] <= 0.1 for e in kept)
+    summary = state["compact"]
+    assert summary["reason"] == "budget" and "left of the 0.3 dB budget" in summary["detail"]
+    assert summary["spent_db"] == pytest.approx(sum(e["cost_worst_db"] for e in kept)) and summary["spent_db"] <= 0.3
+    assert float(scene.loss().max()) <= 0.3 + 1e-9  # what the removals cost in the end, on the worst view
+    assert events[-1]["cost_worst_db"] > 0.3 - summary["spent_db"]  # the round refused would have overspent
+
+
+def test_a_resumed_run_makes_the_same_rounds_as_an_unbroken_one(tmp_path):
+    """Stopped after step 9 and resumed from the checkpoint: nerfstudio runs `max_num_iterations` (10) more
+    steps after the loaded one, so the run ends at step 19, not 9, and its rounds are the unbroken run's."""
+    settings = compaction(every=3, max_rounds=100, round_bound_db=0.1, budget_db=0.5)
+
+    def fresh():
+        strategy = GaroStrategy(compaction=settings)
+        params, optimizers, g = gaussians(1000)
+        state = filled_state(strategy, 1000, g)
+        return strategy, params, optimizers, state, Scene(worth(1000, 300, 0.003), params)
+
+    strategy, params, optimizers, state, scene = fresh()
+    unbroken = run_rounds(strategy, params, optimizers, state, scene, range(20), last_step=last_training_step(0, 20))
+
+    strategy, params, optimizers, state, scene = fresh()
+    # Interrupted after step 9 (its checkpoint), then resumed with max_num_iterations=10.
+    first = run_rounds(strategy, params, optimizers, state, scene, range(10), last_step=last_training_step(0, 20))
+    torch.save({"state": dict(state), "params": dict(params)}, tmp_path / "ckpt.pt")
+    saved = torch.load(tmp_path / "ckpt.pt", weights_only=False)
+    strategy, params, optimizers, state, scene = fresh()
+    restore_strategy_state(state, saved["state"], "cpu")
+    for k, p in saved["params"].items():
+        params[k] = torch.nn.Parameter(p.detach().clone())
+        optimizers[k] = torch.optim.Adam([params[k]], lr=1e-3)
+    scene.params = params
+    last = last_training_step(10, 10)  # resumed at step 10 (the checkpoint's step 9 + 1)
+    assert last == 19
+    second = run_rounds(strategy, params, optimizers, state, scene, range(10, 20), last_step=last)
+
+    def rounds(events):
+        return [(e["step"], e["share"], e["removed"], e["num_after"], e.get("stop")) for e in events]
+
+    assert rounds(first + second) == rounds(unbroken)
+    assert len([e for e in unbroken if e["removed"]]) >= 4 and unbroken[-1]["step"] == 19
+    assert state["compact"]["stopped_step"] == 19 and state["compact"]["reason"] == "training_ended"
+    assert len(params["means"]) == unbroken[-1]["num_after"]
+
+
+def test_the_end_of_training_stops_compaction_without_measuring():
+    def never(*_):
         raise AssertionError("measured")
 
-    strategy = GaroStrategy(compaction=Compaction(start=0))
-    params = torch.nn.ParameterDict({"means": torch.nn.Parameter(torch.zeros(0, 3))})
-    optimizers = {"means": torch.optim.Adam([params["means"]])}
-    state = strategy.initialize_state()
-    event = strategy.compact(params, optimizers, state, 0, never, never)
-    assert event["stop"] == "empty_model" and state["compact"]["reason"] == "empty_model"
-    assert "no Gaussians" in stop_line(state["compact"])
-
+    strategy = GaroStrategy(compaction=compaction(every=10))
     params, optimizers, g = gaussians()
     state = filled_state(strategy, N, g)
-    assert strategy.compact(params, optimizers, state, 0, None, never)["stop"] == "no_training_views"
+    scene = Scene(worth(N, N, 0.0), params)
+    events = run_rounds(strategy, params, optimizers, state, scene, range(20), last_step=15)
+    assert [(e["step"], e["removed"], e.get("stop")) for e in events] == [
+        (0, 20, None),
+        (10, 16, None),
+        (15, 0, "training_ended"),
+    ]
+    summary = state["compact"]
+    assert summary["detail"] == "at step 15" and summary["stopped_step"] == 15
+    assert summary["num_gaussians_end"] == 64 == len(params["means"]) and summary["rounds"][-1] is events[-1]
+    assert strategy.compact(params, optimizers, state, 20, never, never) is None  # stopped for good
 
     late = GaroStrategy(compaction=Compaction(start=500))
     state = filled_state(late, N, g)
     assert late.compact(params, optimizers, state, 100, never, never, last_step=200) is None
     assert late.compact(params, optimizers, state, 200, never, never, last_step=200)["stop"] == "training_ended"
-    assert "before the first round (step 500)" in state["compact"]["detail"]
-    assert len(params["means"]) == N
+    assert state["compact"]["detail"] == "before the first round (step 500)"
 
 
-def test_a_tiny_model_is_left_as_it_is():
-    strategy = GaroStrategy(compaction=Compaction(start=0, min_gaussians=1000))
-    params, optimizers, g = gaussians(20)
-    state = filled_state(strategy, 20, g)
-    before = copy_of(params, optimizers, state)
-    scene = Scene(torch.zeros(20))
-    event = strategy.compact(params, optimizers, state, 0, lambda: scene.measure(params), lambda: torch.zeros(20))
-    assert event["stop"] == "min_gaussians" and event["removed"] == 0
-    assert_same(params, optimizers, state, before)
-    # A round whose share rounds down to no Gaussian stops too.
-    strategy = GaroStrategy(compaction=Compaction(start=0, fraction=0.04, min_gaussians=0))
-    state = filled_state(strategy, 20, g)
-    event = strategy.compact(params, optimizers, state, 0, lambda: scene.measure(params), lambda: torch.zeros(20))
-    assert event["stop"] == "nothing_to_remove" and len(params["means"]) == 20
+def test_stops_without_measuring_on_an_empty_model_without_views_or_a_model_too_small():
+    def never(*_):
+        raise AssertionError("measured")
+
+    strategy = GaroStrategy(compaction=Compaction(start=0))
+    params = torch.nn.ParameterDict({"means": torch.nn.Parameter(torch.zeros(0, 3))})
+    state = strategy.initialize_state()
+    event = strategy.compact(params, {"means": torch.optim.Adam([params["means"]])}, state, 0, never, never)
+    assert event["stop"] == "empty_model" and state["compact"]["detail"] == "nothing to compact"
+    assert "no Gaussians" in stop_line(state["compact"])
+
+    params, optimizers, g = gaussians()
+    blind = GaroStrategy(compaction=compaction())
+    state = filled_state(blind, N, g)
+    assert blind.compact(params, optimizers, state, 0, None, never)["stop"] == "no_training_views"
+    assert state["compact"]["detail"] == "the model was given no training data"
+
+    tiny = GaroStrategy(compaction=Compaction(start=0, min_gaussians=1000))
+    state = filled_state(tiny, N, g)
+    assert tiny.compact(params, optimizers, state, 0, never, never)["stop"] == "min_gaussians"
+    assert state["compact"]["detail"] == f"{N} <= 1000" and len(params["means"]) == N
+
+    none_left = GaroStrategy(compaction=compaction(fraction=0.005, min_fraction=0.005))
+    state = filled_state(none_left, N, g)
+    event = none_left.compact(params, optimizers, state, 0, never, lambda: torch.zeros(N))
+    assert event["stop"] == "nothing_to_remove" and state["compact"]["detail"] == f"0.005 x {N} Gaussians"
+
+    no_rounds = GaroStrategy(compaction=compaction(max_rounds=0))
+    state = filled_state(no_rounds, N, g)
+    assert no_rounds.compact(params, optimizers, state, 0, never, never)["stop"] == "max_rounds"
 
 
-def test_a_strategy_without_compaction_has_no_compaction_state_and_does_nothing():
+def test_a_strategy_without_compaction_or_a_state_without_its_summary_does_nothing():
     strategy = GaroStrategy()
     state = strategy.initialize_state()
-    assert "compact" not in state and "compact_snapshot" not in state
+    assert "compact" not in state
     params, optimizers, _ = gaussians()
-    assert strategy.compact(params, optimizers, state, 0, lambda: 1.0, lambda: torch.zeros(N)) is None
-
-
-def approx_record(record: Dict[str, Any]) -> Dict[str, Any]:
-    """A record with its floats compared to 1e-9 (the scene's PSNRs are sums of float64 values)."""
-    return {k: pytest.approx(v, abs=1e-9) if isinstance(v, float) else v for k, v in record.items()}
+    assert strategy.compact(params, optimizers, state, 0, lambda m: torch.zeros(V), lambda: torch.zeros(N)) is None
+    with_compaction = GaroStrategy(compaction=Compaction(start=0))
+    assert with_compaction.compact(params, optimizers, state, 0, None, None) is None and "compact" not in state
 
 
 def test_every_round_record_and_the_summary_say_what_happened():
-    """The full record of a run that removes twice and undoes its third removal: every key of every
-    round and of the summary (the log, the checkpoint's metadata and garo-eval's JSON read them)."""
-    compaction = Compaction(start=0, every=1, fraction=0.2, tolerance_db=0.0, min_gaussians=0)
-    strategy = GaroStrategy(compaction=compaction)
+    """The full record of a run that removes once and then finds even the smallest share too costly: every
+    key the log, the checkpoint's metadata and garo-eval's JSON read."""
+    strategy = GaroStrategy(compaction=compaction(fraction=0.1, min_fraction=0.05, round_bound_db=0.1, budget_db=1))
     params, optimizers, g = gaussians()
     state = filled_state(strategy, N, g)
-    events = run_rounds(strategy, params, optimizers, state, Scene(value_40_percent_free()), range(20))
-    common = {"restored": 0, "psnr_before": 30.0, "psnr_after": 30.0}
+    scene = Scene(worth(N, 10, 0.5), params)
+    events = run_rounds(strategy, params, optimizers, state, scene, range(5))
     expected = [
-        {"round": 0, "step": 0, "num_before": 100, "removed": 20, "num_after": 80, **common},
-        {"round": 1, "step": 1, "num_before": 80, "removed": 16, "num_after": 64, **common},
-        {"round": 2, "step": 2, "num_before": 64, "removed": 12, "restored": 12, "num_after": 64,
-         "psnr_before": 30.0, "psnr_after": 30.0 - 8 * 0.02, "stop": "tolerance"},
+        {"round": 0, "step": 0, "num_before": 100, "share": 0.1, "cost_mean_db": 0.0, "cost_worst_db": 0.0,
+         "removed": 10, "num_after": 90,
+         "tries": [{"share": 0.1, "count": 10, "cost_mean_db": 0.0, "cost_worst_db": 0.0}]},
+        {"round": 1, "step": 1, "num_before": 90, "share": 0.05, "cost_mean_db": 2.0 / V, "cost_worst_db": 2.0,
+         "removed": 0, "num_after": 90, "stop": "round_bound",
+         "tries": [{"share": 0.1, "count": 9, "cost_mean_db": 4.5 / V, "cost_worst_db": 4.5},
+                   {"share": 0.05, "count": 4, "cost_mean_db": 2.0 / V, "cost_worst_db": 2.0}]},
     ]  # fmt: skip
-    assert events == [approx_record(e) for e in expected]
+    assert events == expected
     summary = state["compact"]
     assert summary["rounds"] == events
     assert {k: v for k, v in summary.items() if k not in ("rounds", "settings")} == {
-        "reference_psnr": 30.0,
-        "best_psnr": 30.0,
-        "final_psnr": 30.0,
+        "spent_db": 0.0,
         "num_gaussians_start": 100,
-        "num_gaussians_end": 64,
-        "stopped_step": 2,
-        "reason": "tolerance",
-        "detail": "removing 12 Gaussians cost 0.16 dB; undone",
+        "num_gaussians_end": 90,
+        "stopped_step": 1,
+        "reason": "round_bound",
+        "detail": "removing 4 Gaussians would cost 2.000 dB (worst view), over the round bound 0.1 dB",
     }
-    assert summary["settings"]["fraction"] == 0.2 and summary["settings"]["tolerance_db"] == 0.0
-
-
-def test_the_best_psnr_follows_fine_tuning_that_gains():
-    """A round measured above every earlier one raises the bar that later rounds are held to."""
-    compaction = Compaction(start=0, every=1, fraction=0.1, tolerance_db=0.05, max_rounds=2, min_gaussians=0)
-    strategy = GaroStrategy(compaction=compaction)
-    params, optimizers, g = gaussians()
-    state = filled_state(strategy, N, g)
-    scene = Scene(torch.zeros(N))
-    events = run_rounds(
-        strategy, params, optimizers, state, scene, range(5),
-        between=lambda step: setattr(scene, "drift", -0.3 * (step + 1)),
-    )  # fmt: skip
-    assert [e["psnr_before"] for e in events] == pytest.approx([30.0, 30.3, 30.6])
-    summary = state["compact"]
-    assert summary["reference_psnr"] == 30.0 and summary["best_psnr"] == pytest.approx(30.6)
-    assert summary["reason"] == "max_rounds" and summary["detail"] == "2 rounds"
-    assert summary["final_psnr"] == pytest.approx(30.6) and summary["stopped_step"] == 2
-    assert events[-1]["num_after"] == summary["num_gaussians_end"] == 81 == len(params["means"])
-
-
-def test_a_removal_undone_at_the_next_round_records_what_came_back_and_the_psnr_after():
-    compaction = Compaction(start=0, every=1, fraction=0.2, tolerance_db=0.5, min_gaussians=0)
-    strategy = GaroStrategy(compaction=compaction)
-    params, optimizers, g = gaussians()
-    state = filled_state(strategy, N, g)
-    scene = Scene(torch.zeros(N))
-    events = run_rounds(
-        strategy, params, optimizers, state, scene, range(5),
-        between=lambda step: setattr(scene, "drift", 0.6) if step == 0 else None,
-    )  # fmt: skip
-    assert len(events) == 2 and len(params["means"]) == N
-    assert events[1] == approx_record(
-        {"round": 1, "step": 1, "num_before": 80, "removed": 0, "restored": 20, "num_after": 100,
-         "psnr_before": 29.4, "psnr_after": 29.4, "stop": "tolerance"}
-    )  # fmt: skip
-    summary = state["compact"]
-    assert summary["detail"] == (
-        "PSNR 29.40 dB after fine-tuning, 0.60 dB below the best 30.00 dB; the last removal is undone"
+    assert summary["settings"]["round_bound_db"] == 0.1 and summary["settings"]["budget_db"] == 1
+    assert scalars(events[1], summary["spent_db"]) == {
+        "compact/removed": 0.0, "compact/num_gaussians": 90.0, "compact/spent_db": 0.0, "compact/share": 0.05,
+        "compact/cost_mean_db": 2.0 / V, "compact/cost_worst_db": 2.0, "compact/stop_round_bound": 1.0,
+    }  # fmt: skip
+    assert scalars(events[0], 0.25)["compact/spent_db"] == 0.25 and "compact/stop_round_bound" not in scalars(
+        events[0], 0.0
     )
-    assert summary["final_psnr"] == pytest.approx(29.4) and summary["num_gaussians_end"] == N
-    assert summary["stopped_step"] == 1 and state["compact_snapshot"] is None
+    assert "nothing removed" in round_line(events[1]) and "2.000 dB worst view" in round_line(events[1])
+    assert "kept 90 of 100 Gaussians (90%), 0.000 dB of the 1 dB budget" in stop_line(summary)
+    assert summary_for_json(summary)["reason_text"].startswith("even the smallest share")
 
 
-def test_a_resumed_run_without_its_undo_copy_stops_and_keeps_the_gaussians_it_has():
-    """A checkpoint does not keep the undo copy: a loss found after resuming stops the compaction
-    with the Gaussians as they are, and says so."""
-    compaction = Compaction(start=0, every=1, fraction=0.2, tolerance_db=0.5, min_gaussians=0)
-    strategy = GaroStrategy(compaction=compaction)
+def test_a_measurement_that_is_not_finite_never_removes():
+    strategy = GaroStrategy(compaction=compaction())
     params, optimizers, g = gaussians()
     state = filled_state(strategy, N, g)
-    scene = Scene(torch.zeros(N))
-
-    def resume(step):
-        state["compact_snapshot"] = None  # as loaded from a checkpoint
-        scene.drift = 0.6
-
-    events = run_rounds(strategy, params, optimizers, state, scene, range(5), between=resume)
-    assert [e.get("stop") for e in events] == [None, "tolerance"]
-    assert events[1]["restored"] == 0 and events[1]["num_after"] == 80 == len(params["means"])
-    assert events[1]["psnr_after"] is None
-    summary = state["compact"]
-    assert summary["detail"] == (
-        "PSNR 29.40 dB after fine-tuning, 0.60 dB below the best 30.00 dB; no copy to undo the last removal with"
-    )
-    assert summary["final_psnr"] == 30.0  # the last round's, before the loss was found
-    assert summary["num_gaussians_end"] == 80 and summary["stopped_step"] == 1
-
-
-@pytest.mark.parametrize("n,min_gaussians,reason,detail", [
-    (20, 20, "min_gaussians", "20 <= 20"),
-    (20, 0, "nothing_to_remove", "0.04 x 20 Gaussians"),
-    (21, 20, "nothing_to_remove", "0.04 x 21 Gaussians"),
-])  # fmt: skip
-def test_stop_details_of_a_model_too_small_to_cut(n, min_gaussians, reason, detail):
-    strategy = GaroStrategy(compaction=Compaction(start=0, fraction=0.04, min_gaussians=min_gaussians))
-    params, optimizers, g = gaussians(n)
-    state = filled_state(strategy, n, g)
-    scene = Scene(torch.zeros(n))
-    event = strategy.compact(params, optimizers, state, 0, lambda: scene.measure(params), lambda: torch.zeros(n))
-    assert event["stop"] == reason and state["compact"]["detail"] == detail
-    assert state["compact"]["final_psnr"] == 30.0 and state["compact"]["num_gaussians_end"] == n
-
-
-def test_stop_details_without_gaussians_without_views_and_at_the_last_step():
-    strategy = GaroStrategy(compaction=Compaction(start=0, every=10, fraction=0.2, min_gaussians=0))
-    params = torch.nn.ParameterDict({"means": torch.nn.Parameter(torch.zeros(0, 3))})
-    state = strategy.initialize_state()
-    strategy.compact(params, {}, state, 0, lambda: 0.0, lambda: torch.zeros(0))
-    assert state["compact"]["detail"] == "nothing to compact" and state["compact"]["num_gaussians_end"] == 0
-
-    params, optimizers, g = gaussians()
-    state = filled_state(strategy, N, g)
-    strategy.compact(params, optimizers, state, 0, None, lambda: torch.zeros(N))
-    assert state["compact"]["detail"] == "the model was given no training data"
-    assert state["compact"]["final_psnr"] is None and state["compact"]["stopped_step"] == 0
-
-    state = filled_state(strategy, N, g)
-    scene = Scene(torch.zeros(N))
-    events = run_rounds(strategy, params, optimizers, state, scene, range(20), last_step=15)
-    assert [(e["step"], e.get("stop")) for e in events] == [(0, None), (10, None), (15, "training_ended")]
-    summary = state["compact"]
-    assert summary["detail"] == "at step 15" and summary["final_psnr"] == 30.0
-    assert summary["stopped_step"] == 15 and summary["num_gaussians_end"] == 64 == len(params["means"])
-    assert summary["rounds"][-1] is events[-1] and events[-1]["num_after"] == 64
-
-
-def test_rounds_start_where_densification_stops_unless_told_otherwise():
-    strategy = GaroStrategy(refine_stop_iter=50, compaction=Compaction(every=10, fraction=0.2, min_gaussians=0))
-    params, optimizers, g = gaussians()
-    state = filled_state(strategy, N, g)
-    scene = Scene(torch.zeros(N))
-    events = run_rounds(strategy, params, optimizers, state, scene, range(75))
-    assert [e["step"] for e in events] == [50, 60, 70]
-    state = filled_state(strategy, N, g)
-    assert strategy.compact(params, optimizers, state, 40, None, None, last_step=40)["stop"] == "training_ended"
-    assert state["compact"]["detail"] == "before the first round (step 50)"
-
-
-def test_the_summary_after_each_kept_round_and_the_psnr_a_stop_reports():
-    """The summary is current after every kept round (a run stopped by the user keeps it), and a stop
-    reports the PSNR measured at that round, not the last kept round's."""
-    compaction = Compaction(start=0, every=1, fraction=0.2, tolerance_db=0.0, min_gaussians=0)
-    strategy = GaroStrategy(compaction=compaction)
-    params, optimizers, g = gaussians()
-    state = filled_state(strategy, N, g)
-    scene = Scene(value_40_percent_free())
-    seen = []
-
-    def fine_tune(step):
-        summary = state["compact"]
-        seen.append((summary["num_gaussians_end"], summary["final_psnr"], summary["reason"]))
-        scene.drift = -0.2 * (step + 1)  # fine-tuning gains 0.2 dB a round
-
-    run_rounds(strategy, params, optimizers, state, scene, range(10), between=fine_tune)
-    assert seen == [(80, 30.0, None), (64, pytest.approx(30.2), None)]
-    summary = state["compact"]  # round 2 measures 30.4 dB, and its removal (8 costly Gaussians) is undone
-    assert summary["reason"] == "tolerance" and summary["final_psnr"] == pytest.approx(30.4)
-    assert summary["detail"] == "removing 12 Gaussians cost 0.16 dB; undone"
-
-    strategy = GaroStrategy(compaction=Compaction(start=0, every=10, fraction=0.2, min_gaussians=0))
-    params, optimizers, g = gaussians()
-    state = filled_state(strategy, N, g)
-    scene = Scene(torch.zeros(N))
-    run_rounds(
-        strategy, params, optimizers, state, scene, range(20), last_step=15,
-        between=lambda step: setattr(scene, "drift", -0.1) if step == 12 else None,
-    )  # fmt: skip
-    assert state["compact"]["reason"] == "training_ended" and state["compact"]["final_psnr"] == pytest.approx(30.1)
-
-
-def test_a_stopped_compaction_and_a_state_without_its_summary_do_nothing():
-    def never():
-        raise AssertionError("measured")
-
-    strategy = GaroStrategy(compaction=Compaction(start=0, every=1, fraction=0.2, tolerance_db=0.0, min_gaussians=0))
-    params, optimizers, g = gaussians()
-    state = filled_state(strategy, N, g)
-    events = run_rounds(strategy, params, optimizers, state, Scene(value_40_percent_free()), range(20))
-    assert events[-1]["step"] == 2 and state["compact"]["reason"] == "tolerance"
-    assert strategy.compact(params, optimizers, state, 3, never, never) is None  # step 3 is a round step
-    assert len(state["compact"]["rounds"]) == 3
-    # A state written without compaction (an older checkpoint's): nothing runs, nothing is added.
-    plain = GaroStrategy().initialize_state()
-    assert strategy.compact(params, optimizers, plain, 0, never, never) is None and "compact" not in plain
+    nan = torch.full((V,), math.nan)
+    event = strategy.compact(params, optimizers, state, 0, lambda m: nan, lambda: torch.zeros(N))
+    assert event["stop"] == "round_bound" and len(params["means"]) == N
 
 
 def test_lowest_marks_exactly_count_of_the_smallest_and_refuses_counts_out_of_range():
@@ -537,23 +404,128 @@ def test_lowest_marks_exactly_count_of_the_smallest_and_refuses_counts_out_of_ra
     assert lowest(torch.zeros(0), 0).shape == (0,)
 
 
-def test_copies_share_no_storage_and_keep_their_containers():
-    inner = torch.arange(3.0)
-    value = {"a": [inner, (inner, 2)], "b": {"c": inner}, "d": {"e": [1, 2]}}
-    copied = _copy(value)
-    assert type(copied["a"]) is list and type(copied["a"][1]) is tuple and copied["a"][1][1] == 2
-    inner.add_(10)
-    value["d"]["e"].append(3)
-    assert copied["a"][0].tolist() == copied["a"][1][0].tolist() == copied["b"]["c"].tolist() == [0.0, 1.0, 2.0]
-    assert copied["d"]["e"] == [1, 2]
-    odd = [[1, [2]]]
-    deep = _copy(odd)
-    odd[0][1].append(3)
-    assert deep == [[1, [2]]]
-    holder = types.SimpleNamespace(items=[1])  # neither a tensor nor a container: copied deeply
-    kept = _copy({"holder": holder})["holder"]
-    holder.items.append(2)
-    assert kept.items == [1]
+# --- on a model: the field and the optimizers, and a resumed run's end ------------------------------------
+
+
+def tiny_model(**settings):
+    """A small GaroModel with the field on, three training cameras around the origin and an Adam state in
+    every optimizer (the Gaussians' and the field's)."""
+    from nerfstudio.cameras.cameras import Cameras
+    from nerfstudio.data.scene_box import SceneBox
+
+    from garo_ns.garo_model import GaroModelConfig
+
+    cfg = GaroModelConfig(
+        num_random=200, deform_width=16, deform_depth=2, deform_skip=0, deform_warmup=0, sh_degree=0,
+        rasterizer="reference", **settings,
+    )  # fmt: skip
+    model = cfg.setup(scene_box=SceneBox(torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=3, metadata={})
+    model.step = 100
+    c2w = torch.eye(4)[:3].repeat(3, 1, 1)
+    c2w[:, :, 3] = torch.tensor([[0.0, 0.0, 3.0], [0.3, 0.0, 3.0], [-0.3, 0.0, 3.0]])
+    size = dict(fx=20.0, fy=20.0, cx=8.0, cy=8.0, width=16, height=16)
+    model.train_cameras = Cameras(camera_to_worlds=c2w, times=torch.tensor([[0.0], [0.5], [1.0]]), **size)
+    model.train_times = torch.tensor([0.0, 0.5, 1.0])
+    groups = model.get_param_groups()
+    model.optimizers = {name: torch.optim.Adam(params, lr=1e-3) for name, params in groups.items() if params}
+    g = torch.Generator().manual_seed(3)
+    for name, optimizer in model.optimizers.items():
+        for p in groups[name]:
+            p.grad = torch.randn(p.shape, generator=g)
+        optimizer.step()
+        optimizer.zero_grad()
+    return model
+
+
+def model_copy(model) -> Dict[str, Any]:
+    return {
+        "params": {k: p.detach().clone() for k, p in model.named_parameters()},
+        "optimizers": {k: copy.deepcopy(o.state_dict()) for k, o in model.optimizers.items()},
+        "state": copy.deepcopy(model.strategy_state),
+    }
+
+
+def assert_model_unchanged(model, before: Dict[str, Any]) -> None:
+    now = model_copy(model)
+    assert now["params"].keys() == before["params"].keys()
+    for k, p in before["params"].items():
+        assert torch.equal(now["params"][k], p), k  # the Gaussians and the deformation field
+    for name, saved in before["optimizers"].items():
+        got = now["optimizers"][name]
+        assert got["param_groups"] == saved["param_groups"], name
+        assert got["state"].keys() == saved["state"].keys(), name
+        for i, moments in saved["state"].items():
+            for key, value in moments.items():
+                assert torch.equal(got["state"][i][key], value), (name, i, key)
+    groups = model.get_param_groups()
+    for name, optimizer in model.optimizers.items():  # still bound to the model's parameters
+        assert [p for g in optimizer.param_groups for p in g["params"]] == groups[name], name
+
+
+def test_a_round_over_the_bound_leaves_the_gaussians_their_optimizers_and_the_field_exactly_as_before():
+    model = tiny_model(compact=True, compact_start=100, compact_min_gaussians=0, compact_guard_views=3)
+    from garo_ns.compaction.guard import TrainingViewGuard
+    from garo_ns.compaction.training import run_round  # after the model: nerfstudio's writer is not imported first
+
+    model.train()
+    guard = TrainingViewGuard(model.train_cameras, images=[torch.zeros(16, 16, 3)] * 3, indices=[0, 1, 2])
+    with torch.no_grad():
+        model.eval()
+        images = [guard.render(model, i) for i in range(3)]
+        everything = torch.ones(model.num_points, dtype=torch.bool)
+        background = guard.render(model, 0, without=everything)
+        model.train()
+    assert not torch.equal(images[0], background)  # the Gaussians show...
+    assert torch.equal(background, model.background_color.expand(16, 16, 3))  # ...and a render without them is bare
+    guard.images = [image + 0.05 for image in images]  # the truth: close to the renders, not equal
+    real = guard.psnrs
+
+    def psnrs(model, without=None):  # every Gaussian left out costs view 1 another 0.1 dB
+        extra = torch.zeros(3, dtype=torch.float64)
+        if without is not None:
+            extra[1] = 0.1 * float(without.sum())
+        return real(model, without) - extra
+
+    guard.psnrs = psnrs
+    model.compaction_guard = guard
+    before = model_copy(model)
+    event = run_round(model, 100, last_step=None)
+    assert event["stop"] == "round_bound" and event["removed"] == 0
+    assert [t["count"] for t in event["tries"]] == [30, 15, 7, 4]  # 0.15, 0.075, 0.0375, 0.02 of 200
+    assert all(t["cost_worst_db"] > 0.1 for t in event["tries"])
+    assert model.training and model.num_points == 200
+    assert_model_unchanged(model, before)
+
+
+def test_a_resumed_run_ends_and_measures_its_render_switches_at_its_real_last_step():
+    """nerfstudio runs max_num_iterations steps after the loaded one: resumed at step 40 (a checkpoint of
+    step 39) for 20 steps, training ends at 59, not 19; the switches' record the checkpoint brought (from
+    the first part's end) is measured again there."""
+    from nerfstudio.engine.callbacks import TrainingCallbackAttributes
+
+    from garo_ns.compaction.guard import TrainingViewGuard
+
+    model = tiny_model(compact=True, compact_start=45, compact_every=5, compact_guard_views=3)
+    trainer = types.SimpleNamespace(_start_step=40, config=types.SimpleNamespace(max_num_iterations=20))
+    pipeline = types.SimpleNamespace(datamanager=types.SimpleNamespace(train_dataparser_outputs=None))
+    attributes = TrainingCallbackAttributes(optimizers=None, grad_scaler=None, pipeline=pipeline, trainer=trainer)
+    model.get_training_callbacks(attributes)
+    assert model._last_step == 59
+    guard = TrainingViewGuard(model.train_cameras, images=[torch.rand(16, 16, 3)] * 3, indices=[0, 1, 2])
+    model.compaction_guard = guard
+    stale = {"step": 19, "views": 3, "tried": {"static_skip": 0.5}}
+    model.switches.record = stale
+    for step in (58, 59):
+        model.train()
+        model.step = step
+        outputs = model.get_outputs(model.train_cameras[0:1])
+        outputs["rgb"].mean().backward()
+        model.after_iteration(step)
+        if step == 58:
+            assert model.switches.record is stale
+    assert model.switches.record is not stale and model.switches.record["step"] == 59
+    assert model.switches.record["views"] == 3
+    assert model.strategy_state["compact"]["stopped_step"] == 59  # compaction ends there too, not at 19
 
 
 # --- settings and helpers ----------------------------------------------------------------------------------
@@ -562,10 +534,14 @@ def test_copies_share_no_storage_and_keep_their_containers():
 @pytest.mark.parametrize(
     "field,value",
     [
-        ("tolerance_db", -0.1),
-        ("tolerance_db", float("nan")),
-        ("tolerance_db", float("inf")),
+        ("round_bound_db", -0.1),
+        ("round_bound_db", float("nan")),
+        ("budget_db", float("inf")),
+        ("budget_db", -1.0),
         ("fraction", 0.0),
+        ("min_fraction", 0.0),
+        ("min_fraction", 0.5),  # above the share it halves from
+        ("max_rounds", -1),
         ("fraction", 1.0),
         ("every", 0),
         ("guard_views", 0),
@@ -585,8 +561,12 @@ def test_settings_out_of_range_fail_naming_the_flag(field, value):
 
 def test_schedule_and_removal_count():
     c = Compaction(every=1000, max_rounds=2, fraction=0.15, min_gaussians=1000)
-    assert [s for s in range(0, 40_000, 500) if c.is_round(s, 15_000)] == [15_000, 16_000, 17_000]
+    # Round steps; how many of them remove is the summary's count (max_rounds), kept across a resume.
+    assert [s for s in range(0, 19_000, 500) if c.is_round(s, 15_000)] == [15_000, 16_000, 17_000, 18_000]
     assert Compaction(start=3).first_step(15_000) == 3
+    assert c.shares() == [0.15, 0.075, 0.0375, 0.02]
+    assert Compaction(fraction=0.02, min_fraction=0.02).shares() == [0.02]
+    assert c.removal_count(10_000, 0.02) == 200
     assert c.removal_count(10_000) == 1500
     assert c.removal_count(1100) == 100  # never below min_gaussians
     assert c.removal_count(900) == 0
@@ -636,7 +616,7 @@ class Forbidden:
         raise AssertionError("the eval split was read")
 
 
-def train_compact(scene: Any, out: Any, tolerance: float) -> Dict[str, Any]:
+def train_compact(scene: Any, out: Any, budget: float) -> Dict[str, Any]:
     from garo_ns.tools.train import QuickSchedule, make_config, seed_everything
 
     config = make_config(
@@ -646,11 +626,12 @@ def train_compact(scene: Any, out: Any, tolerance: float) -> Dict[str, Any]:
         schedule=QuickSchedule(
             steps=60, num_random=800, deform_width=16, deform_depth=2, deform_skip=0, extra={"sh_degree": 1}
         ),
-        experiment_name=f"tol{tolerance}",
+        experiment_name=f"budget{budget}",
     )
     model_config = config.pipeline.model
     model_config.rasterizer = "reference"
-    model_config.compact_tolerance_db = tolerance
+    model_config.compact_round_bound_db = budget
+    model_config.compact_budget_db = budget
     model_config.compact_fraction = 0.3
     model_config.compact_guard_views = 4
     config.set_timestamp()
@@ -677,7 +658,7 @@ def compact_runs(tmp_path_factory):
 
 
 @pytest.mark.slow
-def test_compaction_stops_by_itself_and_a_larger_tolerance_removes_more(compact_runs):
+def test_compaction_stops_by_itself_and_a_larger_budget_removes_more(compact_runs):
     strict, loose = compact_runs[0.0]["summary"], compact_runs[50.0]["summary"]
     for summary in (strict, loose):
         assert summary["reason"] is not None and summary["rounds"], summary
@@ -685,10 +666,11 @@ def test_compaction_stops_by_itself_and_a_larger_tolerance_removes_more(compact_
             summary["num_gaussians_end"]
             == compact_runs[0.0 if summary is strict else 50.0]["trainer"].pipeline.model.num_points
         )
-    # Tolerance 0: no kept removal lowered the training-view PSNR.
+    # Budget 0: no kept removal lowered any guard view's PSNR, as measured before it was made.
     for event in strict["rounds"]:
-        if event["removed"] > event["restored"]:
-            assert event["psnr_after"] >= event["psnr_before"], event
+        if event["removed"]:
+            assert event["cost_worst_db"] <= 0.0, event
+    assert strict["spent_db"] == 0.0 and 0 <= loose["spent_db"] <= 50.0
     assert loose["num_gaussians_end"] < strict["num_gaussians_end"]
     assert loose["reason"] in ("max_rounds", "min_gaussians", "training_ended"), loose
 
@@ -733,5 +715,5 @@ def test_benchmark_variants_of_compaction():
     from garo_ns.bench.benchmark import split_variant, variant_settings
 
     assert variant_settings("garo-compact") == ("garo-compact", {})
-    assert variant_settings("garo-compact0.5") == ("garo-compact", {"compact_tolerance_db": 0.5})
+    assert variant_settings("garo-compact0.5") == ("garo-compact", {"compact_budget_db": 0.5})
     assert split_variant("garo-compact+fp16")[0] == "garo-compact"

@@ -9,7 +9,7 @@ against PSNR, marker area by Gaussian count) are written next to it.
 Variants: deform-splatfacto (baseline), garo-deform (full GARO), and on request garo-oaa, garo-gca
 (the paper's ablations), garo-rho<value> (rho_max sweep), garo-prune<ratio> (GARO plus pruning
 of a fixed share of the least contributing Gaussians) and garo-compact / garo-compact<dB> (GARO plus
-compaction under a training-view PSNR guard, at its default tolerance or the one given).
+compaction measured on training views, with its default total budget or the one given in dB).
 A name may carry render-time switches after `+`: `+static` (static Gaussians skip the MLP), `+tf32` (MLP
 precision), `+half` (`render_precision=fp16`: the half-precision field with each Gaussian's position part
 cached, garo_ns.render.half_field), `+graph` (everything before the rasterizer as one CUDA graph), `+lean`
@@ -88,9 +88,9 @@ def split_variant(name: str) -> Tuple[str, Dict[str, Any]]:
 
 def variant_settings(name: str) -> Tuple[str, Dict[str, Any]]:
     """(method, model-config overrides) of a trained variant name."""
-    if name.startswith("garo-compact"):  # garo-compact (its defaults) or garo-compact<tolerance in dB>
-        tolerance = name[len("garo-compact") :]
-        return "garo-compact", {"compact_tolerance_db": float(tolerance)} if tolerance else {}
+    if name.startswith("garo-compact"):  # garo-compact (its defaults) or garo-compact<total budget in dB>
+        budget = name[len("garo-compact") :]
+        return "garo-compact", {"compact_budget_db": float(budget)} if budget else {}
     if name.startswith("garo-prune"):
         return "garo-deform", {"garo_mode": "full", "prune_contribution_ratio": float(name[len("garo-prune") :])}
     if name == "deform-splatfacto":

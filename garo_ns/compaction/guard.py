@@ -1,4 +1,5 @@
-"""The quality guard of compaction: PSNR on a fixed set of training views, each at its own time.
+"""The quality guard of compaction: a fixed set of training views, each at its own time, on which a round
+measures what leaving its candidates out of the render would cost.
 
 Only the training split is read (the datamanager's training dataset and its cached images): the
 split that is scored is never looked at while training. Views are chosen once, evenly spread over
@@ -14,6 +15,7 @@ from typing import Any, List, Optional
 import torch
 from torch import Tensor
 
+from garo_ns.compaction.decision import CostFn, view_costs
 from garo_ns.render.frame import FrameSettings, render_splats
 
 
@@ -56,11 +58,16 @@ class TrainingViewGuard:
         images = [(cached[i] if cached is not None else dataset[i])["image"] for i in indices]
         return cls(cameras=cameras, images=images, indices=indices)
 
-    def render(self, model: Any, i: int, settings: Optional[FrameSettings] = None) -> Tensor:
+    def render(
+        self, model: Any, i: int, settings: Optional[FrameSettings] = None, without: Optional[Tensor] = None
+    ) -> Tensor:
         """The guard's view `i` [H, W, 3] on the model's background, clamped: the trained field (fp32,
-        every Gaussian), or with `settings` the frame path with those switches. Call in eval mode."""
+        every Gaussian), or with `settings` the frame path with those switches; `without` [N]: those
+        Gaussians left out of this render only (the model is not changed). Call in eval mode."""
         view = model.camera_view(self.cameras[self.indices[i] : self.indices[i] + 1].to(model.device))
         splats = model.gaussians_at(view.time, exact=settings is None, settings=settings)
+        if without is not None:
+            splats = splats.select(~without.to(splats.means.device))
         degree = min(model.step // model.config.sh_degree_interval, model.config.sh_degree)
         render, alpha, _ = render_splats(splats, view, degree, None, "RGB", model.config.rasterizer)
         return (render[0, ..., :3] + (1 - alpha[0]) * model.background_color.to(model.device)).clamp(0, 1)
@@ -71,12 +78,26 @@ class TrainingViewGuard:
         return [model.composite_with_background(model.get_gt_img(image), background) for image in self.images]
 
     @torch.no_grad()
-    def psnr(self, model: Any) -> float:
-        """Mean PSNR of `model` over the guard's views."""
+    def psnrs(self, model: Any, without: Optional[Tensor] = None) -> Tensor:
+        """PSNR [V] of each guard view of `model` as it is now (`without`: as in `render`)."""
         was_training = model.training
         model.eval()  # no time noise: the same Gaussians every time they are measured
         try:
-            values = [psnr(self.render(model, i), gt) for i, gt in enumerate(self.targets(model))]
+            values = [psnr(self.render(model, i, without=without), gt) for i, gt in enumerate(self.targets(model))]
         finally:
             model.train(was_training)
-        return sum(values) / len(values)
+        return torch.tensor(values, dtype=torch.float64)
+
+
+def removal_cost(model: Any, guard: Any) -> CostFn:
+    """`cost(mask)` of a round on `model` now: each guard view's PSNR as rendered minus its PSNR with the
+    Gaussians of `mask` left out of the render (same step, same field; nothing removed). The plain renders
+    are measured once per round, at its first try."""
+    plain: List[Tensor] = []
+
+    def cost(mask: Tensor) -> Tensor:
+        if not plain:
+            plain.append(guard.psnrs(model))
+        return view_costs(plain[0], guard.psnrs(model, without=mask))
+
+    return cost

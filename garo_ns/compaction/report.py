@@ -8,53 +8,46 @@ from typing import Any, Dict, Optional
 from garo_ns.compaction.schedule import REASONS
 
 
-def round_line(event: Dict[str, Any], tolerance_db: float) -> str:
-    """One console line for a round: what it removed or undid, and the guard PSNR before and after."""
+def round_line(event: Dict[str, Any]) -> str:
+    """One console line for a round: the share it tried, what that measured to cost, what it removed."""
     head = f"compaction round {event['round']} at step {event['step']}:"
-    before, after = event["psnr_before"], event["psnr_after"]
-    if before is None:
-        return f"{head} no measurement"
-    if event["removed"] == 0 and event["restored"] == 0:
-        return f"{head} training-view PSNR {before:.2f} dB, {event['num_after']} Gaussians"
-    if event["removed"] > 0 and event["restored"] == event["removed"]:
-        return (
-            f"{head} removing {event['removed']} of {event['num_before']} Gaussians took the training-view PSNR "
-            f"from {before:.2f} to {after:.2f} dB (tolerance {tolerance_db:g} dB): put back"
-        )
-    if event["restored"] > 0:
-        return (
-            f"{head} training-view PSNR {before:.2f} dB; the last removal is undone "
-            f"({event['restored']} Gaussians back, {after:.2f} dB), {event['num_after']} Gaussians"
-        )
-    return (
-        f"{head} removed {event['removed']} of {event['num_before']} Gaussians, training-view PSNR "
-        f"{before:.2f} -> {after:.2f} dB, {event['num_after']} left"
+    if event["share"] is None:
+        return f"{head} nothing tried, {event['num_after']} Gaussians"
+    tried = "; ".join(
+        f"{t['share']:.3g} ({t['count']}) cost {t['cost_worst_db']:.3f} dB worst view, {t['cost_mean_db']:.3f} mean"
+        for t in event["tries"]
     )
+    if event["removed"] == 0:
+        return f"{head} tried {tried}: nothing removed, {event['num_after']} Gaussians"
+    return f"{head} tried {tried}: removed {event['removed']} of {event['num_before']}, {event['num_after']} left"
 
 
 def stop_line(summary: Dict[str, Any]) -> str:
-    """The console line that says why compaction stopped and what it kept."""
+    """The console line that says why compaction stopped, what it kept and what it spent."""
     start, end = summary["num_gaussians_start"], summary["num_gaussians_end"]
     kept = f"kept {end} of {start} Gaussians" + (f" ({end / start:.0%})" if start else "")
-    psnr = ""
-    if summary["reference_psnr"] is not None and summary["final_psnr"] is not None:
-        psnr = f", training-view PSNR {summary['reference_psnr']:.2f} -> {summary['final_psnr']:.2f} dB"
+    spent = f", {summary.get('spent_db', 0.0):.3f} dB of the {summary['settings'].get('budget_db', 0.0):g} dB budget"
     reason = summary["reason"]
     return (
-        f"compaction stopped at step {summary['stopped_step']} ({reason}: {REASONS[reason]}; "
-        f"{summary['detail']}): {kept}{psnr}"
+        f"compaction stopped at step {summary['stopped_step']} ({reason}: {REASONS.get(reason, reason)}; "
+        f"{summary['detail']}): {kept}{spent}"
     )
 
 
-def scalars(event: Dict[str, Any]) -> Dict[str, float]:
-    """The round's numbers for nerfstudio's writer (name -> value; PSNRs only when measured)."""
+def scalars(event: Dict[str, Any], spent_db: float) -> Dict[str, float]:
+    """The round's numbers for nerfstudio's writer (name -> value; the share and costs only when measured),
+    the budget spent so far, and at the round that ends compaction `compact/stop_<reason>` (a writer keeps
+    numbers only, so the name says why)."""
     out = {
-        "compact/removed": float(event["removed"] - event["restored"]),
+        "compact/removed": float(event["removed"]),
         "compact/num_gaussians": float(event["num_after"]),
+        "compact/spent_db": float(spent_db),
     }
-    for key in ("psnr_before", "psnr_after"):
+    for key in ("share", "cost_mean_db", "cost_worst_db"):
         if event[key] is not None:
             out[f"compact/{key}"] = float(event[key])
+    if "stop" in event:
+        out[f"compact/stop_{event['stop']}"] = 1.0
     return out
 
 

@@ -1,34 +1,32 @@
-"""When compaction runs, how much each round removes, and how much training-view PSNR it may cost.
+"""When compaction runs, how much each round may remove, and how much training-view PSNR it may cost.
 
-A round at step s (start <= s, s - start a multiple of `every`, at most `max_rounds` removals):
-  1. measure the guard PSNR P (fixed training views, each at its own time);
-  2. if P has fallen more than `tolerance_db` below the best P of the rounds so far, the last removal
-     did not recover in the fine-tuning since: put back the Gaussians as they were before it, stop;
-  3. remove the `fraction` least important Gaussians (never below `min_gaussians`) and measure again;
-     if that removal alone cost more than `tolerance_db`, put them back at once and stop.
-Training between rounds is the fine-tuning. At the last training step a removal still waiting for its
-check (2) gets it, so the model that training ends with keeps the tolerance. Both checks compare
-renders of one model state against another at the same step or against the best measured so far, so
-the tolerance bounds the loss on the training views that compaction caused, as far as training views
-can tell it.
+A round at step s (start <= s, s - start a multiple of `every`, at most `max_rounds` of them) decides
+before it removes (garo_ns.compaction.decision): it renders the guard views as they are and with the
+round's candidates (the `fraction` least important Gaussians) left out of the render, and removes them
+only if the worst view's PSNR loss is within `round_bound_db` and within what is left of `budget_db`;
+otherwise it tries half the share, down to `min_fraction`, and stops when even that costs too much.
+Both renders of a comparison are of the same step and the same field, so fine-tuning noise between
+rounds (a training-view PSNR that swings by a dB from one reading to the next) never decides a round.
+The committed rounds' costs, each as measured when made, add up to at most `budget_db`.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import Any, Dict, Optional
+from typing import Any, Dict, List, Optional
 
 from garo_ns.errors import GaroConfigError
 
 # Why a compaction stopped: the summary's `reason`, one of these.
 REASONS = {
-    "tolerance": "a removal cost more training-view PSNR than the tolerance; it was undone",
+    "round_bound": "even the smallest share of a round cost more training-view PSNR than a round may; nothing removed",
+    "budget": "even the smallest share of a round cost more than was left of the total budget; nothing removed",
     "max_rounds": "the largest number of rounds was reached",
     "min_gaussians": "the model is down to the smallest number of Gaussians allowed",
     "nothing_to_remove": "a round's share of the Gaussians rounds down to none",
     "empty_model": "the model has no Gaussians",
-    "no_training_views": "no training views to judge the rounds with",
+    "no_training_views": "no training views to measure the rounds with",
     "training_ended": "training ended first",
 }
 
@@ -38,21 +36,25 @@ class Compaction:
     """Settings of the compaction rounds (see the module docstring for what a round does).
 
     Args:
-        start: step of the first round (it measures the reference, then removes); None: where
-            densification stops, so the Gaussians left are the ones densification settled on.
+        start: step of the first round; None: where densification stops, so the Gaussians left are
+            the ones densification settled on.
         every: steps of fine-tuning between rounds.
-        fraction: share of the current Gaussians a round removes (the least important ones).
-        tolerance_db: training-view PSNR a removal may cost, in dB (>= 0; raise it for a smaller model).
-        max_rounds: most removals; rounds after the last one only check it.
+        fraction: share of the current Gaussians a round tries to remove first (the least important).
+        min_fraction: the smallest share a round tries (the share halves from `fraction` down to it).
+        round_bound_db: worst guard view's PSNR loss one round may cost, in dB, as measured before removing.
+        budget_db: the committed rounds' costs (each the worst view's, as measured) add up to at most this.
+        max_rounds: most rounds.
         min_gaussians: never fewer Gaussians than this.
-        guard_views: training views the PSNR is measured on (evenly spread over time).
+        guard_views: training views the cost is measured on (evenly spread over time).
         volume_beta: exponent of the volume weighting of the importance (LightGaussian's; 0: off).
     """
 
     start: Optional[int] = None
     every: int = 1000
     fraction: float = 0.15
-    tolerance_db: float = 0.2
+    min_fraction: float = 0.02
+    round_bound_db: float = 0.1
+    budget_db: float = 0.3
     max_rounds: int = 15
     min_gaussians: int = 1000
     guard_views: int = 16
@@ -64,50 +66,52 @@ class Compaction:
     def validate(self, prefix: str = "compact-") -> None:
         """Raise GaroConfigError, naming the flag, for a setting out of its range (NaN included)."""
         checks = {
-            "tolerance-db": _finite(self.tolerance_db) and self.tolerance_db >= 0,
-            "fraction": _finite(self.fraction) and 0 < self.fraction < 1,
-            "every": self.every >= 1,
-            "max-rounds": self.max_rounds >= 0,
-            "min-gaussians": self.min_gaussians >= 0,
-            "guard-views": self.guard_views >= 1,
-            "volume-beta": _finite(self.volume_beta) and self.volume_beta >= 0,
-            "start": self.start is None or self.start >= 0,
+            "round-bound-db": (_finite(self.round_bound_db) and self.round_bound_db >= 0, "a number of dB >= 0"),
+            "budget-db": (_finite(self.budget_db) and self.budget_db >= 0, "a number of dB >= 0"),
+            "fraction": (_finite(self.fraction) and 0 < self.fraction < 1, "in (0, 1)"),
+            "min-fraction": (
+                _finite(self.min_fraction) and 0 < self.min_fraction <= self.fraction,
+                f"in (0, compact-fraction={self.fraction}]",
+            ),
+            "every": (self.every >= 1, ">= 1"),
+            "max-rounds": (self.max_rounds >= 0, ">= 0"),
+            "min-gaussians": (self.min_gaussians >= 0, ">= 0"),
+            "guard-views": (self.guard_views >= 1, ">= 1"),
+            "volume-beta": (_finite(self.volume_beta) and self.volume_beta >= 0, "a number >= 0"),
+            "start": (self.start is None or self.start >= 0, "a step >= 0 or None"),
         }
-        limits = {
-            "tolerance-db": "a number of dB >= 0",
-            "fraction": "in (0, 1)",
-            "every": ">= 1",
-            "max-rounds": ">= 0",
-            "min-gaussians": ">= 0",
-            "guard-views": ">= 1",
-            "volume-beta": "a number >= 0",
-            "start": "a step >= 0 or None",
-        }
-        for name, ok in checks.items():
+        for name, (ok, limit) in checks.items():
             if not ok:
                 value = getattr(self, name.replace("-", "_"))
-                raise GaroConfigError(f"--pipeline.model.{prefix}{name} must be {limits[name]}, got {value!r}")
+                raise GaroConfigError(f"--pipeline.model.{prefix}{name} must be {limit}, got {value!r}")
 
     def first_step(self, densify_stop: int) -> int:
         """Step of the first round."""
         return densify_stop if self.start is None else self.start
 
     def is_round(self, step: int, densify_stop: int) -> bool:
-        """Whether a round (a check, and a removal unless it is past `max_rounds`) falls on `step`."""
+        """Whether a round falls on `step` (its count is the summary's to keep: see `max_rounds`)."""
         offset = step - self.first_step(densify_stop)
-        return offset >= 0 and offset % self.every == 0 and offset // self.every <= self.max_rounds
+        return offset >= 0 and offset % self.every == 0
 
-    def removal_count(self, n: int) -> int:
-        """How many of `n` Gaussians a round removes: floor(fraction * n), never below `min_gaussians` left."""
-        return max(0, min(math.floor(self.fraction * n), n - self.min_gaussians))
+    def shares(self) -> List[float]:
+        """The shares a round tries, in order: `fraction`, halved while above `min_fraction`, then it."""
+        out = [self.fraction]
+        while out[-1] > self.min_fraction:
+            out.append(max(out[-1] / 2, self.min_fraction))
+        return out
+
+    def removal_count(self, n: int, share: Optional[float] = None) -> int:
+        """How many of `n` Gaussians a share (default `fraction`) removes: floor(share * n), never below
+        `min_gaussians` left."""
+        share = self.fraction if share is None else share
+        return max(0, min(math.floor(share * n), n - self.min_gaussians))
 
     def initial_state(self) -> Dict[str, Any]:
         """The summary a compaction starts from (a plain dict: it travels with checkpoints)."""
         return {
             "settings": asdict(self),
-            "reference_psnr": None,
-            "best_psnr": None,
-            "final_psnr": None,
+            "spent_db": 0.0,
             "num_gaussians_start": None,
             "num_gaussians_end": None,
             "rounds": [],
@@ -115,6 +119,12 @@ class Compaction:
             "reason": None,
             "detail": None,
         }
+
+
+def last_training_step(start_step: int, max_num_iterations: int) -> int:
+    """The last step nerfstudio's trainer runs: it runs `max_num_iterations` steps from `start_step` (0 for a
+    fresh run, the loaded step + 1 for a resumed one), so a resumed run ends later than its first part did."""
+    return int(start_step) + int(max_num_iterations) - 1
 
 
 def _finite(value: Any) -> bool:
@@ -126,23 +136,32 @@ class CompactionSettings:
     """Compaction after densification (garo-compact), part of the model config."""
 
     compact: bool = False
-    """After densification, remove the least important Gaussians in rounds, with fine-tuning in between,
-    until a round costs more training-view PSNR than `compact_tolerance_db`: each scene gets the budget
-    its training views need. Each round is logged; the summary goes into checkpoints and garo-eval."""
-    compact_tolerance_db: float = Compaction.tolerance_db
-    """Training-view PSNR a removal may cost, in dB; a larger value gives a smaller, faster model."""
+    """After densification, remove the least important Gaussians in rounds, with fine-tuning in between.
+    Each round first measures what its removal would cost (the guard's training views rendered with and
+    without the candidates, at the same step) and removes only within `compact_round_bound_db` and the
+    total `compact_budget_db`: each scene gets the budget its training views need. Each round is logged;
+    the summary goes into checkpoints and garo-eval."""
+    compact_round_bound_db: float = Compaction.round_bound_db
+    """Worst training view's PSNR loss one round may cost, in dB, measured before it removes."""
+    compact_budget_db: float = Compaction.budget_db
+    """Total PSNR loss (the sum of the committed rounds' worst-view costs) compaction may spend, in dB; a
+    larger value gives a smaller, faster model."""
     compact_start: Optional[int] = None
     """Step of the first round; None: `stop_split_at`, where densification ends."""
     compact_every: int = Compaction.every
     """Steps of fine-tuning between rounds."""
     compact_fraction: float = Compaction.fraction
-    """Share of the Gaussians a round removes (by blending weight over the training views x volume^beta)."""
+    """Share of the Gaussians a round tries to remove first (by blending weight over the training views x
+    volume^beta); halved while it costs too much."""
+    compact_min_fraction: float = Compaction.min_fraction
+    """The smallest share a round tries before compaction stops."""
     compact_max_rounds: int = Compaction.max_rounds
     """Most rounds of removal."""
     compact_min_gaussians: int = Compaction.min_gaussians
     """Compaction never leaves fewer Gaussians than this."""
     compact_guard_views: int = Compaction.guard_views
-    """Training views the guard measures PSNR on (evenly spread over time; the eval split is never read)."""
+    """Training views each round's cost is measured on (evenly spread over time; the eval split is never
+    read); the worst of them decides."""
     compact_volume_beta: float = Compaction.volume_beta
     """Exponent of the volume in the importance (LightGaussian's global significance; 0: weight alone)."""
 

@@ -9,6 +9,7 @@ from nerfstudio.utils import writer
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
+from garo_ns.compaction.guard import removal_cost
 from garo_ns.compaction.importance import importance
 from garo_ns.compaction.report import round_line, scalars, stop_line
 
@@ -21,9 +22,6 @@ def run_round(model: Any, step: int, last_step: Optional[int]) -> Optional[Dict[
     if strategy.compaction is None:
         return None
     guard = model.compaction_guard
-
-    def measure() -> float:
-        return guard.psnr(model)
 
     def score() -> Tensor:
         was_training = model.training
@@ -38,15 +36,15 @@ def run_round(model: Any, step: int, last_step: Optional[int]) -> Optional[Dict[
         model.optimizers,
         model.strategy_state,
         step,
-        measure if guard is not None else None,
+        removal_cost(model, guard) if guard is not None else None,
         score,
         last_step,
     )
     if event is None:
         return None
-    for name, value in scalars(event).items():
+    for name, value in scalars(event, model.strategy_state["compact"]["spent_db"]).items():
         writer.put_scalar(name=name, scalar=value, step=step)
-    CONSOLE.print(round_line(event, strategy.compaction.tolerance_db))
+    CONSOLE.print(round_line(event))
     if "stop" in event:
         CONSOLE.print(stop_line(model.strategy_state["compact"]))
     return event
