@@ -232,52 +232,58 @@ def _composite_blocks(
 ) -> Tuple[Tensor, Tensor]:
     """Composite a batch of blocks front to back: accumulated features [B, P, D], transmittance [B, P].
 
-    splat [CN, 6]: per Gaussian (x, y, conic a / 2, conic b, conic c / 2, opacity); feat [CN, D];
-    pixels [B, P, 2]: pixel centres of each block; counts/starts [B]: each block's run in gauss_ids.
-    Depth ranks are taken `chunk` at a time for the blocks still open, carrying the transmittance; a
-    block closes when its list ends or all its pixels have stopped (gsplat's early termination).
+    splat [6, CN]: per Gaussian x, y, -a/2, -b, -c/2 (a, b, c: the conic) and opacity, one row each so
+    that a gather gives contiguous [A, B] columns; feat [CN, D]; pixels [B, P, 2]: pixel centres of each
+    block; counts/starts [B]: each block's run in gauss_ids. Depth ranks are taken `chunk` at a time for
+    the blocks still open, carrying the log-transmittance; a block closes when its list ends or all its
+    pixels have stopped (gsplat's early termination).
+
+    Masks are float factors rather than `torch.where`, and log(1 - alpha) stands for log1p: on CPU both
+    are several times cheaper (alpha <= 0.999 keeps them finite and exact enough).
     """
     dev, dt = splat.device, splat.dtype
     n_blocks, P = pixels.shape[:2]
     D = feat.shape[-1]
     open_ids = torch.nonzero(counts > 0).squeeze(1)
-    cnt, st, pix = counts[open_ids], starts[open_ids], pixels[open_ids]
-    trans = torch.ones(open_ids.numel(), P, device=dev, dtype=dt)
-    done = torch.zeros(open_ids.numel(), P, device=dev, dtype=torch.bool)
+    cnt, st = counts[open_ids], starts[open_ids]
+    pix_x, pix_y = pixels[open_ids, :, 0, None], pixels[open_ids, :, 1, None]  # [A, P, 1]
+    log_trans = torch.zeros(open_ids.numel(), P, device=dev, dtype=dt)
+    running = torch.ones(open_ids.numel(), P, device=dev, dtype=dt)  # 0 once a pixel has stopped
     acc = torch.zeros(open_ids.numel(), P, D, device=dev, dtype=dt)
     closed_ids, closed_acc, closed_trans = [], [], []
+    log_t_min = math.log(TRANSMITTANCE_MIN)
     s = 0
     while open_ids.numel():
         j = torch.arange(s, s + min(chunk, int(cnt.max()) - s), device=dev)
         present = j[None, :] < cnt[:, None]  # [A, B]
         pos = torch.where(present, st[:, None] + j[None, :], torch.zeros_like(present, dtype=torch.long))
         gid = gauss_ids[pos]  # [A, B]
-        g = splat[gid]  # [A, B, 6]
-        dx = pix[:, :, None, 0] - g[:, None, :, 0]  # [A, P, B]
-        dy = pix[:, :, None, 1] - g[:, None, :, 1]
-        sigma = dx * (g[:, None, :, 2] * dx + g[:, None, :, 3] * dy) + g[:, None, :, 4] * dy * dy
-        alpha = torch.clamp_max(g[:, None, :, 5] * torch.exp(-sigma), ALPHA_MAX)
-        keep = (sigma >= 0) & (alpha >= alpha_min) & present[:, None, :]
-        alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
-        log_t = torch.log1p(-alpha)
+        gx, gy, ga, gb, gc, opa = splat[:, gid][:, :, None, :]  # each [A, 1, B]
+        dx, dy = pix_x - gx, pix_y - gy  # [A, P, B]
+        neg_sigma = dx * (ga * dx + gb * dy) + gc * dy * dy
+        alpha = torch.clamp_max(opa * torch.exp(neg_sigma), ALPHA_MAX)
+        with torch.no_grad():
+            keep = ((neg_sigma <= 0) & (alpha >= alpha_min)).to(dt) * present[:, None, :].to(dt)
+        alpha = alpha * keep
+        log_t = torch.log(1.0 - alpha)
         csum = torch.cumsum(log_t, dim=-1)
         with torch.no_grad():
             # A pixel stops before the first Gaussian that would take its transmittance to 1e-4; the
-            # transmittance only falls, so every later kept Gaussian is past the stop too.
-            stops = (trans[..., None] * torch.exp(csum) <= TRANSMITTANCE_MIN) & keep
-            used = ~stops & ~done[..., None]
-            done = done | stops.any(-1)
-        weight = torch.where(used, alpha * trans[..., None] * torch.exp(csum - log_t), torch.zeros_like(alpha))
+            # transmittance only falls, so every later Gaussian of the chunk is past the stop too.
+            floor = (log_t_min - log_trans)[..., None]
+            used = (csum > floor).to(dt) * running[..., None]
+            running = running * (csum[..., -1:] > floor).squeeze(-1).to(dt)
+        weight = alpha * used * torch.exp(log_trans[..., None] + (csum - log_t))
         acc = acc + torch.bmm(weight, feat[gid])
-        trans = trans * torch.exp(torch.where(used, log_t, torch.zeros_like(log_t)).sum(-1))
+        log_trans = log_trans + (log_t * used).sum(-1)
         s += j.numel()
-        stay = (cnt > s) & ~done.all(-1)
+        stay = (cnt > s) & (running.amax(-1) > 0)
         if not bool(stay.all()):
             closed_ids.append(open_ids[~stay])
             closed_acc.append(acc[~stay])
-            closed_trans.append(trans[~stay])
-            open_ids, cnt, st, pix = open_ids[stay], cnt[stay], st[stay], pix[stay]
-            trans, done, acc = trans[stay], done[stay], acc[stay]
+            closed_trans.append(torch.exp(log_trans[~stay]))
+            open_ids, cnt, st, pix_x, pix_y = open_ids[stay], cnt[stay], st[stay], pix_x[stay], pix_y[stay]
+            log_trans, running, acc = log_trans[stay], running[stay], acc[stay]
     out_acc = torch.zeros(n_blocks, P, D, device=dev, dtype=dt)
     out_trans = torch.ones(n_blocks, P, device=dev, dtype=dt)
     if closed_ids:
@@ -335,8 +341,9 @@ def composite(
     block_ids, gauss_ids = block_lists(
         m2d.detach(), con.detach(), opa.detach(), tile_ids, flat_ids, tw, th, tile_size, block, alpha_min
     )
-    # One row per Gaussian with what a pixel needs: a single gather per chunk (and one scatter back).
-    splat = torch.cat([m2d, con * torch.tensor([0.5, 1.0, 0.5], device=dev, dtype=dt), opa[:, None]], dim=-1)
+    # What a pixel needs of each Gaussian, a row per quantity: one gather per chunk (and one scatter back).
+    neg_half_conic = con * torch.tensor([-0.5, -1.0, -0.5], device=dev, dtype=dt)
+    splat = torch.cat([m2d, neg_half_conic, opa[:, None]], dim=-1).t()
 
     counts = torch.bincount(block_ids, minlength=n_blocks)
     starts = torch.cumsum(counts, 0) - counts
