@@ -124,6 +124,49 @@ def test_compositing_matches_brute_force_including_early_stop():
     torch.testing.assert_close(alpha, ref_alpha, atol=2e-5, rtol=1e-4)
 
 
+@pytest.mark.parametrize("alpha_min", [1 / 255, 0.0])
+def test_block_culling_changes_neither_pixels_nor_gradients(alpha_min):
+    """Blocks of 1, 4 and 16 px (16: the whole tile) composite the same image with the same gradients:
+    the block lists drop only pairs whose alpha stays below alpha_min at every pixel of the block."""
+    means, quats, scales, opac, colors = cloud(400, seed=6, spread=0.8, scale=(0.02, 0.2))
+    opac[:40] = 0.999  # saturated pixels: the early stop inside a block
+    views, Ks, W, H = camera(width=52, height=36, n=2, seed=6)
+    radii, m2d, depths, conics = project(means, covariance(quats, scales), views, Ks, W, H)
+    _, tile_ids, flat_ids = intersect_tiles(m2d, radii, depths, 16, math.ceil(W / 16), math.ceil(H / 16))
+    feats = colors[None].expand(2, -1, -1)
+    results = []
+    for block in (16, 4, 1):
+        args = [t.detach().clone().requires_grad_() for t in (m2d, conics, opac[None].expand(2, -1), feats)]
+        img, alpha = composite(*args, tile_ids, flat_ids, W, H, chunk=9, alpha_min=alpha_min, block_size=block)
+        (img.square().sum() + alpha.sum()).backward()
+        results.append((img.detach(), alpha.detach(), [a.grad for a in args]))
+    assert (results[0][1] > 0.999).any()
+    for img, alpha, grads in results[1:]:
+        torch.testing.assert_close(img, results[0][0], atol=1e-6, rtol=1e-5)
+        torch.testing.assert_close(alpha, results[0][1], atol=1e-6, rtol=1e-5)
+        for got, want in zip(grads, results[0][2]):
+            torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-4)
+
+
+def test_batches_of_blocks_recomputed_in_backward_give_the_same_result():
+    """A small max_elements splits the blocks into batches, each recomputed in backward (checkpoint)."""
+    means, quats, scales, opac, colors = cloud(300, seed=7, spread=0.8, scale=(0.02, 0.2))
+    views, Ks, W, H = camera(width=52, height=36, n=2, seed=7)
+    radii, m2d, depths, conics = project(means, covariance(quats, scales), views, Ks, W, H)
+    _, tile_ids, flat_ids = intersect_tiles(m2d, radii, depths, 16, math.ceil(W / 16), math.ceil(H / 16))
+    results = []
+    for max_elements in (1 << 22, 2000):
+        args = [t.detach().clone().requires_grad_() for t in (m2d, conics, opac[None].expand(2, -1), colors[None])]
+        args[3] = args[3].expand(2, -1, -1)
+        img, alpha = composite(*args[:3], args[3], tile_ids, flat_ids, W, H, max_elements=max_elements)
+        (img.square().sum() + alpha.sum()).backward()
+        results.append((img.detach(), alpha.detach(), [a.grad for a in args[:3]]))
+    torch.testing.assert_close(results[1][0], results[0][0])
+    torch.testing.assert_close(results[1][1], results[0][1])
+    for got, want in zip(results[1][2], results[0][2]):
+        torch.testing.assert_close(got, want, atol=1e-4, rtol=1e-4)
+
+
 def test_composite_gradcheck_float64():
     torch.manual_seed(0)
     C, N, W, H = 1, 4, 8, 8

@@ -11,9 +11,12 @@ It follows gsplat 1.4.0's conventions closely enough that the densification stra
   opacity * exp(-sigma)), Gaussians with alpha < 1/255 skipped, and a pixel stops before the
   Gaussian that would bring its transmittance to 1e-4 or below.
 
-Compositing is done per batch of tiles and per chunk of depth-sorted Gaussians, carrying the
-transmittance between chunks, so memory stays bounded (never pixels x Gaussians) and autograd
-gives exact gradients of the same function, including `means2d.grad`.
+Compositing refines each tile's list to blocks of 4x4 px, keeping a Gaussian in a block only where
+its alpha can reach 1/255 at some pixel of the block (the pairs dropped are ones the per-pixel loop
+skips anyway), then walks each block's list a chunk of depth ranks at a time, carrying the
+transmittance, and closes a block once all its pixels have stopped. Memory stays bounded (batches of
+blocks, never pixels x Gaussians) and autograd gives exact gradients of the same function, including
+`means2d.grad`.
 """
 
 from __future__ import annotations
@@ -156,62 +159,141 @@ def intersect_tiles(
     return counts.reshape(C, N).int(), tile_ids[order], flat_ids[order]
 
 
-def _composite_tiles(
-    m2d: Tensor,
-    con: Tensor,
-    opa: Tensor,
-    feat: Tensor,
-    t0: int,
-    t1: int,
-    per_tile: Tensor,
-    starts: Tensor,
+@torch.no_grad()
+def block_lists(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    tile_ids: Tensor,
     flat_ids: Tensor,
-    pix_off: Tensor,
-    tw: int,
-    th: int,
+    tile_width: int,
+    tile_height: int,
     tile_size: int,
+    block_size: int,
+    alpha_min: float = ALPHA_MIN,
+) -> Tuple[Tensor, Tensor]:
+    """Refine (tile, Gaussian) lists into (block, Gaussian) lists over blocks of `block_size` px.
+
+    A pair is kept when the block lies in one of the Gaussian's tiles and some pixel centre of the block
+    can see alpha >= `alpha_min` from it: alpha >= alpha_min needs sigma <= log(opacity / alpha_min), an
+    ellipse whose bounding box is tested (with a margin against rounding). Every dropped pair is one
+    gsplat's per-pixel loop skips anyway, so values and gradients are unchanged; only the work shrinks
+    (a 3-sigma tile box of 16 px holds many pixels that a faint or small Gaussian never reaches).
+
+    Args: means2d [CN, 2], conics [CN, 3], opacities [CN] (flattened); the tile lists from `intersect_tiles`.
+
+    Returns:
+        block_ids [K] (camera-major global block index, blocks of a tile row-major inside the tile
+        grid's block grid) and gauss_ids [K] (into the flattened arrays), sorted by block then depth.
+    """
+    per_side = tile_size // block_size
+    if per_side * block_size != tile_size:
+        raise ValueError(f"tile_size {tile_size} must be a multiple of block_size {block_size}")
+    blocks_w, blocks_h = tile_width * per_side, tile_height * per_side
+    a, b, c = conics[flat_ids].unbind(-1)
+    if alpha_min > 0:
+        reach = 2.0 * torch.log(opacities[flat_ids] / alpha_min)  # 2 * sigma bound; < 0: never visible
+    else:
+        reach = torch.full_like(a, math.inf)
+    det = a * c - b * b
+    # Half-widths of the ellipse's box: sqrt(reach * cov_xx), cov = inverse of the conic.
+    half_x = torch.sqrt(reach * c / det) * (1 + 1e-4) + 1e-3
+    half_y = torch.sqrt(reach * a / det) * (1 + 1e-4) + 1e-3
+    mx, my = means2d[flat_ids].unbind(-1)
+    # Blocks whose pixel centres (index + 0.5) may fall in the box, inclusive (NaN: none).
+    lo_x, hi_x = torch.floor((mx - half_x - 0.5) / block_size), torch.floor((mx + half_x - 0.5) / block_size)
+    lo_y, hi_y = torch.floor((my - half_y - 0.5) / block_size), torch.floor((my + half_y - 0.5) / block_size)
+
+    tiles_per_cam = tile_width * tile_height
+    cam, in_cam = tile_ids // tiles_per_cam, tile_ids % tiles_per_cam
+    local = torch.arange(per_side, device=tile_ids.device)
+    bx = ((in_cam % tile_width) * per_side)[:, None, None] + local[None, None, :]  # [M, 1, S]
+    by = ((in_cam // tile_width) * per_side)[:, None, None] + local[None, :, None]  # [M, S, 1]
+    hit = (bx >= lo_x[:, None, None]) & (bx <= hi_x[:, None, None])
+    hit = hit & (by >= lo_y[:, None, None]) & (by <= hi_y[:, None, None])  # [M, S, S]
+    block_ids = (cam[:, None, None] * (blocks_w * blocks_h) + by * blocks_w + bx).expand_as(hit)
+    keep = hit.reshape(-1)
+    block_ids = block_ids.reshape(-1)[keep]
+    gauss_ids = flat_ids[:, None].expand(-1, per_side * per_side).reshape(-1)[keep]
+    # Each tile's list is front to back and its blocks lie inside it: a stable sort keeps the depth order.
+    order = torch.argsort(block_ids, stable=True)
+    return block_ids[order], gauss_ids[order]
+
+
+def _composite_blocks(
+    splat: Tensor,
+    feat: Tensor,
+    pixels: Tensor,
+    counts: Tensor,
+    starts: Tensor,
+    gauss_ids: Tensor,
     chunk: int,
     alpha_min: float,
 ) -> Tuple[Tensor, Tensor]:
-    """Composite tiles [t0, t1): accumulated features [T, P, D] and transmittance [T, P]."""
-    dev, dt = m2d.device, m2d.dtype
-    P = tile_size * tile_size
-    tiles = torch.arange(t0, t1, device=dev)
-    in_cam = tiles % (tw * th)
-    origin = torch.stack([in_cam % tw, in_cam // tw], dim=-1).to(dt) * tile_size
-    pix = origin[:, None, :] + pix_off[None]  # [T, P, 2]
-    cnt, st = per_tile[t0:t1], starts[t0:t1]
-    longest = int(cnt.max()) if cnt.numel() else 0
-    trans = torch.ones(t1 - t0, P, device=dev, dtype=dt)
-    done = torch.zeros(t1 - t0, P, device=dev, dtype=torch.bool)
-    acc = torch.zeros(t1 - t0, P, feat.shape[-1], device=dev, dtype=dt)
-    for s in range(0, longest, chunk):
-        j = torch.arange(s, min(longest, s + chunk), device=dev)
-        present = j[None, :] < cnt[:, None]  # [T, B]
+    """Composite a batch of blocks front to back: accumulated features [B, P, D], transmittance [B, P].
+
+    splat [6, CN]: per Gaussian x, y, -a/2, -b, -c/2 (a, b, c: the conic) and opacity, one row each so
+    that a gather gives contiguous [A, B] columns; feat [CN, D]; pixels [B, P, 2]: pixel centres of each
+    block; counts/starts [B]: each block's run in gauss_ids. Depth ranks are taken `chunk` at a time for
+    the blocks still open, carrying the log-transmittance; a block closes when its list ends or all its
+    pixels have stopped (gsplat's early termination).
+
+    Masks are float factors rather than `torch.where`, and log(1 - alpha) stands for log1p: on CPU both
+    are several times cheaper (alpha <= 0.999 keeps them finite and exact enough).
+    """
+    dev, dt = splat.device, splat.dtype
+    n_blocks, P = pixels.shape[:2]
+    D = feat.shape[-1]
+    open_ids = torch.nonzero(counts > 0).squeeze(1)
+    cnt, st = counts[open_ids], starts[open_ids]
+    pix_x, pix_y = pixels[open_ids, :, 0, None], pixels[open_ids, :, 1, None]  # [A, P, 1]
+    log_trans = torch.zeros(open_ids.numel(), P, device=dev, dtype=dt)
+    running = torch.ones(open_ids.numel(), P, device=dev, dtype=dt)  # 0 once a pixel has stopped
+    acc = torch.zeros(open_ids.numel(), P, D, device=dev, dtype=dt)
+    closed_ids, closed_acc, closed_trans = [], [], []
+    log_t_min = math.log(TRANSMITTANCE_MIN)
+    s = 0
+    while open_ids.numel():
+        j = torch.arange(s, s + min(chunk, int(cnt.max()) - s), device=dev)
+        present = j[None, :] < cnt[:, None]  # [A, B]
         pos = torch.where(present, st[:, None] + j[None, :], torch.zeros_like(present, dtype=torch.long))
-        gid = flat_ids[pos]  # [T, B]
-        delta = pix[:, :, None, :] - m2d[gid][:, None, :, :]  # [T, P, B, 2]
-        cg = con[gid][:, None]  # [T, 1, B, 3]
-        sigma = (
-            0.5 * (cg[..., 0] * delta[..., 0] ** 2 + cg[..., 2] * delta[..., 1] ** 2)
-            + cg[..., 1] * delta[..., 0] * delta[..., 1]
-        )
-        alpha = torch.clamp_max(opa[gid][:, None, :] * torch.exp(-sigma), ALPHA_MAX)
-        keep = (sigma >= 0) & (alpha >= alpha_min) & present[:, None, :]
-        alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
-        log_t = torch.log1p(-alpha)
+        gid = gauss_ids[pos]  # [A, B]
+        gx, gy, ga, gb, gc, opa = splat[:, gid][:, :, None, :]  # each [A, 1, B]
+        dx, dy = pix_x - gx, pix_y - gy  # [A, P, B]
+        neg_sigma = dx * (ga * dx + gb * dy) + gc * dy * dy
+        alpha = torch.clamp_max(opa * torch.exp(neg_sigma), ALPHA_MAX)
+        with torch.no_grad():
+            keep = ((neg_sigma <= 0) & (alpha >= alpha_min)).to(dt) * present[:, None, :].to(dt)
+        alpha = alpha * keep
+        log_t = torch.log(1.0 - alpha)
         csum = torch.cumsum(log_t, dim=-1)
         with torch.no_grad():
-            # A pixel stops before the first Gaussian that would take its transmittance to 1e-4.
-            t_after = trans[..., None] * torch.exp(csum)
-            stops = (t_after <= TRANSMITTANCE_MIN) & keep
-            used = ~stops & ~done[..., None]
-            done = done | stops.any(-1)
-        t_before = trans[..., None] * torch.exp(csum - log_t)
-        weight = torch.where(used, alpha * t_before, torch.zeros_like(alpha))
-        acc = acc + torch.einsum("tpb,tbd->tpd", weight, feat[gid])
-        trans = trans * torch.exp(torch.where(used, log_t, torch.zeros_like(log_t)).sum(-1))
-    return acc, trans
+            # A pixel stops before the first Gaussian that would take its transmittance to 1e-4; the
+            # transmittance only falls, so every later Gaussian of the chunk is past the stop too.
+            floor = (log_t_min - log_trans)[..., None]
+            used = (csum > floor).to(dt) * running[..., None]
+            running = running * (csum[..., -1:] > floor).squeeze(-1).to(dt)
+        weight = alpha * used * torch.exp(log_trans[..., None] + (csum - log_t))
+        acc = acc + torch.bmm(weight, feat[gid])
+        log_trans = log_trans + (log_t * used).sum(-1)
+        s += j.numel()
+        stay = (cnt > s) & (running.amax(-1) > 0)
+        if not bool(stay.all()):
+            closed_ids.append(open_ids[~stay])
+            closed_acc.append(acc[~stay])
+            closed_trans.append(torch.exp(log_trans[~stay]))
+            open_ids, cnt, st, pix_x, pix_y = open_ids[stay], cnt[stay], st[stay], pix_x[stay], pix_y[stay]
+            log_trans, running, acc = log_trans[stay], running[stay], acc[stay]
+    out_acc = torch.zeros(n_blocks, P, D, device=dev, dtype=dt)
+    out_trans = torch.ones(n_blocks, P, device=dev, dtype=dt)
+    if closed_ids:
+        ids = torch.cat(closed_ids)
+        out_acc = out_acc.index_copy(0, ids, torch.cat(closed_acc))
+        out_trans = out_trans.index_copy(0, ids, torch.cat(closed_trans))
+    return out_acc, out_trans
+
+
+BLOCK_SIZE = 4  # compositing blocks (px per side): pixels that share a Gaussian list
 
 
 def composite(
@@ -224,17 +306,24 @@ def composite(
     width: int,
     height: int,
     tile_size: int = 16,
-    chunk: int = 128,
+    chunk: int = 32,
     max_elements: int = 1 << 22,
     alpha_min: float = ALPHA_MIN,
+    block_size: int = BLOCK_SIZE,
 ) -> Tuple[Tensor, Tensor]:
-    """Alpha-composite depth-sorted Gaussians front to back in every tile.
+    """Alpha-composite depth-sorted Gaussians front to back at every pixel, as gsplat does per tile.
+
+    The tile lists are refined to blocks of `block_size` px (`block_lists`: only pairs that can reach
+    alpha_min stay, so the result is the same), and each block is composited `chunk` Gaussians at a time
+    until its list ends or all its pixels have stopped.
 
     Args:
         means2d [C, N, 2], conics [C, N, 3], opacities [C, N], features [C, N, D]: projected
-            Gaussians; tile_ids/flat_ids from `intersect_tiles`.
-        chunk: Gaussians per tile handled at once; max_elements: pixels x Gaussians per batch.
+            Gaussians; tile_ids/flat_ids from `intersect_tiles` with `tile_size`.
+        chunk: depth ranks per block handled at once; max_elements: pixel x Gaussian pairs per batch
+            of blocks (with several batches and autograd, each batch is recomputed in backward).
         alpha_min: Gaussians whose alpha at a pixel is below this are skipped there (gsplat: 1/255).
+        block_size: a divisor of tile_size (the whole tile when it is smaller).
 
     Returns:
         accumulated features [C, H, W, D] (no background) and alphas [C, H, W, 1].
@@ -242,41 +331,54 @@ def composite(
     C, N = opacities.shape
     D = features.shape[-1]
     dev, dt = means2d.device, means2d.dtype
+    block = min(block_size, tile_size)
     tw, th = math.ceil(width / tile_size), math.ceil(height / tile_size)
-    n_tiles = C * tw * th
-    P = tile_size * tile_size
+    bw, bh = tw * (tile_size // block), th * (tile_size // block)
+    n_blocks = C * bw * bh
+    P = block * block
     m2d, con = means2d.reshape(C * N, 2), conics.reshape(C * N, 3)
     opa, feat = opacities.reshape(C * N), features.reshape(C * N, D)
+    block_ids, gauss_ids = block_lists(
+        m2d.detach(), con.detach(), opa.detach(), tile_ids, flat_ids, tw, th, tile_size, block, alpha_min
+    )
+    # What a pixel needs of each Gaussian, a row per quantity: one gather per chunk (and one scatter back).
+    neg_half_conic = con * torch.tensor([-0.5, -1.0, -0.5], device=dev, dtype=dt)
+    splat = torch.cat([m2d, neg_half_conic, opa[:, None]], dim=-1).t()
 
-    per_tile = torch.bincount(tile_ids, minlength=n_tiles)
-    starts = torch.cumsum(per_tile, 0) - per_tile
-    local = torch.arange(tile_size, device=dev)
-    pix_off = (
-        torch.stack([local.repeat(tile_size), local.repeat_interleave(tile_size)], dim=-1).to(dt) + 0.5
-    )  # [P, 2] (x, y) within a tile
+    counts = torch.bincount(block_ids, minlength=n_blocks)
+    starts = torch.cumsum(counts, 0) - counts
+    ids = torch.arange(n_blocks, device=dev)
+    in_cam = ids % (bw * bh)
+    origin = torch.stack([in_cam % bw, in_cam // bw], dim=-1).to(dt) * block
+    local = torch.arange(block, device=dev)
+    offsets = torch.stack([local.repeat(block), local.repeat_interleave(block)], dim=-1).to(dt) + 0.5
+    pixels = origin[:, None, :] + offsets[None]  # [blocks, P, 2] pixel centres (x, y)
 
-    batch_tiles = max(1, max_elements // (P * chunk))
-    batches = list(range(0, n_tiles, batch_tiles))
+    # Batches of whole blocks holding about max_elements pixel x Gaussian pairs each.
+    batch_of = torch.div(torch.cumsum(counts, 0) - counts, max(1, max_elements // P), rounding_mode="floor")
+    edges = torch.cat([torch.zeros(1, device=dev, dtype=torch.long), torch.cumsum(torch.bincount(batch_of), 0)])
+    edges = [int(e) for e in torch.unique(edges)]
+    batches = list(zip(edges[:-1], edges[1:]))
     # With several batches, recompute each batch in backward instead of keeping its
     # intermediates (pixels x chunk tensors): memory stays at one batch, e.g. for 800x800.
-    remat = len(batches) > 1 and torch.is_grad_enabled() and any(t.requires_grad for t in (m2d, con, opa, feat))
-    out_feat, out_alpha = [], []
-    for t0 in batches:
-        t1 = min(n_tiles, t0 + batch_tiles)
-        args = (t0, t1, per_tile, starts, flat_ids, pix_off, tw, th, tile_size, chunk, alpha_min)
+    remat = len(batches) > 1 and torch.is_grad_enabled() and (splat.requires_grad or feat.requires_grad)
+    out_feat, out_trans = [], []
+    for b0, b1 in batches:
+        args = (pixels[b0:b1], counts[b0:b1], starts[b0:b1], gauss_ids, chunk, alpha_min)
         if remat:
-            acc, trans = checkpoint(_composite_tiles, m2d, con, opa, feat, *args, use_reentrant=False)
+            acc, trans = checkpoint(_composite_blocks, splat, feat, *args, use_reentrant=False)
         else:
-            acc, trans = _composite_tiles(m2d, con, opa, feat, *args)
+            acc, trans = _composite_blocks(splat, feat, *args)
         out_feat.append(acc)
-        out_alpha.append(1.0 - trans)
+        out_trans.append(trans)
 
     def to_image(x: Tensor) -> Tensor:
-        x = torch.cat(x, dim=0).reshape(C, th, tw, tile_size, tile_size, -1)
-        x = x.permute(0, 1, 3, 2, 4, 5).reshape(C, th * tile_size, tw * tile_size, -1)
+        x = x.reshape(C, bh, bw, block, block, -1)
+        x = x.permute(0, 1, 3, 2, 4, 5).reshape(C, bh * block, bw * block, -1)
         return x[:, :height, :width]
 
-    return to_image(out_feat), to_image([a[..., None] for a in out_alpha])
+    alphas = 1.0 - torch.cat(out_trans, dim=0)
+    return to_image(torch.cat(out_feat, dim=0)), to_image(alphas[..., None])
 
 
 def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree) -> None:
@@ -329,7 +431,7 @@ def rasterize(
     tile_size: int = 16,
     backgrounds: Optional[Tensor] = None,
     render_mode: RenderMode = "RGB",
-    chunk: int = 128,
+    chunk: int = 32,
     alpha_min: float = ALPHA_MIN,
 ) -> Tuple[Tensor, Tensor, Dict[str, Any]]:
     """Render Gaussians into C cameras; the call mirrors `gsplat.rasterization(packed=False)`.
