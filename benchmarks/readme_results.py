@@ -1,7 +1,11 @@
-"""Writes the README's headline results block from the committed Table 1 result files.
+"""Writes the README's figures from committed result files: the headline results, the demo's and the tests'.
 
-    python benchmarks/readme_results.py            # rewrite the block between the markers in README.md
-    python benchmarks/readme_results.py --check    # exit 1 if README.md's block differs from what it would write
+    python benchmarks/readme_results.py            # rewrite the blocks between the markers in README.md
+    python benchmarks/readme_results.py --check    # exit 1 if a block of README.md differs from what it would write
+
+Three blocks, each between `<!-- NAME:begin -->` and `<!-- NAME:end -->`: `results` (below), `demo` (from
+`demo_cpu.json`, written by benchmarks/demo_measure.py) and `tests` (from `test_time_cpu.json`, written by
+benchmarks/test_time.py).
 
 Reads every `benchmarks/results/table1_<scene>_<GPU>.json` (written by `python -m garo_ns.bench.benchmark`;
 see docs/benchmarks.md) and makes one row per scene: the baseline (`deform-splatfacto`) against GARO
@@ -24,6 +28,7 @@ ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
 README = ROOT / "README.md"
 BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
+DEMO_FILE, TESTS_FILE = "demo_cpu.json", "test_time_cpu.json"
 SCENES = ("jumpingjacks", "mutant", "standup")
 """The D-NeRF scenes the headline table is meant to cover (the paper's Table 1 scenes run here)."""
 BASELINE = "deform-splatfacto"
@@ -148,29 +153,89 @@ def render_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     return "\n".join(out)
 
 
-def split_readme(text: str) -> Tuple[str, str, str]:
-    """README text before the block (through BEGIN), the block, and the rest (from END)."""
-    match = re.search(re.escape(BEGIN) + r"(.*?)" + re.escape(END), text, flags=re.S)
+def _link(path: Path, readme_dir: Path) -> str:
+    return f"[`{path.name}`]({Path(os.path.relpath(path, readme_dir)).as_posix()})"
+
+
+def _load(results: Path, name: str) -> Tuple[Path, Optional[Dict[str, Any]]]:
+    path = results / name
+    return path, json.loads(path.read_text()) if path.exists() else None
+
+
+def demo_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
+    """The demo's time, memory and table, from the demo's measured result file."""
+    path, data = _load(results, DEMO_FILE)
+    if data is None:
+        return f"\nThe demo has not been timed yet (`benchmarks/results/{DEMO_FILE}`).\n"
+    measured = data["measured"]
+    idle = max(measured["load_average_before"]) <= measured["cpu_count"]
+    largest_gb = max(a["peak_rss_mb"] for a in data["arms"]) / 1024
+    lines = [
+        "",
+        f"Measured by `python benchmarks/demo_measure.py` ({_link(path, readme_dir)}) on "
+        f"{'an otherwise idle' if idle else 'a shared'} {measured['cpu_count']}-core CPU: "
+        f"{measured['time_v_elapsed_s'] / 60:.1f} minutes ({measured['time_v_elapsed_s']:.0f} s) for "
+        f"`bash scripts/demo.sh` once installed, peak memory {largest_gb:.1f} GB "
+        f"in the largest process ({data['peak_rss_mb'] / 1024:.1f} GB summed over the processes), and:",
+        "",
+        "| method | test PSNR | SSIM | Gaussians | model MB | render ms per view (CPU) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for arm in data["arms"]:
+        lines.append(
+            f"| `{arm['method']}` | {arm['psnr']:.2f} | {arm['ssim']:.3f} | {arm['num_gaussians']:,} "
+            f"| {arm['model_mb']:.2f} | {arm['render_ms']:.1f} |"
+        )
+    return "\n".join(lines + [""])
+
+
+def tests_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
+    """How long the test command took, from benchmarks/test_time.py's result file."""
+    path, data = _load(results, TESTS_FILE)
+    if data is None:
+        return f"\nThe test command has not been timed yet (`benchmarks/results/{TESTS_FILE}`).\n"
+    idle = max(data["load_average_before"]) <= data["cpu_count"]
+    counts = ", ".join(f"{n} {kind}" for kind, n in data["counts"].items())
+    return (
+        f"\n`bash scripts/test.sh` took {data['wall_seconds'] / 60:.0f} minutes on "
+        f"{'an otherwise idle' if idle else 'a shared'} {data['cpu_count']}-core CPU with `.venv` already installed "
+        f"({counts}; commit {data['git_commit']}; the slowest tests are listed in {_link(path, readme_dir)}, "
+        "written by `python benchmarks/test_time.py`).\n"
+    )
+
+
+BLOCKS = {"results": render_block, "demo": demo_block, "tests": tests_block}
+
+
+def split_readme(text: str, name: str = "results") -> Tuple[str, str, str]:
+    """README text before block `name` (through its begin marker), the block, and the rest (from its end marker)."""
+    begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
+    match = re.search(re.escape(begin) + r"(.*?)" + re.escape(end), text, flags=re.S)
     if match is None:
-        raise ValueError(f"README.md has no {BEGIN} ... {END} block")
+        raise ValueError(f"README.md has no {begin} ... {end} block")
     return text[: match.start(1)], match.group(1), text[match.end(1) :]
 
 
 def main(argv: Optional[List[str]] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--check", action="store_true", help="exit 1 if README.md's block is not up to date")
+    parser.add_argument("--check", action="store_true", help="exit 1 if a block of README.md is not up to date")
     parser.add_argument("--readme", type=Path, default=README)
     parser.add_argument("--results", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
     text = args.readme.read_text()
-    head, block, tail = split_readme(text)
-    new = render_block(args.results, args.readme.resolve().parent)
-    if args.check:
+    stale = []
+    for name, render in BLOCKS.items():
+        head, block, tail = split_readme(text, name)
+        new = render(args.results, args.readme.resolve().parent)
         if block != new:
-            print(f"{args.readme}: the results block is out of date; run python benchmarks/readme_results.py")
+            stale.append(name)
+            text = head + new + tail
+    if args.check:
+        if stale:
+            print(f"{args.readme}: block(s) {', '.join(stale)} out of date; run python benchmarks/readme_results.py")
             return 1
         return 0
-    args.readme.write_text(head + new + tail)
+    args.readme.write_text(text)
     return 0
 
 

@@ -72,3 +72,16 @@ def test_relative_links_point_to_files(page):
 
 def test_readme_is_at_most_15_kb():
     assert (ROOT / "README.md").stat().st_size <= 15_000
+
+
+@pytest.mark.parametrize("block", ["demo", "tests"])
+def test_readme_demo_and_test_figures_come_from_their_result_files(tmp_path, block):
+    """The demo's and the tests' figures are rewritten from their files; a typed change is caught."""
+    readme = tmp_path / "README.md"
+    text = (ROOT / "README.md").read_text()
+    begin, end = f"<!-- {block}:begin -->", f"<!-- {block}:end -->"
+    assert begin in text and end in text
+    readme.write_text(text.replace(end, "typed by hand\n" + end))
+    assert _script("readme_results.py", "--check", "--readme", str(readme)).returncode == 1
+    assert _script("readme_results.py", "--readme", str(readme)).returncode == 0
+    assert readme.read_text() == text
