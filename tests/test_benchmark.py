@@ -120,7 +120,7 @@ def test_auto_row_leaves_every_switch_to_the_model():
     base, render = split_variant("garo-compact+auto")
     assert base == "garo-compact"
     assert all(render[k] is None for k in ("static_skip", "render_precision", "cuda_graph", "lean_raster"))
-    assert render["storage"] == "fp32" and render["static_threshold_factor"] == 1.0
+    assert render["storage"] == "fp32"
 
 
 def test_half_row_selects_render_precision_fp16_and_is_compared_view_by_view():

@@ -512,7 +512,7 @@ def test_a_resumed_run_ends_and_measures_its_render_switches_at_its_real_last_st
     model.get_training_callbacks(attributes)
     assert model._last_step == 59
     guard = TrainingViewGuard(model.train_cameras, images=[torch.rand(16, 16, 3)] * 3, indices=[0, 1, 2])
-    model.compaction_guard = guard
+    model.compaction_guard = model.switch_guard = guard  # compaction's views and the switches' views
     stale = {"step": 19, "views": 3, "tried": {"static_skip": 0.5}}
     model.switches.record = stale
     for step in (58, 59):

@@ -84,4 +84,5 @@ def test_readme_demo_and_test_figures_come_from_their_result_files(tmp_path, blo
     readme.write_text(text.replace(end, "typed by hand\n" + end))
     assert _script("readme_results.py", "--check", "--readme", str(readme)).returncode == 1
     assert _script("readme_results.py", "--readme", str(readme)).returncode == 0
-    assert readme.read_text() == text
+    rewritten = readme.read_text()
+    assert "typed by hand" not in rewritten and begin in rewritten and end in rewritten
