@@ -13,7 +13,13 @@
 #   bash benchmarks/device_run.sh extra NAME CMD...    any other command in the background (parity, ...)
 #   bash benchmarks/device_run.sh wait SECONDS         poll until every launched job ended or SECONDS passed,
 #                                                      then collect (what has landed comes back in every call)
-#   bash benchmarks/device_run.sh collect              pack results and logs into $OUT/results.tar.gz
+#   bash benchmarks/device_run.sh collect              pack results and logs into $OUT/results.tar.gz, and each
+#                                                      finished export under $W/exports (launch with
+#                                                      --export-dir /tmp/garo-work/exports) as NAME.tar.part-aa...
+#                                                      (15 MiB parts: the most one file from $OUT may be)
+# A pair that does not fit one hold: export one arm in the first hold; here, `cat NAME.tar.part-* | tar -x -C
+# .trained`; in the next hold carry .trained/NAME in a call of its own (`cp -r .trained/NAME /tmp/`), then
+# launch the other arm with --pretrained /tmp/NAME (garo_ns.bench.transfer).
 # Scenes come from .scenes/<name> (../shared/device/make-device-kit.sh).
 set -u
 phase=$1
@@ -102,6 +108,11 @@ collect)
     n=$(basename $d); case $n in pack|results|jobs|src) continue;; esac
     mkdir -p $W/pack/$n; cp $d*.log $d*.json $W/pack/$n/ 2>/dev/null
   done
-  tar -czf $OUT/results.tar.gz -C $W pack && ls -la $OUT
+  tar -czf $OUT/results.tar.gz -C $W pack
+  for e in $W/exports/*/; do
+    [ -e ${e}model.ckpt ] && [ -e ${e}record.json ] || continue
+    tar -cf - -C $W/exports $(basename $e) | split -b 15m - $OUT/$(basename $e).tar.part-
+  done
+  ls -la $OUT
   cat $W/results/*.md 2>/dev/null ;;
 esac

@@ -130,3 +130,72 @@ def test_half_row_selects_render_precision_fp16_and_is_compared_view_by_view():
     diff = psnr_difference([30.0, 31.5, 29.99], [30.01, 31.5, 29.98])
     assert diff["per_view_db"] == pytest.approx([-0.01, 0.0, 0.01])
     assert diff["max_abs_db"] == pytest.approx(0.01) and diff["mean_db"] == pytest.approx(0.0, abs=1e-12)
+
+
+@pytest.mark.slow
+def test_an_arm_trained_in_one_run_is_evaluated_in_another(tmp_path):
+    """A pair that does not fit one machine hold: run 1 trains and exports the baseline, run 2 trains
+    GARO and imports it, and scores both; the imported arm scores as it did where it trained."""
+    scene = generate_scene(tmp_path / "scene", SceneSpec(resolution=32, n_train=8, n_val=3, n_test=3))
+    common = dict(
+        scene=scene,
+        split="val",
+        iterations=30,
+        device="cpu",
+        quick=True,
+        warmup_views=1,
+        timing_repeats=1,
+        profile=False,
+    )
+    first = run(
+        BenchArgs(
+            output=tmp_path / "a.json",
+            work_dir=tmp_path / "a",
+            variants=["deform-splatfacto"],
+            export_dir=tmp_path / "export",
+            **common,
+        )
+    )
+    export = tmp_path / "export" / "deform-splatfacto"
+    assert sorted(p.name for p in export.iterdir()) == ["config.yml", "model.ckpt", "record.json"]
+    assert "optimizers" not in torch.load(export / "model.ckpt", weights_only=False)
+
+    second = run(
+        BenchArgs(
+            output=tmp_path / "b.json",
+            work_dir=tmp_path / "b",
+            variants=["deform-splatfacto", "garo-deform"],
+            pretrained=[export],
+            **common,
+        )
+    )
+    # Only GARO trained in run 2.
+    assert json.loads((tmp_path / "b" / "garo-deform.record.json").read_text()).get("trained_in") is None
+    base, garo = second["variants"]["deform-splatfacto"], second["variants"]["garo-deform"]
+    assert base["psnr"] == pytest.approx(first["variants"]["deform-splatfacto"]["psnr"], abs=1e-6)
+    assert base["num_gaussians"] == first["variants"]["deform-splatfacto"]["num_gaussians"]
+    assert base["trained_in"]["git_commit"] == first["git_commit"] and garo["trained_in"] == "this run"
+    assert "fps_ratio" in second["garo_vs_baseline"]
+    assert "trained by an earlier run" in (tmp_path / "b.md").read_text()
+
+    with pytest.raises(ValueError, match="steps"):  # a different schedule is no pair
+        run(
+            BenchArgs(
+                output=tmp_path / "c.json",
+                work_dir=tmp_path / "c",
+                variants=["deform-splatfacto"],
+                pretrained=[export],
+                **{**common, "iterations": 31},
+            )
+        )
+    (export / "model.ckpt").unlink()
+    with pytest.raises(FileNotFoundError, match="not a benchmark export"):
+        run(
+            BenchArgs(
+                output=tmp_path / "d.json",
+                work_dir=tmp_path / "d",
+                variants=["deform-splatfacto"],
+                pretrained=[export],
+                **common,
+            )
+        )

@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Tuple
 
 from garo_ns import compat
+from garo_ns.bench import transfer
 from garo_ns.bench.results import publish
 
 compat.install()
@@ -143,6 +144,13 @@ class BenchArgs:
     timing_repeats: int = 3
     deadline_s: Optional[float] = None
     """Stop training this many seconds after the start even if unfinished (recorded per variant)."""
+    export_dir: Optional[Path] = None
+    """Also write each trained variant here as soon as it has trained (garo_ns.bench.transfer): its record,
+    config and a checkpoint without optimizer state, so a later run can evaluate it beside its own arms."""
+    pretrained: List[Path] = field(default_factory=list)
+    """Exports of variants trained by an earlier run (same scene, same schedule): these are not trained
+    again but evaluated and timed in this run's phase 2, one at a time like the rest. For pairs that do
+    not fit one machine hold; each row says where it was trained (`trained_in`)."""
 
     def all_variants(self) -> List[str]:
         names = list(self.variants)
@@ -227,6 +235,8 @@ def train_variant(args: BenchArgs, name: str, deadline: Optional[float]) -> Dict
         "deformation_health": health[-1] if health else None,
     }
     (args.work_dir / f"{name}.record.json").write_text(json.dumps(record, indent=2))
+    if args.export_dir is not None:
+        transfer.export_run(record, environment(args.device), args.export_dir / name)
     return record
 
 
@@ -308,6 +318,8 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
             "prune_contribution_ratio": model.config.prune_contribution_ratio,
             "compaction": summary_for_json(model.strategy_state.get("compact")),
             "checkpoint_step": int(step),
+            # Where this arm trained: this run, or (imported with --pretrained) an earlier run's machine and commit.
+            "trained_in": record.get("trained_in", "this run"),
         }
         if args.profile:
             out["profile"] = profile_frame(model, cameras)
@@ -395,6 +407,16 @@ def write_report(result: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
             f"{v['num_gaussians']} | {static_txt} | {v['model_size_mb']:.2f} | {v['train_seconds']:.0f} |"
         )
     lines += [f"\nRow {n} failed: {e}" for n, e in failed.items()]
+    elsewhere = {
+        n: v["trained_in"]
+        for n, v in variants.items()
+        if "+" not in n and v.get("trained_in", "this run") != "this run"
+    }
+    lines += [
+        f"\n{n} was trained by an earlier run ({t.get('gpu')}, commit {str(t.get('git_commit'))[:7]}) and imported:"
+        " evaluated and timed in this run like the others."
+        for n, t in elsewhere.items()
+    ]
     md = output.with_suffix(".md")
     md.write_text("\n".join(lines) + "\n")
 
@@ -439,8 +461,16 @@ def run(args: BenchArgs) -> Dict[str, Any]:
     names = args.trained_variants()
     deadline = None if args.deadline_s is None else time.time() + args.deadline_s
     args.work_dir.mkdir(parents=True, exist_ok=True)
+    imported = {}
+    for export in args.pretrained:  # before any training: a wrong export fails at once, not after an hour
+        record = transfer.import_run(export, args.work_dir, args.scene)
+        if record["variant"] not in names:
+            raise ValueError(f"{export} holds {record['variant']!r}, which this run does not evaluate ({names})")
+        if record["iterations"] != args.iterations:
+            raise ValueError(f"{export} trained {record['iterations']} steps, this run {args.iterations}")
+        imported[record["variant"]] = record
     procs = []
-    for i, name in enumerate(names):
+    for i, name in enumerate(n for n in names if n not in imported):
         env = dict(os.environ)
         if args.device == "cuda":
             env["CUDA_VISIBLE_DEVICES"] = physical_gpu(args.gpus[i % len(args.gpus)])
@@ -452,7 +482,7 @@ def run(args: BenchArgs) -> Dict[str, Any]:
         procs.append((name, proc, log))
         if args.device != "cuda":
             proc.wait()  # on a CPU the runs would only compete for the same cores
-    records = {}
+    records = dict(imported)
     for name, proc, log in procs:
         code = proc.wait()
         log.close()
@@ -495,12 +525,14 @@ def _to_json(args: BenchArgs) -> Dict[str, Any]:
     for k, v in d.items():
         if isinstance(v, Path):
             d[k] = str(v)
+    d["pretrained"] = [str(p) for p in args.pretrained]
     return d
 
 
 def _from_json(d: Dict[str, Any]) -> BenchArgs:
-    for k in ("scene", "output", "work_dir"):
-        d[k] = Path(d[k])
+    for k in ("scene", "output", "work_dir", "export_dir"):
+        d[k] = None if d[k] is None else Path(d[k])
+    d["pretrained"] = [Path(p) for p in d["pretrained"]]
     return BenchArgs(**d)
 
 

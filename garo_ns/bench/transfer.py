@@ -1,0 +1,76 @@
+"""Carry a trained benchmark arm from one run to another.
+
+A GPU machine is held for a limited time. Where the two arms of a scene do not both train inside one
+hold, one arm is trained and exported in the first hold, and the second hold trains the other arm and
+imports the first: phase 2 of that run then evaluates and times both, one at a time, on one machine,
+so their FPS ratio still comes from one run.
+
+An export is a folder: `record.json` (the training record plus where it trained), `config.yml` and
+`model.ckpt`, the last checkpoint without optimizer or scheduler state (only the pipeline is needed
+to render, and it is a third of the size).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+from typing import Any, Dict
+
+import torch
+
+CKPT = "model.ckpt"
+
+
+def latest_checkpoint(checkpoint_dir: Path) -> Path:
+    """The highest-step `step-*.ckpt` in a nerfstudio checkpoint folder."""
+    found = sorted(Path(checkpoint_dir).glob("step-*.ckpt"), key=lambda p: int(p.stem.split("-")[1]))
+    if not found:
+        raise FileNotFoundError(f"no step-*.ckpt in {checkpoint_dir}")
+    return found[-1]
+
+
+def export_run(record: Dict[str, Any], environment: Dict[str, Any], out: Path) -> Path:
+    """Write a trained arm (its benchmark record, run config and model) to the folder `out`."""
+    import yaml
+
+    config_path = Path(record["config"])
+    config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
+    source = latest_checkpoint(config.get_checkpoint_dir())
+    state = torch.load(source, map_location="cpu", weights_only=False)
+    out.mkdir(parents=True, exist_ok=True)
+    # Written to a temporary name first: a machine taken back mid-write leaves no half model behind.
+    tmp = out / (CKPT + ".partial")
+    torch.save({"step": state["step"], "pipeline": state["pipeline"]}, tmp)
+    tmp.replace(out / CKPT)
+    shutil.copyfile(config_path, out / "config.yml")
+    trained_in = {key: environment.get(key) for key in ("gpu", "torch", "git_commit")}
+    (out / "record.json").write_text(json.dumps({**record, "trained_in": trained_in}, indent=2))
+    return out
+
+
+def import_run(export: Path, work_dir: Path, scene: Path) -> Dict[str, Any]:
+    """Lay an export out as this run's own training of that variant would be, under `work_dir`, with
+    its data path set to `scene`; returns its record with `config` pointing at the new place."""
+    import yaml
+
+    export = Path(export)
+    missing = [n for n in ("record.json", "config.yml", CKPT) if not (export / n).is_file()]
+    if missing:
+        raise FileNotFoundError(f"{export} is not a benchmark export (missing {', '.join(missing)})")
+    record = json.loads((export / "record.json").read_text())
+    config = yaml.load((export / "config.yml").read_text(), Loader=yaml.Loader)
+    config.output_dir = Path(work_dir)
+    dm = config.pipeline.datamanager
+    if getattr(dm, "data", None) is not None:
+        dm.data = Path(scene)
+    dm.dataparser.data = Path(scene)
+    checkpoint_dir = config.get_checkpoint_dir()
+    checkpoint_dir.mkdir(parents=True, exist_ok=True)
+    step = int(torch.load(export / CKPT, map_location="cpu", weights_only=False)["step"])
+    shutil.copyfile(export / CKPT, checkpoint_dir / f"step-{step:09d}.ckpt")
+    config_path = config.get_base_dir() / "config.yml"
+    config_path.write_text(yaml.dump(config), "utf8")
+    record["config"] = str(config_path)
+    (Path(work_dir) / f"{record['variant']}.record.json").write_text(json.dumps(record, indent=2))
+    return record
