@@ -86,3 +86,37 @@ def test_readme_demo_and_test_figures_come_from_their_result_files(tmp_path, blo
     assert _script("readme_results.py", "--readme", str(readme)).returncode == 0
     rewritten = readme.read_text()
     assert "typed by hand" not in rewritten and begin in rewritten and end in rewritten
+
+
+def test_results_block_names_an_imported_arm_and_the_retiming_spread(tmp_path):
+    """A Table 1 row whose baseline trained in an earlier hold says so, and re-timings of its checkpoints
+    are reported as the range of their speed-ups."""
+    import json
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import readme_results
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+
+    def arm(fps, **extra):
+        return {"psnr": 30.0, "lpips": 0.01, "fps": fps, "num_gaussians": 1000, "iterations": 40_000, **extra}
+
+    table = {
+        "scene": "s",
+        "split": "test",
+        "gpu": "G",
+        "git_commit": "0123456789",
+        "variants": {
+            "deform-splatfacto": arm(100.0, trained_in={"gpu": "G", "git_commit": "abcdef0123"}),
+            "garo-deform": arm(200.0, trained_in="this run"),
+        },
+    }
+    (tmp_path / "table1_s_G.json").write_text(json.dumps(table))
+    block = readme_results.render_block(tmp_path, tmp_path)
+    assert "s: the baseline arm did not fit" in block and "commit abcdef0" in block and "GARO arm" not in block
+    assert "re-timed" not in block
+    runs = [{"variants": {"deform-splatfacto": {"fps": 100.0}, "garo-deform": {"fps": f}}} for f in (250.0, 230.0)]
+    (tmp_path / "s40k_retime_G.json").write_text(json.dumps({"runs": runs}))
+    block = readme_results.render_block(tmp_path, tmp_path)
+    assert "re-timed 2 more times in that hold gave 2.30x to 2.50x" in block and "against 2.00x" in block

@@ -93,3 +93,18 @@ def test_an_alias_reads_a_renamed_run_only_where_the_variant_is_missing():
     with pytest.raises(ValueError, match="ROW=VARIANT"):
         parse_aliases(["garo-window"])
     assert parse_aliases(["garo-window=garo-deform"]) == {"garo-deform": "garo-window"}
+
+
+def test_an_arm_trained_in_an_earlier_hold_is_named_in_the_table(tmp_path):
+    a, b = _result("a", 100.0, 200.0, 30.0, 29.9), _result("b", 100.0, 200.0, 30.0, 29.9)
+    a["variants"]["deform-splatfacto"]["trained_in"] = {"gpu": "H100", "git_commit": "1234567abc"}
+    b["variants"]["deform-splatfacto"]["trained_in"] = "this run"
+    paths = []
+    for r in (a, b):
+        paths.append(tmp_path / f"{r['scene']}.json")
+        paths[-1].write_text(json.dumps(r))
+    out = tmp_path / "summary.json"
+    main(SummaryArgs(results=paths, output=out))
+    table = out.with_suffix(".md").read_text()
+    assert "a: deform-splatfacto trained in an earlier machine hold (H100, commit 1234567)" in table
+    assert "b: deform-splatfacto trained" not in table  # trained in its own run: nothing to say

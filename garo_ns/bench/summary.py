@@ -76,14 +76,14 @@ def scene_rows(
         "gpu": result.get("gpu"),
         "git_commit": result.get("git_commit"),
         "source": source,
-        BASELINE: {k: base.get(k) for k in (*METRICS, "iterations", "shortened")},
+        BASELINE: {k: base.get(k) for k in (*METRICS, "iterations", "shortened", "trained_in")},
     }
     if used:
         row["read_from"] = used
     for name in variants:
         v = found[name]
         row[name] = {
-            **{k: v.get(k) for k in (*METRICS, "iterations", "shortened")},
+            **{k: v.get(k) for k in (*METRICS, "iterations", "shortened", "trained_in")},
             "fps_ratio": v["fps"] / base["fps"],
             "psnr_drop_db": base["psnr"] - v["psnr"],
             "gaussian_ratio": v["num_gaussians"] / max(base["num_gaussians"], 1),
@@ -169,6 +169,15 @@ def write_report(summary: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
     for row in summary["rows"]:
         for variant, read in row.get("read_from", {}).items():
             lines += ["", f"{row['scene']}: {variant} is the run named {read} in {row['source']}."]
+        for variant in [BASELINE, *summary["variants"]]:
+            trained = row[variant].get("trained_in")
+            if isinstance(trained, dict):  # imported from an earlier run (garo_ns.bench.transfer)
+                lines += [
+                    "",
+                    f"{row['scene']}: {variant} trained in an earlier machine hold ({trained.get('gpu')}, commit "
+                    f"{str(trained.get('git_commit'))[:7]}) and was evaluated and timed in {row['source']} with "
+                    "the other arm.",
+                ]
     md = output.with_suffix(".md")
     md.write_text("\n".join(lines) + "\n")
 
