@@ -112,6 +112,22 @@ PEAKS: List[Tuple[str, Dict[str, float]]] = [
 ]
 
 
+# HBM bandwidth in TB/s from the same datasheets (SXM: H100 3.35, H200 4.8), for the memory-bound limit of the
+# per-layer breakdown; first matching substring wins.
+BANDWIDTH_TBS: List[Tuple[str, float]] = [
+    ("H200 NVL", 4.8),
+    ("H200", 4.8),
+    ("H100 NVL", 3.9),
+    ("H100 PCIe", 2.0),
+    ("H100", 3.35),
+]
+
+
+def bandwidth_for(device_name: str) -> Optional[float]:
+    """HBM bandwidth (TB/s) for a device name, None when not in the table (a CPU)."""
+    return next((bw for key, bw in BANDWIDTH_TBS if key in device_name), None)
+
+
 def peaks_for(device_name: str) -> Optional[Dict[str, float]]:
     """The dense peak table's row for a device name (None: not in the table, e.g. a CPU)."""
     return next((row for key, row in PEAKS if key in device_name), None)
@@ -429,6 +445,8 @@ def run(
                 rows[label] = measure(label, spec, graph_call(step, spec, device), ref, flops, peaks, device, a)
                 torch.cuda.empty_cache()
             compile_rows(rows, steps, field, ref, n, full_flops, cached_flops, peaks, device, a, budget)
+            if n in (a.layers or []):
+                per_n["layers"] = layer_breakdown(field, xyz, a, peaks, bandwidth_for(name))
         for row in rows.values():
             if "ms" in row and "ms" in rows["fp32"]:
                 row["speedup"] = round(rows["fp32"]["ms"] / row["ms"], 3)
@@ -442,6 +460,110 @@ def run(
             torch.cuda.empty_cache()
     print_table(result)
     return result
+
+
+def layer_breakdown(
+    field: DeformationField, xyz: Tensor, a: argparse.Namespace, peaks: Optional[Dict[str, float]], bw: Optional[float]
+) -> Dict[str, Any]:
+    """Where fp16_cached's time goes (the product's fp16 path, cached_forward's stages in its order), each
+    stage timed alone (median, CUDA events): its FLOPs, the bytes it must move through memory (inputs read,
+    outputs written, weights once), and the time each would take at the tensor-core peak and at the HBM
+    bandwidth. A stage near its larger limit cannot get much faster alone; the gap between the stages' sum and
+    the whole path's time is what fusing them or a graph can still take."""
+    device = xyz.device
+    n = xyz.shape[0]
+    half = torch.float16
+    w = FieldWeights.of(field, half)
+    cache = PositionCache.build(field, xyz, half)
+    width = cache.first.shape[1]
+    tfeat = time_features(field, EVAL_TIME, device).to(half)
+    h = (cache.first + F.linear(tfeat, w.first_time)).relu_()
+    e16, e32 = 2, 4  # bytes per element
+    stages: List[Tuple[str, Callable[[float], Any], float, float, str]] = [
+        # (stage, call, FLOPs, bytes, precision of the FLOPs' peak)
+        ("time features (one row)", lambda t: time_features(field, t, device), 0.0, 0.0, "fp32"),
+        (
+            "layer 0: cached part + time row",
+            lambda t: cache.first + F.linear(tfeat, w.first_time),
+            0.0,
+            2 * n * width * e16,
+            "fp16",
+        ),
+        ("relu (in place)", lambda t: h.clone().relu_(), 0.0, 4 * n * width * e16, "fp16"),
+    ]
+    for i in range(1, len(w.layers)):
+        if i == w.skip + 1 and w.skip_hidden is not None and cache.skip is not None:
+            skip_hidden, skip = w.skip_hidden, cache.skip
+            base = skip + F.linear(tfeat, w.skip_time)
+            stages.append(
+                (
+                    f"layer {i}: skip cached part + time row",
+                    lambda t, c=skip: c + F.linear(tfeat, w.skip_time),
+                    0.0,
+                    2 * n * width * e16,
+                    "fp16",
+                )
+            )
+            stages.append(
+                (
+                    f"layer {i}: addmm (hidden columns)",
+                    lambda t, b=base, m=skip_hidden: torch.addmm(b, h, m.t()),
+                    2.0 * n * width * width,
+                    (3 * n * width + width * width) * e16,
+                    "fp16",
+                )
+            )
+        else:
+            weight, bias = w.layers[i]
+            stages.append(
+                (
+                    f"layer {i}: linear",
+                    lambda t, m=weight, b=bias: F.linear(h, m, b),
+                    2.0 * n * width * width,
+                    (2 * n * width + width * width) * e16,
+                    "fp16",
+                )
+            )
+    n_heads = w.head_w.shape[0]
+    stages += [
+        ("heads: activations to fp32", lambda t: h.to(w.head_w.dtype), 0.0, n * width * (e16 + e32), "fp32"),
+        (
+            "heads: linear in fp32",
+            lambda t, h32=h.float(): F.linear(h32, w.head_w, w.head_b),
+            2.0 * n * width * n_heads,
+            (n * width + n * n_heads) * e32,
+            "fp32",
+        ),
+    ]
+    relus = len(w.layers) - 1  # every layer has one; the first's is the stage timed, the others count with it
+    rows = []
+    with fp32_accumulation():
+        for name, call, flops, nbytes, mode in stages:
+            ms = median_ms(call, device, a.warmup, a.repeats)
+            count = relus + 1 if name.startswith("relu") else 1
+            row: Dict[str, Any] = {"stage": name, "ms": round(ms, 5), "count": count, "flops": flops, "bytes": nbytes}
+            if peaks is not None and flops:
+                row["compute_limit_ms"] = round(flops / (peaks[mode] * 1e12) * 1e3, 5)
+            if bw is not None and nbytes:
+                row["memory_limit_ms"] = round(nbytes / (bw * 1e12) * 1e3, 5)
+            limits = [row[k] for k in ("compute_limit_ms", "memory_limit_ms") if k in row]
+            if limits:
+                row["bound"] = (
+                    "compute" if row.get("compute_limit_ms", 0) >= row.get("memory_limit_ms", 0) else "memory"
+                )
+                row["fraction_of_limit"] = round(max(limits) / ms, 3)
+            rows.append(row)
+    total = sum(r["ms"] * r["count"] for r in rows)
+    limit = sum(max(r.get("compute_limit_ms", 0), r.get("memory_limit_ms", 0)) * r["count"] for r in rows)
+    return {
+        "path": "fp16_cached (eager, each stage alone; the relu timed once and counted for every layer)",
+        "stages": rows,
+        "sum_ms": round(total, 5),
+        "sum_of_limits_ms": round(limit, 5),
+        "bandwidth_tbs": bw,
+        "note": "bytes count activations read and written once per stage and the weights once; the limits "
+        "assume the stage alone at the datasheet peak",
+    }
 
 
 def compile_rows(
@@ -532,6 +654,14 @@ def print_table(result: Dict[str, Any]) -> None:
             )
         if entry.get("field_limit_ms") is not None:
             print(f"{n:>8} {'(limit at 16-bit peak)':<22} {entry['field_limit_ms']:9.4f}")
+        layers = entry.get("layers")
+        if layers:
+            print(f"\n{n:>8} stage by stage ({layers['path']}):")
+            for r in layers["stages"]:
+                lim = max(r.get("compute_limit_ms", 0.0), r.get("memory_limit_ms", 0.0))
+                bound = r.get("bound", "-")
+                print(f"{'':>8} {r['stage']:<38} x{r['count']} {r['ms']:9.4f} ms  limit {lim:8.4f} ({bound})")
+            print(f"{'':>8} {'sum':<38}    {layers['sum_ms']:9.4f} ms  limit {layers['sum_of_limits_ms']:8.4f}")
 
 
 def git_commit() -> Optional[str]:
@@ -554,6 +684,14 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     p.add_argument("--repeats", type=int, default=30)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-compile", action="store_true")
+    p.add_argument(
+        "--layers",
+        type=int,
+        nargs="*",
+        default=[50_000],
+        help="the N at which fp16_cached is broken down stage by stage against the tensor-core and\n"
+        "memory-bandwidth limits (none: no breakdown)",
+    )
     p.add_argument(
         "--compile-budget-s",
         type=float,

@@ -97,3 +97,29 @@ def test_flops_and_peaks() -> None:
     assert dm.peaks_for("NVIDIA H200")["fp16"] == pytest.approx(989.4)
     assert dm.peaks_for("NVIDIA H100 PCIe")["tf32"] < dm.peaks_for("NVIDIA H100 80GB HBM3")["tf32"]
     assert dm.peaks_for("cpu") is None
+
+
+def test_layer_breakdown_covers_every_stage_of_the_half_path(tmp_path: Path) -> None:
+    """The stage-by-stage breakdown names every layer once (the skip layer as its two parts), counts the
+    matrix products' FLOPs from the shapes, and its limits need a GPU's peak table (none on a CPU)."""
+    field = tiny_field(depth=4, skip=1)
+    out = tmp_path / "deform_mlp_cpu.json"
+    dm.run(field, "cpu", [200], args(layers=[200]), output=out, paths=["fp16_cached"])
+    layers = json.loads(out.read_text())["results"]["200"]["layers"]
+    names = [s["stage"] for s in layers["stages"]]
+    assert names[:3] == ["time features (one row)", "layer 0: cached part + time row", "relu (in place)"]
+    assert "layer 1: linear" in names and "layer 2: addmm (hidden columns)" in names and "layer 3: linear" in names
+    assert names[-1] == "heads: linear in fp32"
+    relu = next(s for s in layers["stages"] if s["stage"].startswith("relu"))
+    assert relu["count"] == 4  # one per layer
+    linear = next(s for s in layers["stages"] if s["stage"] == "layer 1: linear")
+    assert linear["flops"] == 2 * 200 * 32 * 32 and linear["ms"] > 0
+    assert "compute_limit_ms" not in linear and layers["bandwidth_tbs"] is None  # no peaks for a CPU
+    assert layers["sum_ms"] == pytest.approx(sum(s["ms"] * s["count"] for s in layers["stages"]), rel=1e-6, abs=1e-6)
+    dm.run(field, "cpu", [200], args(layers=[]), output=out, paths=["fp16_cached"])
+    assert "layers" not in json.loads(out.read_text())["results"]["200"]
+
+
+def test_bandwidth_table() -> None:
+    assert dm.bandwidth_for("NVIDIA H200") == 4.8 and dm.bandwidth_for("NVIDIA H100 80GB HBM3") == 3.35
+    assert dm.bandwidth_for("cpu") is None
