@@ -489,7 +489,8 @@ def layer_breakdown(
             2 * n * width * e16,
             "fp16",
         ),
-        ("relu (in place)", lambda t: h.clone().relu_(), 0.0, 4 * n * width * e16, "fp16"),
+        # in place on the layer's output, as the product runs it (idempotent, so it may repeat)
+        ("relu (in place)", lambda t: h.relu_(), 0.0, 2 * n * width * e16, "fp16"),
     ]
     for i in range(1, len(w.layers)):
         if i == w.skip + 1 and w.skip_hidden is not None and cache.skip is not None:
