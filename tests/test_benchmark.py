@@ -112,6 +112,14 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
     for key in ("gpu", "torch", "git_commit", "scene", "split", "background"):
         assert key in result
     assert result["split"] == "val" and "fps_ratio" in result["garo_vs_baseline"]
+    # Phase 3: the trained variants' plain renders timed again in alternating passes, render rows not.
+    for t in trained:
+        paired = variants[t]["fps_paired"]
+        assert paired["passes"] == 6 and len(paired["pass_ms_per_view"]) == 6 and paired["fps"] > 0
+        assert "fps_paired" not in variants[t + "+half"]
+    ratio = variants["garo-deform"]["fps_paired"]["fps"] / variants["deform-splatfacto"]["fps_paired"]["fps"]
+    assert result["garo_vs_baseline"]["fps_ratio_paired"] == pytest.approx(ratio)
+    assert "alternating passes" in out.with_suffix(".md").read_text()
     assert out.with_suffix(".md").read_text().count("|") > 20
     assert out.with_suffix(".png").stat().st_size > 1000
 
@@ -199,3 +207,30 @@ def test_an_arm_trained_in_one_run_is_evaluated_in_another(tmp_path):
                 **common,
             )
         )
+
+
+def test_paired_timing_alternates_and_takes_the_median_pass():
+    """Passes run A B, B A, ...; a renderer's one stalled pass does not move its figure."""
+    import time
+
+    from garo_ns.bench.timing import paired_fps
+
+    order = []
+
+    def renderer(name, seconds):
+        calls = {"n": 0}
+
+        def frame():
+            calls["n"] += 1
+            order.append(name)
+            time.sleep(0.2 if (name == "a" and calls["n"] == 3) else seconds)  # a's 2nd timed pass stalls
+            return 2  # views per pass
+
+        return frame
+
+    out = paired_fps({"a": renderer("a", 0.01), "b": renderer("b", 0.02)}, torch.device("cpu"), passes=4, warmup=1)
+    assert order == ["a", "b", "a", "b", "b", "a", "a", "b", "b", "a"]
+    assert max(out["a"]["pass_ms_per_view"]) > 90  # the stall is recorded ...
+    assert out["a"]["ms_per_view_median_pass"] < 10  # ... and does not move the median (5 ms per view)
+    assert out["b"]["ms_per_view_median_pass"] == pytest.approx(10.0, rel=0.5)
+    assert out["a"]["fps"] == pytest.approx(1000.0 / out["a"]["ms_per_view_median_pass"])

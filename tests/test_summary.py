@@ -108,3 +108,21 @@ def test_an_arm_trained_in_an_earlier_hold_is_named_in_the_table(tmp_path):
     table = out.with_suffix(".md").read_text()
     assert "a: deform-splatfacto trained in an earlier machine hold (H100, commit 1234567)" in table
     assert "b: deform-splatfacto trained" not in table  # trained in its own run: nothing to say
+
+
+def test_the_alternating_re_timing_is_carried_where_a_file_has_it(tmp_path):
+    a, b = _result("a", 100.0, 200.0, 30.0, 29.9), _result("b", 100.0, 200.0, 30.0, 29.9)
+    a["variants"]["deform-splatfacto"]["fps_paired"] = {"fps": 110.0}
+    a["variants"]["garo-deform"]["fps_paired"] = {"fps": 242.0}
+    summary = summarise([("a.json", a), ("b.json", b)], ["garo-deform"])
+    rows = {r["scene"]: r for r in summary["rows"]}
+    assert rows["a"]["garo-deform"]["fps_ratio_paired"] == pytest.approx(2.2)
+    assert "fps_ratio_paired" not in rows["b"]["garo-deform"]
+    paths = []
+    for r in (a, b):
+        paths.append(tmp_path / f"{r['scene']}.json")
+        paths[-1].write_text(json.dumps(r))
+    main(SummaryArgs(results=paths, output=tmp_path / "s.json"))
+    assert (
+        "a: garo-deform timed again in alternating passes beside the baseline: 2.20x" in (tmp_path / "s.md").read_text()
+    )

@@ -88,6 +88,8 @@ def scene_rows(
             "psnr_drop_db": base["psnr"] - v["psnr"],
             "gaussian_ratio": v["num_gaussians"] / max(base["num_gaussians"], 1),
         }
+        if "fps_paired" in v and "fps_paired" in base:  # the benchmark's alternating re-timing
+            row[name]["fps_ratio_paired"] = v["fps_paired"]["fps"] / base["fps_paired"]["fps"]
     return row
 
 
@@ -169,6 +171,13 @@ def write_report(summary: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
     for row in summary["rows"]:
         for variant, read in row.get("read_from", {}).items():
             lines += ["", f"{row['scene']}: {variant} is the run named {read} in {row['source']}."]
+        for variant in summary["variants"]:
+            if "fps_ratio_paired" in row[variant]:
+                lines += [
+                    "",
+                    f"{row['scene']}: {variant} timed again in alternating passes beside the baseline: "
+                    f"{row[variant]['fps_ratio_paired']:.2f}x (`fps_paired` in {row['source']}).",
+                ]
         for variant in [BASELINE, *summary["variants"]]:
             trained = row[variant].get("trained_in")
             if isinstance(trained, dict):  # imported from an earlier run (garo_ns.bench.transfer)
