@@ -196,6 +196,17 @@ def test_an_arm_trained_in_one_run_is_evaluated_in_another(tmp_path):
                 **{**common, "iterations": 31},
             )
         )
+    other = generate_scene(tmp_path / "other", SceneSpec(resolution=32, n_train=8, n_val=3, n_test=3))
+    with pytest.raises(ValueError, match="trained on scene 'scene'"):  # an arm of another scene is no pair
+        run(
+            BenchArgs(
+                output=tmp_path / "e.json",
+                work_dir=tmp_path / "e",
+                variants=["deform-splatfacto"],
+                pretrained=[export],
+                **{**common, "scene": other},
+            )
+        )
     (export / "model.ckpt").unlink()
     with pytest.raises(FileNotFoundError, match="not a benchmark export"):
         run(

@@ -62,6 +62,9 @@ def import_run(export: Path, work_dir: Path, scene: Path) -> Dict[str, Any]:
     config = yaml.load((export / "config.yml").read_text(), Loader=yaml.Loader)
     config.output_dir = Path(work_dir)
     dm = config.pipeline.datamanager
+    trained_on = Path(dm.data if getattr(dm, "data", None) is not None else dm.dataparser.data).name
+    if trained_on != Path(scene).name:  # scenes are named by their folder, here and on the GPU machine
+        raise ValueError(f"{export} was trained on scene '{trained_on}', not on '{Path(scene).name}'")
     if getattr(dm, "data", None) is not None:
         dm.data = Path(scene)
     dm.dataparser.data = Path(scene)
