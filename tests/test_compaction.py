@@ -717,3 +717,40 @@ def test_benchmark_variants_of_compaction():
     assert variant_settings("garo-compact") == ("garo-compact", {})
     assert variant_settings("garo-compact0.5") == ("garo-compact", {"compact_budget_db": 0.5})
     assert split_variant("garo-compact+fp16")[0] == "garo-compact"
+
+
+def test_summary_edges_the_round_limits_and_the_default_start():
+    """The stop details of the round and size limits at their boundaries, the running size after a kept
+    round, an old summary without a budget record, and rounds that start where densification stops."""
+
+    def never(*_):
+        raise AssertionError("measured")
+
+    params, optimizers, g = gaussians()
+    no_rounds = GaroStrategy(compaction=compaction(max_rounds=0))
+    state = filled_state(no_rounds, N, g)
+    no_rounds.compact(params, optimizers, state, 0, never, never)
+    assert state["compact"]["detail"] == "0 rounds"
+    at_floor = GaroStrategy(compaction=compaction(min_gaussians=N))  # exactly at the floor: nothing to take
+    state = filled_state(at_floor, N, g)
+    assert at_floor.compact(params, optimizers, state, 0, never, never)["stop"] == "min_gaussians"
+
+    strategy = GaroStrategy(compaction=compaction(fraction=0.1))
+    state = filled_state(strategy, N, g)
+    del state["compact"]["spent_db"]  # a summary written before the budget existed
+    scene = Scene(worth(N, N, 0.0), params)
+    event = strategy.compact(params, optimizers, state, 0, removal_cost(None, scene), scene.importance)
+    assert event["removed"] == 10 and "stop" not in event
+    assert state["compact"]["spent_db"] == 0.0 and state["compact"]["num_gaussians_end"] == 90
+
+    params, optimizers, g = gaussians()
+    late = GaroStrategy(refine_stop_iter=200, compaction=Compaction(every=10, min_gaussians=0))  # start: None
+    state = filled_state(late, N, g)
+    scene = Scene(worth(N, N, 0.0), params)
+    cost = removal_cost(None, scene)
+    assert late.compact(params, optimizers, state, 190, cost, scene.importance) is None
+    assert late.compact(params, optimizers, state, 200, cost, scene.importance)["removed"] > 0
+    unstarted = GaroStrategy(refine_stop_iter=200, compaction=Compaction(every=10))
+    state = filled_state(unstarted, N, g)
+    unstarted.compact(params, optimizers, state, 150, never, never, last_step=150)
+    assert state["compact"]["detail"] == "before the first round (step 200)"

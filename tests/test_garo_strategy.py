@@ -343,3 +343,28 @@ def test_garo_scalars_report_the_step_that_ran_and_nothing_else():
     }  # fmt: skip
     assert garo_scalars(state, 700) == {}
     assert garo_scalars({"garo_last": {}}, 600) == {} and garo_scalars({}, 0) == {}
+
+
+@pytest.mark.parametrize(
+    "start, stop, kept, recorded",
+    [
+        (0, 15_000, True, True),  # refinement from step 0 on: step 0 itself never refines, so no reset
+        (500, 1, True, True),  # refinement ends right after step 0: still no reset at step 0
+        (-1, 15_000, False, True),  # refining at step 0 itself: gsplat's own step, which resets
+        (500, 0, True, False),  # no refinement at all: gsplat's step does nothing, not even record gradients
+    ],
+)
+def test_step_0_keeps_the_opacities_wherever_refinement_could_reset_them(start, stop, kept, recorded):
+    n = 30
+    points, quats, scales = plane_and_sphere(20, 10)
+    params, optimizers = make_params(points, quats, scales)
+    with torch.no_grad():
+        params["opacities"].fill_(2.0)
+    strategy = GaroStrategy(mode="off", refine_start_iter=start, refine_stop_iter=stop, reset_every=3000)
+    state = strategy.initialize_state()
+    strategy.step_post_backward(params, optimizers, state, 0, fake_info(n))
+    untouched = params["opacities"].shape == (n, 1) and torch.equal(
+        params["opacities"].detach(), torch.full((n, 1), 2.0)
+    )
+    assert untouched == kept
+    assert (state["count"] is not None) == recorded
