@@ -140,84 +140,47 @@ def test_half_row_selects_render_precision_fp16_and_is_compared_view_by_view():
     assert diff["max_abs_db"] == pytest.approx(0.01) and diff["mean_db"] == pytest.approx(0.0, abs=1e-12)
 
 
+def tiny_run(scene, tmp_path, name: str, **settings) -> BenchArgs:
+    """A few quick CPU steps on `scene`, no profile, results under tmp_path/<name>."""
+    defaults = dict(split="val", iterations=30, device="cpu", quick=True, warmup_views=1, timing_repeats=1)
+    return BenchArgs(
+        scene=scene,
+        output=tmp_path / f"{name}.json",
+        work_dir=tmp_path / name,
+        profile=False,
+        **{**defaults, **settings},
+    )
+
+
 @pytest.mark.slow
 def test_an_arm_trained_in_one_run_is_evaluated_in_another(tmp_path):
     """A pair that does not fit one machine hold: run 1 trains and exports the baseline, run 2 trains
     GARO and imports it, and scores both; the imported arm scores as it did where it trained."""
     scene = generate_scene(tmp_path / "scene", SceneSpec(resolution=32, n_train=8, n_val=3, n_test=3))
-    common = dict(
-        scene=scene,
-        split="val",
-        iterations=30,
-        device="cpu",
-        quick=True,
-        warmup_views=1,
-        timing_repeats=1,
-        profile=False,
-    )
-    first = run(
-        BenchArgs(
-            output=tmp_path / "a.json",
-            work_dir=tmp_path / "a",
-            variants=["deform-splatfacto"],
-            export_dir=tmp_path / "export",
-            **common,
-        )
-    )
+    first = run(tiny_run(scene, tmp_path, "a", variants=["deform-splatfacto"], export_dir=tmp_path / "export"))
     export = tmp_path / "export" / "deform-splatfacto"
     assert sorted(p.name for p in export.iterdir()) == ["config.yml", "model.ckpt", "record.json"]
     assert "optimizers" not in torch.load(export / "model.ckpt", weights_only=False)
 
-    second = run(
-        BenchArgs(
-            output=tmp_path / "b.json",
-            work_dir=tmp_path / "b",
-            variants=["deform-splatfacto", "garo-deform"],
-            pretrained=[export],
-            **common,
-        )
-    )
+    second = run(tiny_run(scene, tmp_path, "b", variants=["deform-splatfacto", "garo-deform"], pretrained=[export]))
     # Only GARO trained in run 2.
     assert json.loads((tmp_path / "b" / "garo-deform.record.json").read_text()).get("trained_in") is None
     base, garo = second["variants"]["deform-splatfacto"], second["variants"]["garo-deform"]
     assert base["psnr"] == pytest.approx(first["variants"]["deform-splatfacto"]["psnr"], abs=1e-6)
     assert base["num_gaussians"] == first["variants"]["deform-splatfacto"]["num_gaussians"]
+    assert base["checkpoint_step"] == first["variants"]["deform-splatfacto"]["checkpoint_step"]
     assert base["trained_in"]["git_commit"] == first["git_commit"] and garo["trained_in"] == "this run"
     assert "fps_ratio" in second["garo_vs_baseline"]
     assert "trained by an earlier run" in (tmp_path / "b.md").read_text()
 
     with pytest.raises(ValueError, match="steps"):  # a different schedule is no pair
-        run(
-            BenchArgs(
-                output=tmp_path / "c.json",
-                work_dir=tmp_path / "c",
-                variants=["deform-splatfacto"],
-                pretrained=[export],
-                **{**common, "iterations": 31},
-            )
-        )
+        run(tiny_run(scene, tmp_path, "c", variants=["deform-splatfacto"], pretrained=[export], iterations=31))
     other = generate_scene(tmp_path / "other", SceneSpec(resolution=32, n_train=8, n_val=3, n_test=3))
     with pytest.raises(ValueError, match="trained on scene 'scene'"):  # an arm of another scene is no pair
-        run(
-            BenchArgs(
-                output=tmp_path / "e.json",
-                work_dir=tmp_path / "e",
-                variants=["deform-splatfacto"],
-                pretrained=[export],
-                **{**common, "scene": other},
-            )
-        )
+        run(tiny_run(other, tmp_path, "e", variants=["deform-splatfacto"], pretrained=[export]))
     (export / "model.ckpt").unlink()
     with pytest.raises(FileNotFoundError, match="not a benchmark export"):
-        run(
-            BenchArgs(
-                output=tmp_path / "d.json",
-                work_dir=tmp_path / "d",
-                variants=["deform-splatfacto"],
-                pretrained=[export],
-                **common,
-            )
-        )
+        run(tiny_run(scene, tmp_path, "d", variants=["deform-splatfacto"], pretrained=[export]))
 
 
 def test_paired_timing_alternates_and_takes_the_median_pass():
@@ -257,21 +220,7 @@ def test_a_failing_re_timing_keeps_the_measured_rows(tmp_path, monkeypatch):
     monkeypatch.setattr(benchmark, "paired_timing", broken)
     scene = generate_scene(tmp_path / "scene", SceneSpec(resolution=32, n_train=8, n_val=3, n_test=3))
     out = tmp_path / "r.json"
-    result = run(
-        BenchArgs(
-            scene=scene,
-            split="val",
-            output=out,
-            work_dir=tmp_path / "runs",
-            variants=["deform-splatfacto"],
-            iterations=20,
-            device="cpu",
-            quick=True,
-            warmup_views=1,
-            timing_repeats=1,
-            profile=False,
-        )
-    )
+    result = run(tiny_run(scene, tmp_path, "r", variants=["deform-splatfacto"], iterations=20))
     assert result["paired_timing_error"] == "RuntimeError: no memory left"
     assert json.loads(out.read_text())["variants"]["deform-splatfacto"]["psnr"] > 0
     assert "fps_paired" not in result["variants"]["deform-splatfacto"]

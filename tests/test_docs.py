@@ -120,3 +120,9 @@ def test_results_block_names_an_imported_arm_and_the_retiming_spread(tmp_path):
     (tmp_path / "s40k_retime_G.json").write_text(json.dumps({"runs": runs}))
     block = readme_results.render_block(tmp_path, tmp_path)
     assert "re-timed 2 more times in that hold gave 2.30x to 2.50x" in block and "against 2.00x" in block
+    assert "alternating passes" not in block
+    table["variants"]["deform-splatfacto"]["fps_paired"] = {"fps": 100.0, "passes": 6}
+    table["variants"]["garo-deform"]["fps_paired"] = {"fps": 210.0, "passes": 6}
+    (tmp_path / "table1_s_G.json").write_text(json.dumps(table))
+    block = readme_results.render_block(tmp_path, tmp_path)
+    assert "s: timed again in 6 alternating passes in the same run (median pass): 2.10x." in block

@@ -452,15 +452,11 @@ def write_report(result: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
         for n, t in paired.items():
             speed = f"{t['fps'] / base_paired['fps']:.2f}x" if base_paired else "-"
             lines.append(f"| {n} | {t['fps']:.1f} | {speed} |")
-    elsewhere = {
-        n: v["trained_in"]
-        for n, v in variants.items()
-        if "+" not in n and v.get("trained_in", "this run") != "this run"
-    }
+    elsewhere = {n: transfer.trained_elsewhere(v.get("trained_in")) for n, v in variants.items() if "+" not in n}
     lines += [
-        f"\n{n} was trained by an earlier run ({t.get('gpu')}, commit {str(t.get('git_commit'))[:7]}) and imported:"
-        " evaluated and timed in this run like the others."
-        for n, t in elsewhere.items()
+        f"\n{n} was trained by an earlier run ({where}) and imported: evaluated and timed in this run like the others."
+        for n, where in elsewhere.items()
+        if where is not None
     ]
     md = output.with_suffix(".md")
     md.write_text("\n".join(lines) + "\n")

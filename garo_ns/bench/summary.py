@@ -16,6 +16,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import tyro
 
 from garo_ns.bench.results import publish
+from garo_ns.bench.transfer import trained_elsewhere
 
 BASELINE = "deform-splatfacto"
 METRICS = ("psnr", "ssim", "lpips", "fps", "num_gaussians", "model_size_mb")
@@ -179,13 +180,12 @@ def write_report(summary: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
                     f"{row[variant]['fps_ratio_paired']:.2f}x (`fps_paired` in {row['source']}).",
                 ]
         for variant in [BASELINE, *summary["variants"]]:
-            trained = row[variant].get("trained_in")
-            if isinstance(trained, dict):  # imported from an earlier run (garo_ns.bench.transfer)
+            where = trained_elsewhere(row[variant].get("trained_in"))
+            if where is not None:
                 lines += [
                     "",
-                    f"{row['scene']}: {variant} trained in an earlier machine hold ({trained.get('gpu')}, commit "
-                    f"{str(trained.get('git_commit'))[:7]}) and was evaluated and timed in {row['source']} with "
-                    "the other arm.",
+                    f"{row['scene']}: {variant} trained in an earlier machine hold ({where}) and was evaluated "
+                    f"and timed in {row['source']} with the other arm.",
                 ]
     md = output.with_suffix(".md")
     md.write_text("\n".join(lines) + "\n")

@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 import shutil
 from pathlib import Path
-from typing import Any, Dict
+from typing import Any, Dict, Optional
 
 import torch
 
@@ -49,6 +49,15 @@ def export_run(record: Dict[str, Any], environment: Dict[str, Any], out: Path) -
     return out
 
 
+def trained_elsewhere(trained_in: Any) -> Optional[str]:
+    """'GPU, commit abc1234' for an arm imported from an earlier run (its `trained_in`), None for an arm
+    trained in the run that reports it: the one wording of the benchmark's, the summary's and the README's
+    notes."""
+    if not isinstance(trained_in, dict):
+        return None
+    return f"{trained_in.get('gpu')}, commit {str(trained_in.get('git_commit'))[:7]}"
+
+
 def import_run(export: Path, work_dir: Path, scene: Path) -> Dict[str, Any]:
     """Lay an export out as this run's own training of that variant would be, under `work_dir`, with
     its data path set to `scene`; returns its record with `config` pointing at the new place."""
@@ -70,7 +79,7 @@ def import_run(export: Path, work_dir: Path, scene: Path) -> Dict[str, Any]:
     dm.dataparser.data = Path(scene)
     checkpoint_dir = config.get_checkpoint_dir()
     checkpoint_dir.mkdir(parents=True, exist_ok=True)
-    step = int(torch.load(export / CKPT, map_location="cpu", weights_only=False)["step"])
+    step = int(record["iterations"]) - 1  # training saves its last step, also when stopped by a deadline
     shutil.copyfile(export / CKPT, checkpoint_dir / f"step-{step:09d}.ckpt")
     config_path = config.get_base_dir() / "config.yml"
     config_path.write_text(yaml.dump(config), "utf8")
