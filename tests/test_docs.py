@@ -126,3 +126,42 @@ def test_results_block_names_an_imported_arm_and_the_retiming_spread(tmp_path):
     (tmp_path / "table1_s_G.json").write_text(json.dumps(table))
     block = readme_results.render_block(tmp_path, tmp_path)
     assert "s: timed again in 6 alternating passes in the same run (median pass): 2.10x." in block
+
+
+def test_results_block_counts_a_scene_run_twice_once(tmp_path):
+    """`table1_<scene>_run<k>_<GPU>.json` is another run of a scene: a row of its own in the table, and the
+    scene's runs are averaged before the average over scenes."""
+    import json
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import readme_results
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+
+    def table(scene, base_fps, garo_fps, garo_psnr):
+        arm = {"lpips": 0.01, "num_gaussians": 1000, "iterations": 40_000}
+        return {
+            "scene": scene,
+            "split": "test",
+            "gpu": "G",
+            "git_commit": "0123456789",
+            "variants": {
+                "deform-splatfacto": {**arm, "psnr": 30.0, "fps": base_fps},
+                "garo-deform": {**arm, "psnr": garo_psnr, "fps": garo_fps},
+            },
+        }
+
+    (tmp_path / "table1_a_G.json").write_text(json.dumps(table("a", 100.0, 300.0, 29.0)))
+    (tmp_path / "table1_a_run2_G.json").write_text(json.dumps(table("a", 100.0, 100.0, 30.0)))
+    (tmp_path / "table1_b_G.json").write_text(json.dumps(table("b", 100.0, 100.0, 30.0)))
+    (tmp_path / "table1_a_H.json").write_text(json.dumps(table("a", 1.0, 900.0, 0.0)))  # another GPU: not read
+    assert readme_results.find_files(tmp_path) == {
+        "a": [tmp_path / "table1_a_G.json", tmp_path / "table1_a_run2_G.json"],
+        "b": [tmp_path / "table1_b_G.json"],
+    }
+    block = readme_results.render_block(tmp_path, tmp_path)
+    assert "| a run 1 (test) |" in block and "| a run 2 (test) |" in block and "| b (test) |" in block
+    # a: (3x + 1x) / 2 = 2x and -0.5 dB; b: 1x and 0 dB; over scenes 1.5x at -0.25 dB (not 5/3x over files)
+    assert "| average of 2 scenes |" in block and "| 1.50x | -0.25 dB |" in block
+    assert "A scene run more than once (a) counts once in the average" in block

@@ -53,8 +53,8 @@ def test_refuses_incomplete_or_duplicate_input(tmp_path):
     a = _result("a", 100.0, 300.0, 30.0, 29.8)
     with pytest.raises(ValueError, match="a.json: no result for \\['garo-prune0.5'\\]"):
         summarise([("a.json", a)], ["garo-deform", "garo-prune0.5"])
-    with pytest.raises(ValueError, match="appears twice"):
-        summarise([("a.json", a), ("a2.json", a)], ["garo-deform"])
+    with pytest.raises(ValueError, match="given twice"):
+        summarise([("a.json", a), ("a.json", a)], ["garo-deform"])
     broken = tmp_path / "broken.json"
     broken.write_text("{not json")
     with pytest.raises(SystemExit, match="cannot read benchmark result .*broken.json"):
@@ -126,3 +126,32 @@ def test_the_alternating_re_timing_is_carried_where_a_file_has_it(tmp_path):
     assert (
         "a: garo-deform timed again in alternating passes beside the baseline: 2.20x" in (tmp_path / "s.md").read_text()
     )
+
+
+def test_runs_of_one_scene_count_once_as_their_mean(tmp_path):
+    a1, a2 = _result("a", 100.0, 300.0, 30.0, 29.8), _result("a", 100.0, 100.0, 30.4, 30.4)
+    b = _result("b", 100.0, 200.0, 40.0, 40.0)
+    summary = summarise([("a1.json", a1), ("b.json", b), ("a2.json", a2)], ["garo-deform"])
+    assert summary["scenes"] == ["a", "b"]
+    rows = {r["scene"]: r for r in summary["rows"]}
+    a = rows["a"]["garo-deform"]
+    assert a["fps_ratio"] == pytest.approx(2.0) and a["fps_ratio_range"] == pytest.approx([1.0, 3.0])
+    assert a["psnr_drop_db"] == pytest.approx(0.1) and a["psnr_drop_db_range"] == pytest.approx([0.0, 0.2])
+    assert rows["a"]["deform-splatfacto"]["psnr"] == pytest.approx(30.2)
+    assert [r["source"] for r in rows["a"]["runs"]] == ["a1.json", "a2.json"]
+    # a counts once: (2.0 + 2.0) / 2, not (3 + 1 + 2) / 3 weighted by files
+    assert summary["average"]["garo-deform"]["fps_ratio"] == pytest.approx(2.0)
+    assert summary["average"]["garo-deform"]["psnr_drop_db"] == pytest.approx(0.05)
+    with pytest.raises(ValueError, match="given twice"):
+        summarise([("a1.json", a1), ("a1.json", a1)], ["garo-deform"])
+    elsewhere = dict(a2, gpu="Other GPU")
+    with pytest.raises(ValueError, match="differ in gpu"):
+        summarise([("a1.json", a1), ("a2.json", elsewhere)], ["garo-deform"])
+    paths = []
+    for name, r in (("a1", a1), ("a2", a2), ("b", b)):
+        paths.append(tmp_path / f"{name}.json")
+        paths[-1].write_text(json.dumps(r))
+    main(SummaryArgs(results=paths, output=tmp_path / "s.json"))
+    table = (tmp_path / "s.md").read_text()
+    assert "| a run 2 | test | garo-deform |" in table and "| a (mean of 2 runs) | test | garo-deform |" in table
+    assert "a: 2 runs (a1.json, a2.json); garo-deform 1.00x to 3.00x at +0.00 to +0.20 dB" in table

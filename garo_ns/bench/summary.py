@@ -3,7 +3,9 @@
 Reads the JSON files `garo_ns.bench.benchmark` wrote (one per scene), and writes a summary JSON, a
 Markdown table (per scene and the average, as the paper's Table 1) and a PNG plot next to it.
 Each compared variant is set against the baseline trained and timed in the same file, so ratios
-never mix GPUs or runs.
+never mix GPUs or runs. A scene run more than once (several files of one scene, same GPU model) counts
+once: each value of its row is the mean over its runs, with the runs kept beside it (one run of a
+40k schedule is noise-level evidence at the paper's margins).
 """
 
 from __future__ import annotations
@@ -94,16 +96,54 @@ def scene_rows(
     return row
 
 
+def combine_runs(runs: List[Dict[str, Any]], variants: List[str]) -> Dict[str, Any]:
+    """One scene's row from its runs (`scene_rows` of each file): every metric and ratio is the mean over
+    the runs, each ratio having been taken within its own run; `runs` keeps the runs' rows and
+    `<ratio>_range` their spread. A single run is returned as it is."""
+    if len(runs) == 1:
+        return runs[0]
+    first = runs[0]
+    for key in ("split", "gpu"):
+        values = sorted({str(r[key]) for r in runs})
+        if len(values) > 1:
+            raise ValueError(
+                f"runs of scene {first['scene']} differ in {key} ({', '.join(values)}): not repeats of one scene"
+            )
+    row: Dict[str, Any] = {
+        "scene": first["scene"],
+        "split": first["split"],
+        "gpu": first["gpu"],
+        "git_commit": [r["git_commit"] for r in runs],
+        "source": " + ".join(r["source"] for r in runs),
+        "runs": runs,
+    }
+    for name in [BASELINE, *variants]:
+        arms = [r[name] for r in runs]
+        ratios = () if name == BASELINE else ("fps_ratio", "psnr_drop_db", "gaussian_ratio")
+        row[name] = {k: _mean([a[k] for a in arms]) for k in (*METRICS, *ratios)}
+        iterations = {a.get("iterations") for a in arms}
+        row[name]["iterations"] = iterations.pop() if len(iterations) == 1 else None
+        row[name]["shortened"] = any(a.get("shortened") for a in arms)
+        for k in ratios:
+            row[name][f"{k}_range"] = [min(a[k] for a in arms), max(a[k] for a in arms)]
+    return row
+
+
 def summarise(
     results: List[Tuple[str, Dict[str, Any]]], variants: List[str], aliases: Optional[Dict[str, str]] = None
 ) -> Dict[str, Any]:
     """Per-scene rows and their average (the average of per-scene ratios, as papers report it)."""
     if not results:
         raise ValueError("no result files given")
-    rows = [scene_rows(r, variants, src, aliases) for src, r in results]
+    sources = [src for src, _ in results]
+    if len(set(sources)) != len(sources):
+        raise ValueError(f"a result file is given twice: {sources}")
+    by_scene: Dict[str, List[Dict[str, Any]]] = {}
+    for src, r in results:
+        row = scene_rows(r, variants, src, aliases)
+        by_scene.setdefault(row["scene"], []).append(row)
+    rows = [combine_runs(runs, variants) for runs in by_scene.values()]
     scenes = [r["scene"] for r in rows]
-    if len(set(scenes)) != len(scenes):
-        raise ValueError(f"a scene appears twice: {scenes}")
     average: Dict[str, Any] = {BASELINE: {k: _mean([r[BASELINE][k] for r in rows]) for k in METRICS}}
     for name in variants:
         keys = (*METRICS, "fps_ratio", "psnr_drop_db", "gaussian_ratio")
@@ -145,7 +185,13 @@ def write_report(summary: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
     lines = [f"# Baseline ({BASELINE}) against {', '.join(summary['variants'])} on {', '.join(summary['gpus'])}", ""]
     head = "| scene | split | variant | steps | PSNR | SSIM | LPIPS | FPS | speed-up | PSNR drop | Gaussians | MB |"
     lines += [head, "|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    entries = [(r["scene"], r["split"], r) for r in summary["rows"]] + [("average", "", summary["average"])]
+    entries = []
+    for r in summary["rows"]:
+        for i, run in enumerate(r.get("runs", []), 1):
+            entries.append((f"{r['scene']} run {i}", r["split"], run))
+        label = f"{r['scene']} (mean of {len(r['runs'])} runs)" if "runs" in r else r["scene"]
+        entries.append((label, r["split"], r))
+    entries.append(("average", "", summary["average"]))
     for scene, split, row in entries:
         for name in [BASELINE, *summary["variants"]]:
             v = row[name]
@@ -169,7 +215,17 @@ def write_report(summary: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
         )
     if summary["shortened_scenes"]:
         lines += ["", f"Shortened schedules in: {', '.join(summary['shortened_scenes'])}."]
-    for row in summary["rows"]:
+    for r in summary["rows"]:
+        for name in summary["variants"] if "runs" in r else []:
+            lo, hi = r[name]["fps_ratio_range"]
+            drop_lo, drop_hi = r[name]["psnr_drop_db_range"]
+            lines += [
+                "",
+                f"{r['scene']}: {len(r['runs'])} runs ({', '.join(run['source'] for run in r['runs'])}); {name} "
+                f"{lo:.2f}x to {hi:.2f}x at {drop_lo:+.2f} to {drop_hi:+.2f} dB; their mean counts once in the "
+                "average.",
+            ]
+    for row in [run for r in summary["rows"] for run in r.get("runs", [r])]:
         for variant, read in row.get("read_from", {}).items():
             lines += ["", f"{row['scene']}: {variant} is the run named {read} in {row['source']}."]
         for variant in summary["variants"]:
