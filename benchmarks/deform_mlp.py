@@ -13,11 +13,10 @@ through several times so that nothing can be reused between calls.
 
 Paths (each one computes the three offsets at a time for all N Gaussians):
   fp32           the field as the product runs it (`DeformationField.forward`, position encoded every frame)
-  tf32           the same with TF32 tensor-core matrix products (`render_precision=tf32`; CUDA only)
   fp16           half weights and activations (encoding computed in fp32, then rounded), the three heads as
                  one matrix product in fp32 (as the product's half field); cuBLAS accumulates in fp32 with
                  torch.backends.cuda.matmul.allow_fp16_reduced_precision_reduction=False
-  <p>_cached     (p in fp32, tf32, fp16) the first layer and the skip layer split into a position part,
+  <p>_cached     (p in fp32, fp16) the first layer and the skip layer split into a position part,
                  computed once per Gaussian (fixed until the parameters change; `prepare_ms`, `cache_mb`),
                  plus a time part that is one row per frame; exact up to float reassociation
   render_fp16    fp16_cached as the product runs it (`render_precision=fp16`: garo_ns.render.half_field.HalfField,
@@ -27,6 +26,8 @@ Paths (each one computes the three offsets at a time for all N Gaussians):
                  within --compile-max-error (or of --compile-from; `compiled_from`, `compile_s`), and
                  compile+graph; CUDA only, skipped with the reason when compiling fails, when
                  TORCHDYNAMO_DISABLE is set, or when --compile-budget-s would be passed
+tf32 and tf32_cached (TF32 tensor-core products of the fp32 field) were deleted with `render_precision=tf32`
+(benchmarks/HISTORY.md); older result files still hold their rows.
 
 Per N and path the JSON holds `ms` (median of synchronised repeats after warm-up, CUDA events on a GPU),
 `speedup` (fp32 eager's ms over this one), `tflops` (the FLOPs the path executes, counted from the layer shapes,
@@ -80,7 +81,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from garo_ns.deformation import DeformationField, precision
+from garo_ns.deformation import DeformationField
 from garo_ns.render.graphs import TimeGraph, graphs_available
 from garo_ns.render.half_field import (
     FieldWeights,
@@ -101,14 +102,15 @@ Step = Callable[[Any], Offsets]
 
 # Dense (no 2:4 sparsity) peak rates in TFLOP/s, from NVIDIA's H100 and H200 datasheets, whose tensor-core
 # figures are quoted with sparsity: halved here. SXM parts (the device tool's "NVIDIA H100 80GB HBM3",
-# "NVIDIA H200"): FP32 66.9 (CUDA cores), TF32 494.7, FP16/BF16 989.4; PCIe and NVL parts are lower.
-# First matching substring of torch.cuda.get_device_name() wins.
+# "NVIDIA H200"): FP32 66.9 (CUDA cores), FP16 989.4; PCIe and NVL parts are lower. Only the precisions the
+# paths run in (TF32 and BF16 went with their deleted paths). First matching substring of
+# torch.cuda.get_device_name() wins.
 PEAKS: List[Tuple[str, Dict[str, float]]] = [
-    ("H200 NVL", {"fp32": 60.0, "tf32": 417.5, "bf16": 835.5, "fp16": 835.5}),
-    ("H200", {"fp32": 66.9, "tf32": 494.7, "bf16": 989.4, "fp16": 989.4}),
-    ("H100 NVL", {"fp32": 60.0, "tf32": 417.5, "bf16": 835.5, "fp16": 835.5}),
-    ("H100 PCIe", {"fp32": 51.2, "tf32": 378.0, "bf16": 756.5, "fp16": 756.5}),
-    ("H100", {"fp32": 66.9, "tf32": 494.7, "bf16": 989.4, "fp16": 989.4}),
+    ("H200 NVL", {"fp32": 60.0, "fp16": 835.5}),
+    ("H200", {"fp32": 66.9, "fp16": 989.4}),
+    ("H100 NVL", {"fp32": 60.0, "fp16": 835.5}),
+    ("H100 PCIe", {"fp32": 51.2, "fp16": 756.5}),
+    ("H100", {"fp32": 66.9, "fp16": 989.4}),
 ]
 
 
@@ -212,16 +214,9 @@ class PathSpec:
     `prepare_ms`) and returns the per-frame step `inner(time)`; `mode` is the matmul precision set around it."""
 
     name: str
-    mode: str  # fp32, tf32 or fp16: the precision context and the peak rate it is held against
+    mode: str  # fp32 or fp16: the precision context and the peak rate it is held against
     cached: bool
-    cuda_only: bool
     description: str
-
-    def skip_reason(self, device: torch.device, a: Optional[argparse.Namespace] = None) -> Optional[str]:
-        """Why this path cannot run on `device` (None: it can)."""
-        if self.cuda_only and device.type != "cuda":
-            return "CUDA only (tf32 is a no-op elsewhere)"
-        return None
 
     def build(
         self, field: DeformationField, xyz: Tensor, a: Optional[argparse.Namespace] = None
@@ -229,7 +224,7 @@ class PathSpec:
         device = xyz.device
         extra: Dict[str, Any] = {}
         if not self.cached and self.mode != "fp16":
-            return (lambda t: field(xyz, t)), extra  # the product's forward; precision() set by `context`
+            return (lambda t: field(xyz, t)), extra  # the product's forward
         if self.name == "render_fp16":  # the product's render_precision=fp16, checks and all
             half = HalfField(devices=(device.type,))
             half(field, xyz, EVAL_TIME, "points")  # builds its weight copies and position cache
@@ -245,11 +240,10 @@ class PathSpec:
 
     @contextlib.contextmanager
     def context(self, device: torch.device) -> Iterator[None]:
-        """The precision of the matrix products: `garo_ns.deformation.precision` for fp32/tf32 (what
-        `render_precision` does), and for fp16 fp32 accumulation in cuBLAS (no reduced-precision reduction)."""
+        """The precision of the matrix products: fp32 as they are (`run` turns TF32 off), and for fp16 fp32
+        accumulation in cuBLAS (no reduced-precision reduction)."""
         if self.mode != "fp16":
-            with precision(self.mode, device):  # type: ignore[arg-type]
-                yield
+            yield
             return
         with fp32_accumulation():
             yield
@@ -257,15 +251,14 @@ class PathSpec:
 
 def path_specs() -> List[PathSpec]:
     specs = [
-        PathSpec("fp32", "fp32", False, False, "the product's forward in fp32 (reference)"),
-        PathSpec("tf32", "tf32", False, True, "the product's forward with TF32 matrix products"),
-        PathSpec("fp16", "fp16", False, False, "half weights and activations, fp32 accumulation, heads in fp32"),
+        PathSpec("fp32", "fp32", False, "the product's forward in fp32 (reference)"),
+        PathSpec("fp16", "fp16", False, "half weights and activations, fp32 accumulation, heads in fp32"),
     ]
     for base in list(specs):
         desc = f"{base.name} with the position parts of the first and skip layers cached per Gaussian"
-        specs.append(PathSpec(base.name + "_cached", base.mode, True, base.cuda_only, desc))
+        specs.append(PathSpec(base.name + "_cached", base.mode, True, desc))
     desc = "render_precision=fp16 as the frame path runs it (garo_ns.render.half_field.HalfField: fp16_cached)"
-    specs.append(PathSpec("render_fp16", "fp16", True, False, desc))
+    specs.append(PathSpec("render_fp16", "fp16", True, desc))
     return specs
 
 
@@ -360,7 +353,7 @@ def run(
 ) -> Dict[str, Any]:
     """Measure every path at every N; the result dictionary (also written to `output` after every N)."""
     device = torch.device(device)
-    torch.backends.cuda.matmul.allow_tf32 = False  # fp32 means fp32 (the tf32 paths switch it on themselves)
+    torch.backends.cuda.matmul.allow_tf32 = False  # fp32 means fp32, whatever the process set before
     field = field.to(device).eval()
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
     peaks = peaks_for(name)
@@ -419,10 +412,6 @@ def run(
             }
             steps: Dict[str, Tuple[PathSpec, Step]] = {}
             for spec in specs:
-                reason = spec.skip_reason(device, a)
-                if reason is not None:
-                    rows[spec.name] = {"skipped": reason}
-                    continue
                 flops = float((cached_flops if spec.cached else full_flops) * n)
                 sync(device)
                 t0 = time.perf_counter()

@@ -2,10 +2,11 @@
 
 Used on the GPU machine right after a benchmark, while its checkpoints exist:
     python benchmarks/retime.py --work-dir /tmp/garo-work/lego_speed --scene /tmp/lego --split val \
-        --trained garo-prune0.7 garo-prune0.5 garo-deform deform-splatfacto --rows "" +tf32 +static+tf32 \
+        --trained garo-prune0.7 garo-prune0.5 garo-deform deform-splatfacto --rows "" +half +static \
         --repeats 5 --output lego_speed_retime.json
-(`benchmarks/results/lego_speed_retime_H200.json` was produced by the same calls, typed inline in the
-hold of `lego_speed_H200.json` before this script was committed, so it lacks the environment fields.)
+(`benchmarks/results/lego_speed_retime_H200.json` was produced by such calls with the rows `+tf32
++static+tf32` (a path since deleted, benchmarks/HISTORY.md), typed inline in the hold of
+`lego_speed_H200.json` before this script was committed, so it lacks the environment fields.)
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ class RetimeArgs:
     scene: Path
     split: Literal["train", "val", "test"] = "val"
     trained: List[str] = field(default_factory=lambda: ["deform-splatfacto", "garo-deform"])
-    rows: List[str] = field(default_factory=lambda: ["", "+tf32", "+static+tf32"])
+    rows: List[str] = field(default_factory=lambda: ["", "+half", "+static"])
     """Render-time suffixes evaluated for every trained variant, besides the plain row that is always measured."""
     repeats: int = 5
     output: Path = Path("retime.json")

@@ -258,7 +258,7 @@ def field_for(state_dict: Dict[str, Any], field: nn.Module, settings: Any) -> nn
     return settings.make_deformation().to(next(field.parameters()).device)
 
 
-DELETED_RENDER_PRECISIONS = ("bf16", "fp16-fused")  # benchmarks/HISTORY.md, issue 31
+DELETED_RENDER_PRECISIONS = ("bf16", "fp16-fused", "tf32")  # benchmarks/HISTORY.md, issue 31
 
 
 def upgrade_render_settings(settings: Any) -> List[str]:

@@ -8,35 +8,14 @@ first passes the time encoding through a small network of its own (one hidden la
 
 from __future__ import annotations
 
-import contextlib
 from dataclasses import dataclass
-from typing import Dict, Iterator, List, Literal, Tuple
+from typing import Dict, List, Literal, Tuple
 
 import torch
 from torch import Tensor, nn
 
-Precision = Literal["fp32", "tf32"]
-PRECISIONS = ("fp32", "tf32")
 HeadInit = Literal["zero", "default"]
 HEAD_INITS = ("zero", "default")
-
-
-@contextlib.contextmanager
-def precision(mode: Precision, device: torch.device) -> Iterator[None]:
-    """Matrix products of the MLP in `mode`: fp32 (exact) or tf32 (tensor cores, fp32 storage; CUDA
-    only, a no-op elsewhere)."""
-    if mode not in PRECISIONS:
-        raise ValueError(f"precision must be one of {PRECISIONS}, got {mode!r}")
-    device = torch.device(device)
-    if mode == "tf32" and device.type == "cuda":
-        previous = torch.backends.cuda.matmul.allow_tf32
-        torch.backends.cuda.matmul.allow_tf32 = True
-        try:
-            yield
-        finally:
-            torch.backends.cuda.matmul.allow_tf32 = previous
-    else:
-        yield
 
 
 def frequency_bands(n_freqs: int, device: torch.device | None = None) -> Tensor:

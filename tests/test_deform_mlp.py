@@ -1,5 +1,5 @@
 """benchmarks/deform_mlp.py on the CPU: every CPU-capable deformation path against fp32 eager on a tiny field,
-and the result file's fields. The GPU paths (tf32, CUDA graphs, torch.compile) are skipped with a reason."""
+and the result file's fields. The GPU paths (CUDA graphs, torch.compile) are skipped with a reason."""
 
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ BOUNDS = {
     "fp16_cached": 2e-3,
     "render_fp16": 2e-3,
 }
-CUDA_ONLY = ("tf32", "tf32_cached", "compile", "compile+graph") + tuple(f"{p}+graph" for p in BOUNDS)
+CUDA_ONLY = ("compile", "compile+graph") + tuple(f"{p}+graph" for p in BOUNDS)
 
 
 def tiny_field(time_net: int = 8, depth: int = 4, skip: int = 1) -> DeformationField:
@@ -63,6 +63,7 @@ def test_paths_against_fp32_and_result_file(tmp_path: Path) -> None:
             assert rows[name]["cache_mb"] > 0 and rows[name]["prepare_ms"] >= 0
         for name in CUDA_ONLY:
             assert rows[name]["skipped"], name
+        assert set(rows) == set(BOUNDS) | set(CUDA_ONLY)  # every path measured or skipped, nothing else
         assert rows["compile"]["skipped"].startswith("CUDA only")
 
 
@@ -81,11 +82,13 @@ def test_cached_forward_is_the_field(time_net: int, depth: int, skip: int) -> No
 
 
 def test_deleted_paths_are_not_offered() -> None:
-    """bf16 and the fused Triton kernel were deleted as render paths (benchmarks/HISTORY.md, issue 31): the
-    micro-benchmark no longer offers them."""
+    """bf16, the fused Triton kernel and tf32 were deleted as render paths (benchmarks/HISTORY.md, issue 31):
+    the micro-benchmark no longer offers them, nor the peak rates only they were held against."""
     names = {s.name for s in dm.path_specs()}
-    assert not any(n.startswith(("bf16", "fused")) for n in names)
-    assert {"fp32", "tf32", "fp16", "fp16_cached", "render_fp16"} <= names
+    assert not any(n.startswith(("bf16", "fused", "tf32")) for n in names)
+    assert {"fp32", "fp16", "fp16_cached", "render_fp16"} <= names
+    modes = {s.mode for s in dm.path_specs()}
+    assert all(set(row) == modes == {"fp32", "fp16"} for _, row in dm.PEAKS)
 
 
 def test_flops_and_peaks() -> None:
@@ -95,7 +98,7 @@ def test_flops_and_peaks() -> None:
     assert dm.flops_per_gaussian(recipe, cached=True) == dm.flops_per_gaussian(recipe) - 2 * 2 * 93 * 256
     assert dm.gpu_tag("NVIDIA H100 80GB HBM3") == "H100" and dm.gpu_tag("NVIDIA H200") == "H200"
     assert dm.peaks_for("NVIDIA H200")["fp16"] == pytest.approx(989.4)
-    assert dm.peaks_for("NVIDIA H100 PCIe")["tf32"] < dm.peaks_for("NVIDIA H100 80GB HBM3")["tf32"]
+    assert dm.peaks_for("NVIDIA H100 PCIe")["fp16"] < dm.peaks_for("NVIDIA H100 80GB HBM3")["fp16"]
     assert dm.peaks_for("cpu") is None
 
 

@@ -1,5 +1,5 @@
-"""Render-time speed techniques: reduced-precision MLP, static Gaussians, the viewer cache, and
-contribution pruning. Each must be exact or measurably close to the plain path."""
+"""Render-time speed techniques: static Gaussians, the viewer cache, and contribution pruning (the
+reduced-precision MLP: tests/test_half_field.py). Each must be exact or measurably close to the plain path."""
 
 from __future__ import annotations
 
@@ -8,30 +8,10 @@ import math
 import pytest
 import torch
 
-from garo_ns.deformation import DeformationField, precision
 from garo_ns.redundancy.select import least_contributing
 from garo_ns.render.contribution import view_contribution
 from garo_ns.render.frame import FrameSettings, versions
 from garo_ns.static import classify_static, displacement, motion_statistics
-
-
-def _field() -> DeformationField:
-    torch.manual_seed(0)
-    field = DeformationField(pos_freqs=4, time_freqs=3, depth=3, width=32, skip=1)
-    for head in (field.d_xyz, field.d_rot, field.d_scale):
-        torch.nn.init.normal_(head.weight, std=0.05)
-    return field
-
-
-def test_precision_modes_match_fp32():
-    field, xyz = _field(), torch.rand(500, 3)
-    exact = torch.cat(field(xyz, 0.3), -1)
-    with precision("tf32", torch.device("cpu")):  # no tensor cores on a CPU: must stay exact
-        assert torch.equal(torch.cat(field(xyz, 0.3), -1), exact)
-    for deleted in ("fp16", "bf16"):  # fp16 is the half field's (garo_ns.render.half_field); bf16 was deleted
-        with pytest.raises(ValueError, match="precision"):
-            with precision(deleted, torch.device("cpu")):  # type: ignore[arg-type]
-                pass
 
 
 def test_motion_statistics_find_the_moving_half():

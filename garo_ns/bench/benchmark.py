@@ -13,17 +13,17 @@ Variants: deform-splatfacto (baseline), garo-deform (full GARO), and on request 
 (the paper's ablations), garo-rho<value> (rho_max sweep), garo-prune<ratio> (GARO plus pruning
 of a fixed share of the least contributing Gaussians) and garo-compact / garo-compact<dB> (GARO plus
 compaction measured on training views, with its default total budget or the one given in dB).
-A name may carry render-time switches after `+`: `+static` (static Gaussians skip the MLP), `+tf32` (MLP
-precision), `+half` (`render_precision=fp16`: the half-precision field with each Gaussian's position part
-cached, garo_ns.render.half_field), `+graph` (everything before the rasterizer as one CUDA graph), `+lean`
+A name may carry render-time switches after `+`: `+static` (static Gaussians skip the MLP), `+half`
+(`render_precision=fp16`: the half-precision field with each Gaussian's position part cached,
+garo_ns.render.half_field), `+graph` (everything before the rasterizer as one CUDA graph), `+lean`
 (gsplat's kernels called directly), `+fp16` (parameters rounded to the compact half-precision file of
 garo_ns.storage; its size is the model size), `+auto` (every switch left to the finished model, as ns-viewer,
 ns-render and garo-eval render without flags; the row records what it chose in `render_switches_used`), e.g.
-`garo-deform+static+graph+tf32`; such variants reuse the
+`garo-deform+static+graph+half`; such variants reuse the
 training of the name before the first `+` and differ only at render time. Every such row records
 `psnr_vs_plain`: its PSNR minus the plain row's (the name before the first `+`), view by view (`+half`'s
-bound: within 0.02 dB on every view). Deleted paths (`+bf16`, `+fused`, `+static4x`) and what they
-measured: benchmarks/HISTORY.md.
+bound: within 0.02 dB on every view). Deleted paths (`+bf16`, `+fused`, `+static4x`, `+tf32`) and what
+they measured: benchmarks/HISTORY.md.
 """
 
 from __future__ import annotations
@@ -48,7 +48,6 @@ RHO_SWEEP = (0.005, 0.01, 0.02, 0.05, 0.1)
 FULL_ITERATIONS = 40_000
 RENDER_SWITCHES: Dict[str, Dict[str, Any]] = {
     "static": {"static_skip": True},
-    "tf32": {"render_precision": "tf32"},
     "half": {"render_precision": "fp16"},
     "graph": {"cuda_graph": True},
     "lean": {"lean_raster": True},
@@ -59,14 +58,12 @@ RENDER_SWITCHES: Dict[str, Dict[str, Any]] = {
 }
 # Render-time rows added by --speed for every trained variant: each switch alone, then together.
 SPEED_ROWS = (
-    "+tf32",
     "+static",
     "+graph",
     "+lean",
-    "+graph+tf32",
-    "+static+graph+tf32",
-    "+static+graph+tf32+lean",
-    "+static+graph+tf32+lean+fp16",
+    "+static+graph",
+    "+static+graph+lean",
+    "+static+graph+lean+fp16",
     "+half",
     "+graph+half",
     "+static+graph+half+lean",

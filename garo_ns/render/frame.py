@@ -17,18 +17,19 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from garo_ns.deformation import DeformationField, Precision, precision
+from garo_ns.deformation import DeformationField
 from garo_ns.render.backend import Backend, lean_front, rasterize
 from garo_ns.render.graphs import InputGraph, TimeGraph, graphs_available, versions
 from garo_ns.render.half_field import HalfField
 from garo_ns.render.view import RenderView
 
-# The deformation MLP's precision outside training: fp32 (exact), tf32 (garo_ns.deformation.precision around
-# the fp32 field; the fallback when fp16 misses the bound), fp16 (HalfField: half weights, per-Gaussian position
-# part cached, heads in fp32; CUDA and no gradients only, the plain fp32 field elsewhere). bf16 and fp16-fused
-# were deleted (benchmarks/HISTORY.md, issue 31); garo_ns.checkpoints maps them to fp32 in old configs.
-RenderPrecision = Literal["fp32", "tf32", "fp16"]
-RENDER_PRECISIONS = ("fp32", "tf32", "fp16")
+# The deformation MLP's precision outside training: fp32 (exact) or fp16 (HalfField: half weights, per-Gaussian
+# position part cached, heads in fp32; CUDA and no gradients only, the plain fp32 field elsewhere). fp16 is an
+# explicit opt-in only, never chosen by default: it missed the 0.02 dB bound on standup's GARO arm and, by
+# 0.0002 dB, on jumpingjacks' baseline (garo_ns.render.switches). bf16, fp16-fused and tf32 were deleted
+# (benchmarks/HISTORY.md, issue 31); garo_ns.checkpoints maps them to fp32 in old configs.
+RenderPrecision = Literal["fp32", "fp16"]
+RENDER_PRECISIONS = ("fp32", "fp16")
 
 
 class Canonical(NamedTuple):
@@ -147,16 +148,15 @@ class FramePath:
         outputs the next replay overwrites anyway; the static rows never change)."""
         device = canonical.means.device
         dynamic_only = settings.static_skip and static is not None
-        offsets, mode = self._offset_field(field, settings.render_precision, key, dynamic_only, device)
-        with precision(mode, device):
-            if not settings.static_skip or static is None:
-                return compose(offsets, canonical, time)
-            dynamic, frozen, moving = self._static_split(canonical, static, static_offset, key)
-            d_xyz, d_rot, d_scale = offsets(moving[0], time)
-            moved = (moving[0] + d_xyz, moving[1] + d_rot, moving[2] + d_scale)
-            if in_place:
-                return tuple(f.index_copy_(0, dynamic, m) for f, m in zip(frozen, moved))  # type: ignore[return-value]
-            return tuple(f.index_copy(0, dynamic, m) for f, m in zip(frozen, moved))  # type: ignore[return-value]
+        offsets = self._offset_field(field, settings.render_precision, key, dynamic_only, device)
+        if not settings.static_skip or static is None:
+            return compose(offsets, canonical, time)
+        dynamic, frozen, moving = self._static_split(canonical, static, static_offset, key)
+        d_xyz, d_rot, d_scale = offsets(moving[0], time)
+        moved = (moving[0] + d_xyz, moving[1] + d_rot, moving[2] + d_scale)
+        if in_place:
+            return tuple(f.index_copy_(0, dynamic, m) for f, m in zip(frozen, moved))  # type: ignore[return-value]
+        return tuple(f.index_copy(0, dynamic, m) for f, m in zip(frozen, moved))  # type: ignore[return-value]
 
     def _offset_field(
         self,
@@ -165,20 +165,19 @@ class FramePath:
         key: Tuple[Any, ...],
         dynamic_only: bool,
         device: torch.device,
-    ) -> Tuple[OffsetField, Precision]:
-        """What computes the offsets, and the matrix-product precision to run it in: for fp16 the half
-        field where it runs (CUDA, no gradients), else the fp32 field as trained; the other modes are
-        the fp32 field in that precision."""
+    ) -> OffsetField:
+        """What computes the offsets: for fp16 the half field where it runs (CUDA, no gradients), else
+        the fp32 field as trained."""
         if render_precision != "fp16":
             self.half_field.release()  # not the field rendering now: no cache to hold
-            return field, render_precision
+            return field
         fast = self.half_field
         if not fast.runs_on(device) or torch.is_grad_enabled():
-            return field, "fp32"
+            return field
         # The position cache belongs to these Gaussians: the parameters' versions (in `key`) and
         # whether the MLP gets the dynamic ones or all of them.
         points_key = ("dynamic" if dynamic_only else "all", key)
-        return (lambda xyz, t: fast(field, xyz, t, points_key)), "fp32"  # type: ignore[misc]
+        return lambda xyz, t: fast(field, xyz, t, points_key)  # type: ignore[misc]
 
     def _static_split(
         self, canonical: Canonical, static: Tensor, offset: Tensor, key: Tuple[Any, ...]

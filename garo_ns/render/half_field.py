@@ -8,16 +8,22 @@ layers become an addition of one row, the three heads one product, kept in fp32 
 heads write the offsets themselves: in half, their weights' and outputs' rounding (11 bits) lands on
 every position unattenuated, while in fp32 they cost 10 of the field's ~1M FLOPs per Gaussian. Issue
 #31 measured fp16 with half heads at 0.030 dB from the plain render on standup's worst test view, over
-the 0.02 dB bound; the fp32 heads are the candidate fix, to be measured on a GPU (`+half` rows).
+the 0.02 dB bound. With the fp32 heads, at 40k steps on an H100 (`+half` rows, worst test view against
+the plain render; benchmarks/results/): mutant 0.0108 dB (baseline) and 0.0116 (GARO)
+(mutant40k_switches_H100.json), jumpingjacks 0.0202 and 0.0124 (table1_jumpingjacks_run2_H100.json),
+standup's GARO arm 0.045 (standup40k_garo_switches_H100.json). Within the 0.02 dB bound on mutant and
+jumpingjacks' GARO arm, over it on standup and by 0.0002 dB on jumpingjacks' baseline: `render_precision`
+fp16 is an explicit opt-in, never chosen by default (garo_ns.render.switches).
 
 Chosen by `benchmarks/deform_mlp.py` (`benchmarks/results/deform_mlp_H100.json`, the recipe's field,
-50k / 200k moving Gaussians, ms per frame): fp32 1.93 / 6.98; tf32 + CUDA graph 0.94 / 3.50; half
-weights + graph 0.51 / 2.26; half weights with the position part cached + graph (this) 0.44 / 1.68,
-largest position-offset error 1.6e-4 of the scene extent (bf16: 1.3e-3). torch.compile + graph is a
-little faster (0.40 / 1.33) but autotunes for minutes at the first frame (and, compiled for fixed
-shapes as measured, for every new number of Gaussians): too costly for a viewer. The cache takes
-2 x N x width half values (49 MB at 50k Gaussians). Its bound on real scenes: a rendered PSNR within
-0.02 dB of the fp32 field on every view (the benchmark's `+half` rows, `psnr_vs_plain`).
+50k / 200k moving Gaussians, ms per frame): fp32 1.93 / 6.98; tf32 (since deleted) + CUDA graph
+0.94 / 3.50; half weights + graph 0.51 / 2.26; half weights with the position part cached + graph
+(this) 0.44 / 1.68, largest position-offset error 1.6e-4 of the scene extent (bf16: 1.3e-3).
+torch.compile + graph is a little faster (0.40 / 1.33) but autotunes for minutes at the first frame
+(and, compiled for fixed shapes as measured, for every new number of Gaussians): too costly for a
+viewer. The cache takes 2 x N x width half values (49 MB at 50k Gaussians). Its bound on real
+scenes: a rendered PSNR within 0.02 dB of the fp32 field on every view (the benchmark's `+half` rows,
+`psnr_vs_plain`), met on the scenes above except standup and jumpingjacks' baseline.
 
 Training never comes here: it keeps the fp32 field and its gradients (`garo_ns.render.frame.compose`).
 """
