@@ -1,14 +1,16 @@
 """Our D-3DGS baseline against the official D-3DGS code, scene by scene.
 
-    python benchmarks/official_compare.py --ours benchmarks/results/standup40k_H200.json ... \
-        --official benchmarks/results/official_d3dgs_standup40k_round2_H200.json \
-        --output benchmarks/results/baseline_vs_official_H200.json
+    python benchmarks/official_compare.py --ours benchmarks/results/table1_*_H100.json \
+        --official benchmarks/results/official_d3dgs_H100.json \
+        --output benchmarks/results/baseline_vs_official_H100.json
 
 `--ours` are result files of `python -m garo_ns.bench.benchmark` (variant `deform-splatfacto`);
-`--official` is what `benchmarks/official_score.py` wrote for the official code's runs. A pair is
+`--official` are what `benchmarks/official_score.py` wrote for the official code's runs. A pair is
 reported only when both arms ran the same number of steps on the same split with the same
-background: anything else is refused with the reason, never averaged in. Writes the JSON and a
-Markdown table next to it.
+background on the same GPU model: anything else is refused with the reason, never averaged in. A scene
+run more than once on a side (several files) is compared as the mean of its runs, with each run's PSNR
+kept beside it: the same code's runs of one scene spread by about as much as the target's margin. Writes
+the JSON and a Markdown table next to it.
 """
 
 from __future__ import annotations
@@ -16,9 +18,11 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, List, Optional, Union
 
 FIELDS = ("psnr", "ssim", "lpips", "num_gaussians", "fps", "iterations", "split", "background")
+KEYS = ("iterations", "split", "background", "gpu")
+"""What the two arms of a pair, and the runs of one side, must share."""
 BASELINE = "deform-splatfacto"
 # The accuracy target: ours within this PSNR (dB) and LPIPS of the official code on each scene.
 PSNR_TOLERANCE_DB = 0.2
@@ -45,9 +49,23 @@ def our_arm(result: Dict[str, Any], variant: str = BASELINE) -> Dict[str, Any]:
     return arm
 
 
+def mean_arm(runs: List[Dict[str, Any]]) -> Dict[str, Any]:
+    """One side of a pair from its runs (already checked to share steps, split, background and GPU): the
+    mean of each quality metric and of the Gaussian count, FPS only where there is one run, and each run's
+    PSNR, LPIPS and commit."""
+    arm = dict(runs[0])
+    for key in ("psnr", "ssim", "lpips", "num_gaussians"):
+        values = [r.get(key) for r in runs]
+        arm[key] = None if any(v is None for v in values) else sum(values) / len(values)
+    if len(runs) > 1:
+        arm["fps"] = None  # timings of different holds are not averaged
+    arm["runs"] = [{k: r.get(k) for k in ("psnr", "lpips", "git_commit", "source")} for r in runs]
+    return arm
+
+
 def pair(scene: str, ours: Dict[str, Any], official: Dict[str, Any]) -> Dict[str, Any]:
-    """One row; PairMismatch when the arms differ in steps, split or background."""
-    for key in ("iterations", "split", "background"):
+    """One row; PairMismatch when the arms differ in steps, split, background or GPU model."""
+    for key in ("iterations", "split", "background", "gpu"):
         if ours.get(key) is None or official.get(key) is None:
             raise PairMismatch(f"{scene}: '{key}' missing ({ours.get(key)!r} ours, {official.get(key)!r} official)")
         if ours[key] != official[key]:
@@ -66,25 +84,52 @@ def pair(scene: str, ours: Dict[str, Any], official: Dict[str, Any]) -> Dict[str
     }
 
 
-def compare(ours_results: List[Dict[str, Any]], official: Dict[str, Any]) -> Dict[str, Any]:
-    """Rows for every scene present on both sides, and the refused pairs with their reasons."""
-    theirs = {scene_name(r["scene"]): r["official"] for r in official.get("rows", [])}
-    rows: List[Dict[str, Any]] = []
+def compare(
+    ours_results: List[Dict[str, Any]], official: Union[Dict[str, Any], List[Dict[str, Any]]]
+) -> Dict[str, Any]:
+    """Rows for every scene present on both sides (each side the mean of its runs on the official runs' GPU
+    model), and the refused pairs and runs with their reasons."""
+    files = [official] if isinstance(official, dict) else list(official)
+    theirs: Dict[str, List[Dict[str, Any]]] = {}
+    for f in files:
+        for r in f.get("rows", []):
+            arm = dict(r["official"], gpu=r["official"].get("gpu", f.get("gpu")))
+            arm.setdefault("git_commit", f.get("official_commit"))
+            arm.setdefault("source", f.get("source"))
+            theirs.setdefault(scene_name(r["scene"]), []).append(arm)
+    mine: Dict[str, List[Dict[str, Any]]] = {}
     refused: List[str] = []
     for result in ours_results:
         scene = scene_name(result.get("scene", "?"))
-        if scene not in theirs:
-            refused.append(f"{scene}: no official run")
-            continue
         try:
-            rows.append(pair(scene, our_arm(result), theirs[scene]))
+            arm = our_arm(result)
         except PairMismatch as err:
             refused.append(str(err))
-    ours_scenes = {scene_name(r.get("scene", "?")) for r in ours_results}
-    refused += [f"{scene}: no run of ours" for scene in sorted(theirs) if scene not in ours_scenes]
+            continue
+        arm["source"] = result.get("source")
+        mine.setdefault(scene, []).append(arm)
+    rows: List[Dict[str, Any]] = []
+    for scene, runs in mine.items():
+        groups: Dict[tuple, List[Dict[str, Any]]] = {}
+        for arm in runs:  # runs compared together share steps, split, background and GPU model
+            groups.setdefault(tuple(str(arm.get(k)) for k in KEYS), []).append(arm)
+        for key, group in groups.items():
+            candidates = [t for t in theirs.get(scene, []) if tuple(str(t.get(k)) for k in KEYS) == key]
+            if candidates:
+                rows.append(pair(scene, mean_arm(group), mean_arm(candidates)))
+                continue
+            if scene not in theirs:
+                refused.append(f"{scene}: no official run")
+                continue
+            try:  # say what differs from the closest official run
+                pair(scene, group[0], theirs[scene][0])
+                refused.append(f"{scene}: no official run with the same steps, split, background and GPU")
+            except PairMismatch as err:
+                refused.append(str(err))
+    refused += [f"{scene}: no run of ours" for scene in sorted(theirs) if scene not in mine]
     return {
-        "gpu": official.get("gpu"),
-        "official_commit": official.get("official_commit"),
+        "gpu": sorted({str(f.get("gpu")) for f in files}),
+        "official_commit": sorted({str(f.get("official_commit")) for f in files}),
         "target": f"ours >= official - {PSNR_TOLERANCE_DB} dB PSNR and LPIPS <= official + {LPIPS_TOLERANCE}",
         "rows": rows,
         "refused": refused,
@@ -107,9 +152,17 @@ def markdown(summary: Dict[str, Any]) -> str:
         lines.append(
             f"| {r['scene']} ({o['split']}) | {o['iterations']:,} | {f(o['psnr'], '.2f')} / {f(t['psnr'], '.2f')} "
             f"| {f(o.get('lpips'), '.4f')} / {f(t.get('lpips'), '.4f')} | {f(o.get('ssim'), '.4f')} / "
-            f"{f(t.get('ssim'), '.4f')} | {o['num_gaussians']:,} / {t['num_gaussians']:,} | "
+            f"{f(t.get('ssim'), '.4f')} | {o['num_gaussians']:,.0f} / {t['num_gaussians']:,.0f} | "
             f"{f(o.get('fps'), '.1f')} / {f(t.get('fps'), '.1f')} | {'met' if r['target_met'] else 'missed'} |"
         )
+    for r in summary["rows"]:
+        o, t = r["ours"], r["official"]
+        if len(o.get("runs", [])) > 1 or len(t.get("runs", [])) > 1:
+            each = lambda arm: ", ".join(f"{run['psnr']:.2f}" for run in arm["runs"])  # noqa: E731
+            lines.append(
+                f"\n{r['scene']}: the mean of {len(o['runs'])} run(s) of ours ({each(o)} dB) against "
+                f"{len(t['runs'])} of the official code ({each(t)} dB)."
+            )
     for reason in summary["refused"]:
         lines.append(f"\nRefused: {reason}")
     return "\n".join(lines) + "\n"
@@ -118,11 +171,15 @@ def markdown(summary: Dict[str, Any]) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--ours", type=Path, nargs="+", required=True)
-    parser.add_argument("--official", type=Path, required=True)
+    parser.add_argument("--official", type=Path, nargs="+", required=True)
     parser.add_argument("--output", type=Path, required=True)
     args = parser.parse_args()
-    summary = compare([json.loads(p.read_text()) for p in args.ours], json.loads(args.official.read_text()))
-    summary["sources"] = {"ours": [str(p) for p in args.ours], "official": str(args.official)}
+
+    def load(path: Path) -> Dict[str, Any]:
+        return {**json.loads(path.read_text()), "source": path.name}
+
+    summary = compare([load(p) for p in args.ours], [load(p) for p in args.official])
+    summary["sources"] = {"ours": [str(p) for p in args.ours], "official": [str(p) for p in args.official]}
     args.output.write_text(json.dumps(summary, indent=2) + "\n")
     args.output.with_suffix(".md").write_text(markdown(summary))
     print(markdown(summary))

@@ -14,9 +14,12 @@ official_compare = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(official_compare)  # type: ignore[union-attr]
 
 
-def ours(scene="/tmp/jumpingjacks", iterations=40_000, split="test", background="black", psnr=37.5, lpips=0.012):
+def ours(
+    scene="/tmp/jumpingjacks", iterations=40_000, split="test", background="black", psnr=37.5, lpips=0.012, gpu="H200"
+):
     arm = {"psnr": psnr, "ssim": 0.99, "lpips": lpips, "num_gaussians": 80_000, "fps": 200.0, "iterations": iterations}
-    return {"scene": scene, "split": split, "background": background, "variants": {"deform-splatfacto": arm}}
+    result = {"scene": scene, "split": split, "background": background, "gpu": gpu}
+    return {**result, "variants": {"deform-splatfacto": arm}}
 
 
 def official(iterations=40_000, split="test", background="black", psnr=37.6, lpips=0.011):
@@ -44,6 +47,7 @@ def test_a_matching_pair_is_reported_with_its_gaps_and_verdict():
         ({}, {"split": "val"}, "split"),
         ({"background": "white"}, {}, "background"),
         ({}, {"iterations": None}, "iterations"),
+        ({"gpu": "H100"}, {}, "gpu"),
     ],
 )
 def test_arms_that_differ_in_steps_split_or_background_are_refused(ours_kwargs, official_kwargs, word):
@@ -55,3 +59,22 @@ def test_arms_that_differ_in_steps_split_or_background_are_refused(ours_kwargs, 
 def test_a_scene_without_an_official_run_is_refused_not_dropped():
     out = official_compare.compare([ours(scene="/tmp/mutant")], official())
     assert out["rows"] == [] and out["refused"] == ["mutant: no official run", "jumpingjacks: no run of ours"]
+
+
+def test_runs_of_a_scene_are_compared_as_means_on_the_same_gpu_model():
+    runs = [dict(ours(psnr=p, lpips=lp), source=f"run{i}") for i, (p, lp) in enumerate([(37.4, 0.012), (37.0, 0.014)])]
+    second_official = official(psnr=37.0, lpips=0.013)
+    out = official_compare.compare(runs, [official(), second_official])
+    row = out["rows"][0]
+    assert row["ours"]["psnr"] == pytest.approx(37.2) and row["official"]["psnr"] == pytest.approx(37.3)
+    assert row["psnr_gap_db"] == pytest.approx(-0.1) and row["lpips_gap"] == pytest.approx(0.001)
+    assert row["target_met"] is True  # one run alone (37.0 against 37.6) would have missed it
+    assert [r["psnr"] for r in row["ours"]["runs"]] == [37.4, 37.0] and len(row["official"]["runs"]) == 2
+    # An official run on another GPU model is not averaged in: the H100 run of ours has no partner.
+    out = official_compare.compare([*runs, ours(gpu="H100", psnr=30.0)], official())
+    assert len(out["rows"]) == 1 and out["rows"][0]["ours"]["psnr"] == pytest.approx(37.2)
+    assert out["refused"] == ["jumpingjacks: arms differ in gpu ('H100' ours, 'H200' official)"]
+    # An official 20k run beside the 40k one: the 40k arms pair, the 20k run is not mixed in.
+    out = official_compare.compare(runs, [official(iterations=20_000, psnr=30.0), official()])
+    assert out["rows"][0]["official"]["psnr"] == pytest.approx(37.6) and out["refused"] == []
+    assert "| jumpingjacks (test) | 40,000 | 37.20 / 37.60 |" in official_compare.markdown(out)
