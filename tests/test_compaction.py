@@ -711,12 +711,42 @@ def test_compaction_summary_survives_the_checkpoint_and_reaches_garo_eval(compac
     assert written["compaction"]["reason_text"] and result["num_gaussians"] == trained["summary"]["num_gaussians_end"]
 
 
-def test_benchmark_variants_of_compaction():
+def test_benchmark_variants_of_compaction(tmp_path):
     from garo_ns.bench.benchmark import split_variant, variant_settings
 
     assert variant_settings("garo-compact") == ("garo-compact", {})
     assert variant_settings("garo-compact0.5") == ("garo-compact", {"compact_budget_db": 0.5})
     assert split_variant("garo-compact+fp16")[0] == "garo-compact"
+    # Any compaction settings, so that one run can train several of them side by side.
+    name = "garo-compact--fraction-0.3--round_bound_db-0.05--max_rounds-4--start-12000"
+    method, overrides = variant_settings(name)
+    assert method == "garo-compact"
+    assert overrides == {
+        "compact_fraction": 0.3,
+        "compact_round_bound_db": 0.05,
+        "compact_max_rounds": 4,
+        "compact_start": 12000,
+    }
+    assert isinstance(overrides["compact_max_rounds"], int) and split_variant(name + "+auto")[0] == name
+    with pytest.raises(ValueError, match="unknown compaction setting 'share'.*fraction"):
+        variant_settings("garo-compact--share-0.3")
+    with pytest.raises(ValueError, match="'max_rounds' .* needs an integer, got '4.5'"):
+        variant_settings("garo-compact--max_rounds-4.5")
+    with pytest.raises(ValueError, match="'fraction' .* needs a number"):
+        variant_settings("garo-compact--fraction-")
+    # A setting out of range, an unknown variant or switch is refused before any run starts.
+    from garo_ns.bench.benchmark import BenchArgs, check_variant, run
+    from garo_ns.errors import GaroConfigError
+
+    check_variant(name + "+auto")
+    with pytest.raises(GaroConfigError, match="compact-fraction must be in"):
+        check_variant("garo-compact--fraction-1.5")
+    with pytest.raises(ValueError, match="unknown render switch"):
+        check_variant("garo-deform+tf32")
+    args = BenchArgs(scene=tmp_path / "none", work_dir=tmp_path / "runs", variants=["garo-compact--fraction-1.5"])
+    with pytest.raises(GaroConfigError):
+        run(args)
+    assert not (tmp_path / "runs").exists()  # refused before anything was made
 
 
 def test_summary_edges_the_round_limits_and_the_default_start():

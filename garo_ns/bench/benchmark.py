@@ -12,7 +12,8 @@ Gaussian count) are written next to it.
 Variants: deform-splatfacto (baseline), garo-deform (full GARO), and on request garo-oaa, garo-gca
 (the paper's ablations), garo-rho<value> (rho_max sweep), garo-prune<ratio> (GARO plus pruning
 of a fixed share of the least contributing Gaussians) and garo-compact / garo-compact<dB> (GARO plus
-compaction measured on training views, with its default total budget or the one given in dB).
+compaction measured on training views, with its default total budget or the one given in dB) /
+garo-compact--<setting>-<value>--... (any compaction settings, e.g. `garo-compact--fraction-0.3`).
 A name may carry render-time switches after `+`: `+static` (static Gaussians skip the MLP), `+half`
 (`render_precision=fp16`: the half-precision field with each Gaussian's position part cached,
 garo_ns.render.half_field), `+graph` (everything before the rasterizer as one CUDA graph), `+lean`
@@ -34,7 +35,7 @@ import platform
 import subprocess
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Tuple
 
@@ -87,8 +88,43 @@ def split_variant(name: str) -> Tuple[str, Dict[str, Any]]:
     return base, render
 
 
+def compaction_overrides(name: str) -> Dict[str, Any]:
+    """The compaction settings a `garo-compact--<setting>-<value>--...` name sets, e.g.
+    `garo-compact--fraction-0.3--round_bound_db-0.05` (settings named as `compact_<setting>` in
+    garo_ns.compaction.schedule.CompactionSettings), so that one run can train several settings side by
+    side; only letters, digits, `.`, `_` and `-`, as the result files and exports are named after it."""
+    from garo_ns.compaction.schedule import CompactionSettings
+
+    known = {f.name[len("compact_") :]: f for f in fields(CompactionSettings) if f.name.startswith("compact_")}
+    overrides: Dict[str, Any] = {}
+    for item in name.split("--")[1:]:
+        key, _, text = item.partition("-")
+        if key not in known:
+            raise ValueError(f"unknown compaction setting {key!r} in {name!r} (known: {sorted(known)})")
+        integer = isinstance(known[key].default, int) or key == "start"  # start: None or a step
+        try:
+            overrides[f"compact_{key}"] = int(text) if integer else float(text)
+        except ValueError:
+            kind = "an integer" if integer else "a number"
+            raise ValueError(f"compaction setting {key!r} in {name!r} needs {kind}, got {text!r}") from None
+    return overrides
+
+
+def check_variant(name: str) -> None:
+    """Raise for a variant name, render switch or compaction setting that training would refuse, before
+    any run starts (a worker failing after the others trained would cost their GPU time)."""
+    from garo_ns.compaction.schedule import CompactionSettings
+
+    _, overrides = variant_settings(split_variant(name)[0])
+    compact = {k: v for k, v in overrides.items() if k.startswith("compact_")}
+    if compact:
+        CompactionSettings(**compact).compaction()  # GaroConfigError out of range
+
+
 def variant_settings(name: str) -> Tuple[str, Dict[str, Any]]:
     """(method, model-config overrides) of a trained variant name."""
+    if name.startswith("garo-compact--"):  # compaction with the settings the name gives
+        return "garo-compact", compaction_overrides(name)
     if name.startswith("garo-compact"):  # garo-compact (its defaults) or garo-compact<total budget in dB>
         budget = name[len("garo-compact") :]
         return "garo-compact", {"compact_budget_db": float(budget)} if budget else {}
@@ -497,6 +533,8 @@ def physical_gpu(index: int) -> str:
 def run(args: BenchArgs) -> Dict[str, Any]:
     """Phase 1 (training, parallel) then phase 2 (evaluation and timing, sequential); write outputs."""
     names = args.trained_variants()
+    for name in args.all_variants():
+        check_variant(name)
     deadline = None if args.deadline_s is None else time.time() + args.deadline_s
     args.work_dir.mkdir(parents=True, exist_ok=True)
     imported = {}
