@@ -1,0 +1,208 @@
+"""Do two terms of the official D-3DGS code's deformation explain why it ends with fewer Gaussians?
+
+    python benchmarks/official_terms.py --scene /tmp/mutant --term scale --steps 15000 \
+        --output benchmarks/results/official_terms_mutant_scale_H100.json
+
+Our `deform-splatfacto` ends 40k steps with more Gaussians than the official code on the same scene copies
+(mutant 196,462 against 168,974; standup 84,504 against 83,149; benchmarks/HISTORY.md), and each code's count
+repeats within about 1% from run to run. Reading both codes term by term (issue #33 item 3) found densification
+and pruning equivalent, and two terms of how the deformation is applied that differ:
+
+  scale     the official code adds the field's scale offset to the activated scale (exp(log s) + ds); ours adds
+            it to the log-scale (exp(log s + ds)), which keeps scales positive.
+  rotation  the official code hands q + dq to its rasterizer without normalising it, and the rasterizer builds
+            the rotation matrix of that unnormalised quaternion (a rotation scaled by |q|^2 plus (1 - |q|^2) I:
+            a change of shape as well); gsplat normalises every quaternion.
+
+Each run trains `deform-splatfacto` with the named terms (`none`, `scale`, `rotation` or `scale+rotation`)
+switched to the official code's way, in this process only (nothing in the plugin changes), and records the
+number of Gaussians every `--every` steps. Densification ends at 15k, so the count at 15k is its final one;
+run the terms in parallel processes on one GPU. `rotation` renders through gsplat with covariances: CUDA only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any, Callable, Dict, List, NamedTuple, Optional, Tuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+TERMS = ("none", "scale", "rotation", "scale+rotation")
+
+
+class OfficialDeformed(NamedTuple):
+    """Deformed geometry as the official code hands it to its rasterizer: scales already activated."""
+
+    means: Tensor
+    quats: Tensor
+    scales: Tensor
+
+
+def rotation_matrices(quats: Tensor) -> Tensor:
+    """[N, 3, 3] from quaternions (w, x, y, z) by the unit-quaternion formula applied as is, without
+    normalising, as the official rasterizer does."""
+    w, x, y, z = quats.unbind(-1)
+    rows = [
+        1 - 2 * (y * y + z * z),
+        2 * (x * y - w * z),
+        2 * (x * z + w * y),
+        2 * (x * y + w * z),
+        1 - 2 * (x * x + z * z),
+        2 * (y * z - w * x),
+        2 * (x * z - w * y),
+        2 * (y * z + w * x),
+        1 - 2 * (x * x + y * y),
+    ]
+    return torch.stack(rows, dim=-1).reshape(-1, 3, 3)
+
+
+def official_functions(terms: str) -> Dict[str, Callable[..., Any]]:
+    """Replacements for garo_ns.garo_model's `compose`, `activate` and (for `rotation`) `render_splats`."""
+    from garo_ns.render.frame import Splats, activate, render_splats
+
+    scale_term, rotation_term = "scale" in terms, "rotation" in terms
+
+    def compose(field: Any, canonical: Any, time: Any) -> OfficialDeformed:
+        d_xyz, d_rot, d_scale = field(canonical.means.detach(), time)
+        log_scales = canonical.log_scales
+        scales = torch.exp(log_scales) + d_scale if scale_term else torch.exp(log_scales + d_scale)
+        return OfficialDeformed(canonical.means + d_xyz, F.normalize(canonical.quats, dim=-1) + d_rot, scales)
+
+    def activate_(canonical: Any, deformed: Any) -> Splats:
+        if not isinstance(deformed, OfficialDeformed):  # the undeformed Gaussians (warm-up): as the plugin does
+            return activate(canonical, deformed)
+        colors = torch.cat([canonical.features_dc[:, None, :], canonical.features_rest], dim=1)
+        opacities = torch.sigmoid(canonical.opacities).squeeze(-1)
+        return Splats(deformed.means, deformed.quats, deformed.scales, opacities, colors)
+
+    def render(splats: Any, view: Any, sh_degree: int, backgrounds: Optional[Tensor], render_mode: str, *rest: Any):
+        if not torch.is_grad_enabled():  # evaluation renders the plugin's way; only training matters here
+            return render_splats(splats, view, sh_degree, backgrounds, render_mode, *rest)
+        from gsplat import rasterization
+
+        m = rotation_matrices(splats.quats) * splats.scales[:, None, :]
+        return rasterization(
+            means=splats.means,
+            quats=None,
+            scales=None,
+            opacities=splats.opacities,
+            colors=splats.colors,
+            viewmats=view.viewmat,
+            Ks=view.K,
+            width=view.width,
+            height=view.height,
+            sh_degree=sh_degree,
+            backgrounds=backgrounds,
+            render_mode=render_mode,
+            packed=False,
+            absgrad=False,
+            rasterize_mode="classic",
+            covars=m @ m.transpose(1, 2),
+        )
+
+    out: Dict[str, Callable[..., Any]] = {"compose": compose, "activate": activate_}
+    if rotation_term:
+        out["render_splats"] = render
+    return out
+
+
+def train(
+    scene: Path, term: str, steps: int, every: int, work_dir: Path, device: str, quick: bool = False
+) -> Dict[str, Any]:
+    """Train `deform-splatfacto` with `term` for `steps` steps; the Gaussian count every `every` steps.
+    `quick`: the compressed CPU schedule (garo_ns.tools.train.QuickSchedule), for a smoke test."""
+    from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+
+    import garo_ns.garo_model as garo_model
+    from garo_ns.tools.train import QuickSchedule, make_config, seed_everything
+
+    if term not in TERMS:
+        raise ValueError(f"unknown term {term!r} (known: {', '.join(TERMS)})")
+    if "rotation" in term and device != "cuda":
+        raise ValueError("the rotation term renders through gsplat with covariances: CUDA only")
+    calls = {name: 0 for name in official_functions(term)} if term != "none" else {}
+
+    def counted(name: str, function: Callable[..., Any]) -> Callable[..., Any]:
+        def call(*args: Any, **kwargs: Any) -> Any:
+            calls[name] += 1
+            return function(*args, **kwargs)
+
+        return call
+
+    replaced = {name: counted(name, f) for name, f in official_functions(term).items()} if term != "none" else {}
+    originals = {name: getattr(garo_model, name) for name in replaced}
+    schedule = QuickSchedule(steps=steps) if quick else None
+    config = make_config("deform-splatfacto", scene, work_dir, device=device, schedule=schedule, experiment_name=term)  # type: ignore[arg-type]
+    config.max_num_iterations = steps
+    config.steps_per_save = 10**9
+    seed_everything(config.machine.seed)
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    model = trainer.pipeline.model
+    counts: List[Tuple[int, int]] = []
+    start = time.time()
+
+    def record(step: int) -> None:
+        if step % every == 0 or step == steps - 1:
+            counts.append((step, int(model.num_points)))
+
+    trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], record))
+    try:  # the plugin's own functions come back afterwards, also for the rest of a test session
+        for name, function in replaced.items():
+            setattr(garo_model, name, function)
+        trainer.train()
+    finally:
+        for name, function in originals.items():
+            setattr(garo_model, name, function)
+    if term != "none" and calls.get("compose", 0) == 0:  # the plugin no longer calls what was replaced
+        raise RuntimeError(f"the official {term} term never ran: garo_ns.garo_model no longer calls compose")
+    return {
+        "scene": Path(scene).name,
+        "term": term,
+        "steps": steps,
+        "gaussians_every": counts,
+        "gaussians_end": counts[-1][1] if counts else None,
+        "replaced_calls": calls,
+        "train_seconds": time.time() - start,
+        "gpu": torch.cuda.get_device_name() if device == "cuda" else "cpu",
+        "git_commit": _commit(),
+    }
+
+
+def _commit() -> Optional[str]:
+    import os
+    import subprocess
+
+    if os.environ.get("GARO_GIT_COMMIT"):
+        return os.environ["GARO_GIT_COMMIT"]
+    try:
+        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None
+
+
+def main(argv: Optional[List[str]] = None) -> Dict[str, Any]:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scene", type=Path, required=True)
+    parser.add_argument("--term", choices=TERMS, required=True)
+    parser.add_argument("--steps", type=int, default=15000)
+    parser.add_argument("--every", type=int, default=500)
+    parser.add_argument("--work-dir", type=Path, default=Path("runs/official_terms"))
+    parser.add_argument("--device", choices=("cuda", "cpu"), default="cuda")
+    parser.add_argument("--quick", action="store_true", help="the compressed CPU schedule (a smoke test)")
+    parser.add_argument("--output", type=Path, required=True)
+    args = parser.parse_args(argv)
+    result = train(args.scene, args.term, args.steps, args.every, args.work_dir, args.device, args.quick)
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps(result, indent=1) + "\n")
+    print(json.dumps({k: v for k, v in result.items() if k != "gaussians_every"}))
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,87 @@
+"""The probe of the official code's deformation terms (benchmarks/official_terms.py) runs and changes what it says."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+from garo_ns.render.frame import Canonical, activate, compose
+from garo_ns.tools.scene import SceneSpec, generate_scene
+
+_spec = importlib.util.spec_from_file_location(
+    "official_terms", Path(__file__).parents[1] / "benchmarks" / "official_terms.py"
+)
+official_terms = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(official_terms)  # type: ignore[union-attr]
+
+
+def _canonical(n=5):
+    torch.manual_seed(0)
+    return Canonical(
+        torch.randn(n, 3),
+        torch.randn(n, 4),
+        torch.randn(n, 3) - 3,
+        torch.zeros(n, 1),
+        torch.rand(n, 3),
+        torch.zeros(n, 15, 3),
+    )
+
+
+def test_the_scale_term_adds_the_offset_after_activation_and_only_it():
+    canonical = _canonical()
+    d_scale = torch.full((5, 3), 0.01)
+    field = lambda xyz, t: (torch.zeros_like(xyz), torch.zeros(len(xyz), 4), d_scale)  # noqa: E731
+    ours = activate(canonical, compose(field, canonical, 0.5))
+    none = official_terms.official_functions("none")
+    same = none["activate"](canonical, none["compose"](field, canonical, 0.5))
+    assert torch.allclose(same.scales, ours.scales) and torch.equal(same.quats, ours.quats)
+    theirs = official_terms.official_functions("scale")
+    official = theirs["activate"](canonical, theirs["compose"](field, canonical, 0.5))
+    assert torch.allclose(official.scales, torch.exp(canonical.log_scales) + 0.01)
+    assert torch.allclose(ours.scales, torch.exp(canonical.log_scales) * math.exp(0.01))
+    assert "render_splats" not in theirs and "render_splats" in official_terms.official_functions("rotation")
+
+
+def test_rotation_matrices_of_an_unnormalised_quaternion_are_scaled_rotations_plus_identity():
+    q = torch.nn.functional.normalize(torch.randn(4, 4), dim=-1)
+    unit = official_terms.rotation_matrices(q)
+    assert torch.allclose(unit @ unit.transpose(1, 2), torch.eye(3).expand(4, 3, 3), atol=1e-5)
+    s = 1.2  # |q| = s: the formula gives s^2 R + (1 - s^2) I
+    assert torch.allclose(official_terms.rotation_matrices(s * q), s * s * unit + (1 - s * s) * torch.eye(3), atol=1e-5)
+
+
+@pytest.mark.slow
+def test_a_short_run_records_the_gaussian_count(tmp_path):
+    scene = generate_scene(tmp_path / "scene", SceneSpec(resolution=32, n_train=8, n_val=3, n_test=3))
+    out = tmp_path / "scale.json"
+    result = official_terms.main(
+        [
+            "--scene",
+            str(scene),
+            "--term",
+            "scale",
+            "--steps",
+            "40",
+            "--every",
+            "10",
+            "--device",
+            "cpu",
+            "--quick",
+            "--work-dir",
+            str(tmp_path / "runs"),
+            "--output",
+            str(out),
+        ]
+    )
+    assert [s for s, _ in result["gaussians_every"]] == [0, 10, 20, 30, 39]
+    assert result["gaussians_end"] == result["gaussians_every"][-1][1] > 0 and out.exists()
+    assert result["replaced_calls"]["compose"] > 0  # the official term was in the training frames
+    import garo_ns.garo_model as garo_model
+
+    assert garo_model.compose is compose and garo_model.activate is activate  # restored after the run
+    with pytest.raises(ValueError, match="CUDA only"):
+        official_terms.train(scene, "rotation", 10, 5, tmp_path / "r", "cpu")
