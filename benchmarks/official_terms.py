@@ -46,19 +46,9 @@ class OfficialDeformed(NamedTuple):
 def rotation_matrices(quats: Tensor) -> Tensor:
     """[N, 3, 3] from quaternions (w, x, y, z) by the unit-quaternion formula applied as is, without
     normalising, as the official rasterizer does."""
-    w, x, y, z = quats.unbind(-1)
-    rows = [
-        1 - 2 * (y * y + z * z),
-        2 * (x * y - w * z),
-        2 * (x * z + w * y),
-        2 * (x * y + w * z),
-        1 - 2 * (x * x + z * z),
-        2 * (y * z - w * x),
-        2 * (x * z - w * y),
-        2 * (y * z + w * x),
-        1 - 2 * (x * x + y * y),
-    ]
-    return torch.stack(rows, dim=-1).reshape(-1, 3, 3)
+    from garo_ns.quaternions import quat_to_rotmat
+
+    return quat_to_rotmat(quats, normalise=False)
 
 
 def official_functions(terms: str) -> Dict[str, Callable[..., Any]]:

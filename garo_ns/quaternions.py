@@ -7,12 +7,14 @@ import torch.nn.functional as F
 from torch import Tensor
 
 
-def quat_to_rotmat(quats: Tensor) -> Tensor:
-    """Rotation matrices of (w, x, y, z) quaternions; normalised here, a zero quaternion gives I."""
-    q = F.normalize(quats, dim=-1)
+def quat_to_rotmat(quats: Tensor, normalise: bool = True) -> Tensor:
+    """Rotation matrices of (w, x, y, z) quaternions; normalised here, a zero quaternion gives I. With
+    `normalise=False` the unit-quaternion formula is applied to the quaternions as they are, as the
+    official D-3DGS rasterizer reads an unnormalised one (benchmarks/official_terms.py)."""
+    q = F.normalize(quats, dim=-1) if normalise else quats
     w, x, y, z = q.unbind(-1)
-    zero = (q.abs().sum(-1) == 0).to(q.dtype)
-    w = w + zero  # the zero quaternion reads as the identity rotation
+    if normalise:
+        w = w + (q.abs().sum(-1) == 0).to(q.dtype)  # the zero quaternion reads as the identity rotation
     rot = torch.stack(
         [
             1 - 2 * (y * y + z * z),
