@@ -85,3 +85,29 @@ def test_a_short_run_records_the_gaussian_count(tmp_path):
     assert garo_model.compose is compose and garo_model.activate is activate  # restored after the run
     with pytest.raises(ValueError, match="CUDA only"):
         official_terms.train(scene, "rotation", 10, 5, tmp_path / "r", "cpu")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="the rotation term renders through gsplat's CUDA kernels")
+def test_the_rotation_term_renders_a_unit_quaternion_as_the_plugin_does():
+    """Through covariances, normalised quaternions give the plugin's pixels and means2d gradients; only an
+    unnormalised one renders differently (what the term is about)."""
+    from garo_ns.render.frame import Splats, render_splats
+    from garo_ns.render.view import RenderView
+
+    g = torch.Generator().manual_seed(0)
+    n = 2000
+    means = ((torch.rand(n, 3, generator=g) - 0.5) * 2).cuda()
+    quats = torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=-1).cuda()
+    scales = torch.exp(torch.randn(n, 3, generator=g) * 0.5 - 4).cuda()
+    splats = Splats(means, quats, scales, torch.rand(n, generator=g).cuda(), torch.rand(n, 1, 3, generator=g).cuda())
+    viewmat = torch.eye(4)[None]
+    viewmat[0, 2, 3] = 4.0
+    K = torch.tensor([[[200.0, 0.0, 64.0], [0.0, 200.0, 48.0], [0.0, 0.0, 1.0]]])
+    view = RenderView(viewmat.cuda(), K.cuda(), 128, 96, 0.5)
+    official = official_terms.official_functions("rotation")["render_splats"]
+    ours, _, _ = render_splats(splats, view, 0, None, "RGB", "cuda")
+    theirs, _, info = official(splats, view, 0, None, "RGB", "cuda")
+    assert float(ours.mean()) > 0.01 and "means2d" in info and "radii" in info
+    torch.testing.assert_close(theirs, ours, rtol=0, atol=1e-4)
+    stretched, _, _ = official(splats._replace(quats=quats * 1.3), view, 0, None, "RGB", "cuda")
+    assert (stretched - ours).abs().max() > 1e-3
