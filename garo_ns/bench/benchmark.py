@@ -436,6 +436,9 @@ def environment(device: str) -> Dict[str, Any]:
         "cpu": platform.processor() or platform.machine(),
         "torch": torch.__version__,
         "git_commit": commit,
+        # Training processes sharing a GPU under CUDA MPS (benchmarks/device_run.sh starts it) run side by side;
+        # timing happens after training, one arm at a time, either way.
+        "cuda_mps": device == "cuda" and os.environ.get("GARO_MPS_ON") == "1",
     }
 
 

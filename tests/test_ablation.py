@@ -1,0 +1,114 @@
+"""One scene's variants against the baseline of each one's own run (garo_ns.bench.ablation)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from garo_ns.bench.ablation import AblationArgs, build, main, ordering, ordering_sentence, variant_rows
+
+
+def _row(fps, psnr, n, **settings):
+    return {
+        "psnr": psnr,
+        "ssim": 0.9,
+        "lpips": 0.01,
+        "fps": fps,
+        "num_gaussians": n,
+        "model_size_mb": 1.0,
+        "iterations": 40_000,
+        "shortened": False,
+        "garo_mode": "full",
+        "rho_max": 0.02,
+        **settings,
+    }
+
+
+def _file(base_fps, variants, scene="jj", gpu="H100"):
+    return {
+        "scene": scene,
+        "split": "test",
+        "gpu": gpu,
+        "git_commit": "abc",
+        "variants": {"deform-splatfacto": _row(base_fps, 37.0, 100_000, garo_mode="off"), **variants},
+    }
+
+
+def test_each_ratio_is_taken_within_its_own_file_and_a_repeat_is_averaged():
+    a = _file(100.0, {"garo-oaa": _row(300.0, 36.9, 30_000, garo_mode="oaa"), "garo-deform": _row(200.0, 36.8, 40_000)})
+    b = _file(400.0, {"garo-deform": _row(1200.0, 37.0, 20_000)})  # a faster run: only ratios compare
+    rows = variant_rows([("a.json", a), ("b.json", b)], ["garo-oaa", "garo-deform"])
+    assert rows["garo-oaa"]["garo-oaa"]["fps_ratio"] == pytest.approx(3.0)
+    assert rows["garo-oaa"]["source"] == "a.json"
+    joint = rows["garo-deform"]["garo-deform"]
+    assert joint["fps_ratio"] == pytest.approx((2.0 + 3.0) / 2)  # not 1400 / 500
+    assert joint["psnr_drop_db"] == pytest.approx((0.2 + 0.0) / 2)
+    assert joint["fps_ratio_range"] == pytest.approx([2.0, 3.0])
+    assert rows["garo-deform"]["settings"] == {"garo_mode": "full", "rho_max": 0.02}
+
+
+def test_refuses_what_is_not_one_scenes_runs_of_one_variant():
+    a = _file(100.0, {"garo-deform": _row(200.0, 36.8, 40_000)})
+    with pytest.raises(ValueError, match="differ in scene"):
+        variant_rows([("a", a), ("b", _file(100.0, {}, scene="mutant"))], ["garo-deform"])
+    with pytest.raises(ValueError, match="differ in gpu"):
+        variant_rows([("a", a), ("b", _file(100.0, {}, gpu="H200"))], ["garo-deform"])
+    no_base = {**a, "variants": {"garo-deform": a["variants"]["garo-deform"]}}
+    with pytest.raises(ValueError, match="no deform-splatfacto row"):
+        variant_rows([("a", no_base)], ["garo-deform"])
+    with pytest.raises(ValueError, match=r"no file holds \['garo-gca'\]"):
+        variant_rows([("a", a)], ["garo-deform", "garo-gca"])
+    other = _file(100.0, {"garo-deform": _row(200.0, 36.8, 40_000, rho_max=0.05)})
+    with pytest.raises(ValueError, match="rho_max"):
+        variant_rows([("a", a), ("b", other)], ["garo-deform"])
+    with pytest.raises(ValueError, match="Table 3 needs"):
+        build(AblationArgs(results=[], variants=["garo-deform"]), [("a", a)])
+
+
+def _table3(joint, oaa, gca):
+    """Rows of the three criteria from (fps, psnr, gaussians) each, baseline 100 FPS, 37 dB."""
+    f = _file(
+        100.0,
+        {"garo-deform": _row(*joint), "garo-oaa": _row(*oaa, garo_mode="oaa"), "garo-gca": _row(*gca, garo_mode="gca")},
+    )
+    return variant_rows([("f", f)], ["garo-oaa", "garo-gca", "garo-deform"])
+
+
+def test_the_ordering_sentence_says_where_the_joint_criterion_stands():
+    best = ordering(_table3((300.0, 36.9, 20_000), (250.0, 36.5, 30_000), (200.0, 36.7, 40_000)))
+    assert best["ranks"]["PSNR"] == ["garo-deform", "garo-gca", "garo-oaa"]
+    assert best["ranks"]["FPS"] == ["garo-deform", "garo-oaa", "garo-gca"]
+    assert "ordering holds here" in ordering_sentence(best)
+    part = ordering(_table3((300.0, 36.5, 20_000), (250.0, 36.9, 30_000), (200.0, 36.7, 40_000)))
+    assert part["joint_first"] == {"PSNR": False, "FPS": True, "Gaussians": True}
+    assert "leads on FPS and Gaussians only" in ordering_sentence(part)
+    worst = ordering(_table3((150.0, 36.5, 50_000), (250.0, 36.9, 30_000), (200.0, 36.7, 40_000)))
+    assert "leads on no measure, so the ablation's ordering does not hold" in ordering_sentence(worst)
+
+
+def test_the_rho_figure_sorts_by_rho_reads_a_renamed_joint_row_and_says_where_the_claim_holds(tmp_path):
+    old = _file(100.0, {"garo-window": _row(150.0, 36.9, 50_000)})  # garo-deform under its older name
+    sweep = _file(
+        200.0,
+        {
+            "garo-rho0.1": _row(500.0, 36.6, 10_000, rho_max=0.1),
+            "garo-rho0.005": _row(220.0, 37.0, 90_000, rho_max=0.005),
+            "garo-rho0.1+half": _row(900.0, 36.6, 10_000, rho_max=0.1),  # a render row, not an arm
+        },
+    )
+    paths = []
+    for name, data in (("old.json", old), ("sweep.json", sweep)):
+        paths.append(tmp_path / name)
+        paths[-1].write_text(json.dumps(data))
+    out = tmp_path / "fig5.json"
+    result = main(AblationArgs(results=paths, output=out, figure="rho", aliases=["garo-window=garo-deform"]))
+    assert [s["rho_max"] for s in result["sweep"]] == [0.005, 0.02, 0.1]
+    assert [s["variant"] for s in result["sweep"]] == ["garo-rho0.005", "garo-deform", "garo-rho0.1"]
+    assert result["sweep"][2]["fps_ratio"] == pytest.approx(2.5)
+    assert result["claim_met_at_rho"] == [0.1]  # 2.5x at 0.4 dB; 0.02 is 1.5x
+    assert json.loads(out.read_text())["claim_met_at_rho"] == [0.1]
+    assert "met at rho_max 0.1." in out.with_suffix(".md").read_text()
+    assert out.with_suffix(".png").stat().st_size > 0
+    with pytest.raises(SystemExit, match="cannot read benchmark result"):
+        main(AblationArgs(results=[tmp_path / "missing.json"], output=out))
