@@ -3,9 +3,9 @@
     python benchmarks/readme_results.py            # rewrite the blocks between the markers in README.md
     python benchmarks/readme_results.py --check    # exit 1 if a block of README.md differs from what it would write
 
-Three blocks, each between `<!-- NAME:begin -->` and `<!-- NAME:end -->`: `results` (below), `demo` (from
-`demo_cpu.json`, written by benchmarks/demo_measure.py) and `tests` (from `test_time_cpu.json`, written by
-benchmarks/test_time.py).
+Four blocks, each between `<!-- NAME:begin -->` and `<!-- NAME:end -->`: `results` (below), `ablation` (from
+`paper_table3_<GPU>.json`, written by `python -m garo_ns.bench.ablation`), `demo` (from `demo_cpu.json`, written by
+benchmarks/demo_measure.py) and `tests` (from `test_time_cpu.json`, written by benchmarks/test_time.py).
 
 Reads every `benchmarks/results/table1_<scene>_<GPU>.json` (written by `python -m garo_ns.bench.benchmark`;
 see docs/benchmarks.md) and makes one row per run: the baseline (`deform-splatfacto`) against GARO
@@ -231,6 +231,51 @@ def _load(results: Path, name: str) -> Tuple[Path, Optional[Dict[str, Any]]]:
     return path, json.loads(path.read_text()) if path.exists() else None
 
 
+ABLATION_FILE = re.compile(r"paper_table3_(?P<gpu>[^_]+)\.json")
+WHAT_IT_PRUNES = {
+    "garo-oaa": "activity alone",
+    "garo-gca": "curvature alone",
+    "garo-deform": "both (GARO)",
+}
+
+
+def ablation_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
+    """The paper's Table 3 (one scene: each criterion alone against both), from garo_ns.bench.ablation's files."""
+    paths = sorted(p for p in results.glob("paper_table3_*.json") if ABLATION_FILE.fullmatch(p.name))
+    if not paths:
+        return "\nThe ablation (the paper's Table 3) has not been run yet (`python -m garo_ns.bench.ablation`).\n"
+    out = []
+    for path in paths:
+        data = json.loads(path.read_text())
+        out += [
+            "",
+            f"{data['scene']} ({data['split']}), 40k steps, {data['gpu']}; each variant against the baseline trained "
+            f"in its own run ({_link(path, readme_dir)}):",
+            "",
+            "| variant | prunes by | runs | PSNR change | LPIPS base / variant | speed-up | Gaussians of base |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for name in data["variants"]:
+            row = data["rows"][name]
+            v, base = row[name], row[BASELINE]
+            out.append(
+                f"| `{name}` | {WHAT_IT_PRUNES.get(name, '-')} | {len(row.get('runs', [row]))} | "
+                f"{-v['psnr_drop_db']:+.2f} dB | {_lpips(base['lpips'])} / {_lpips(v['lpips'])} | "
+                f"{v['fps_ratio']:.2f}x | {v['gaussian_ratio']:.0%} |"
+            )
+        out += ["", data["ordering_sentence"]]
+        for name in data["variants"]:
+            v = data["rows"][name][name]
+            if "fps_ratio_range" in v:
+                lo, hi = v["fps_ratio_range"]
+                out += [
+                    "",
+                    f"`{name}`'s runs range from {lo:.2f}x to {hi:.2f}x: one run per variant is noise-level evidence "
+                    "for differences smaller than that.",
+                ]
+    return "\n".join(out + [""])
+
+
 def demo_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     """The demo's time, memory and table, from the demo's measured result file."""
     path, data = _load(results, DEMO_FILE)
@@ -273,7 +318,7 @@ def tests_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     )
 
 
-BLOCKS = {"results": render_block, "demo": demo_block, "tests": tests_block}
+BLOCKS = {"results": render_block, "ablation": ablation_block, "demo": demo_block, "tests": tests_block}
 
 
 def split_readme(text: str, name: str = "results") -> Tuple[str, str, str]:

@@ -112,3 +112,28 @@ def test_the_rho_figure_sorts_by_rho_reads_a_renamed_joint_row_and_says_where_th
     assert out.with_suffix(".png").stat().st_size > 0
     with pytest.raises(SystemExit, match="cannot read benchmark result"):
         main(AblationArgs(results=[tmp_path / "missing.json"], output=out))
+
+
+def test_the_readme_block_is_written_from_the_table3_file(tmp_path):
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    try:
+        import readme_results
+    finally:
+        sys.path.pop(0)
+    assert "has not been run yet" in readme_results.ablation_block(tmp_path, tmp_path)
+    a = _file(100.0, {"garo-oaa": _row(260.0, 36.8, 30_000), "garo-gca": _row(200.0, 36.7, 40_000)})
+    b = _file(200.0, {"garo-deform": _row(600.0, 36.95, 20_000)})
+    c = _file(100.0, {"garo-deform": _row(200.0, 36.85, 25_000)})
+    paths = []
+    for name, data in (("a.json", a), ("b.json", b), ("c.json", c)):
+        paths.append(tmp_path / name)
+        paths[-1].write_text(json.dumps(data))
+    main(AblationArgs(results=paths, output=tmp_path / "paper_table3_GPU.json"))
+    block = readme_results.ablation_block(tmp_path, tmp_path)
+    assert "| `garo-deform` | both (GARO) | 2 | -0.10 dB | 0.0100 / 0.0100 | 2.50x | 22% |" in block
+    assert "| `garo-oaa` | activity alone | 1 | -0.20 dB | 0.0100 / 0.0100 | 2.60x | 30% |" in block
+    assert "the joint criterion leads on PSNR and Gaussians only" in block
+    assert "`garo-deform`'s runs range from 2.00x to 3.00x" in block

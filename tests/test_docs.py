@@ -74,7 +74,7 @@ def test_readme_is_at_most_15_kb():
     assert (ROOT / "README.md").stat().st_size <= 15_000
 
 
-@pytest.mark.parametrize("block", ["demo", "tests"])
+@pytest.mark.parametrize("block", ["ablation", "demo", "tests"])
 def test_readme_demo_and_test_figures_come_from_their_result_files(tmp_path, block):
     """The demo's and the tests' figures are rewritten from their files; a typed change is caught."""
     readme = tmp_path / "README.md"
