@@ -18,11 +18,11 @@
 #                                                      --export-dir /tmp/garo-work/exports) as NAME.tar.part-aa...
 #                                                      (15 MiB parts: the most one file from $OUT may be)
 # A pair that does not fit one hold: export one arm in the first hold; here, `mkdir -p .trained/SCENE && cat
-# VARIANT.tar.part-* | tar -x -C .trained/SCENE` (git-ignored; it lasts this session only: the next one gets a fresh work tree, so both holds of a pair belong
-# to one session); in the next hold carry
-# .trained/SCENE/VARIANT in a call of its own (`mkdir -p /tmp/imports && cp -r .trained/SCENE/VARIANT
-# /tmp/imports/`; an export and a scene together pass the 64 MiB a call carries), then launch the other arm
-# with --pretrained /tmp/imports/VARIANT (garo_ns.bench.transfer).
+# VARIANT.tar.part-* | tar -x -C .trained/SCENE` (git-ignored; it lasts this session only, as the next session gets
+# a fresh work tree: both holds of a pair belong to one session); in the next hold carry .trained/SCENE/VARIANT in
+# a call of its own (`mkdir -p /tmp/imports && cp -r .trained/SCENE/VARIANT /tmp/imports/`; an export and a scene
+# together pass the 64 MiB a call carries), then launch the other arm with --pretrained /tmp/imports/VARIANT
+# (garo_ns.bench.transfer).
 # Scenes come from .scenes/<name> (../shared/device/make-device-kit.sh).
 # Training processes that share a GPU run under CUDA MPS (started by `setup` and `launch`, once per machine):
 # without it the GPU time-slices between processes and three 40k arms gave about 1.3x the throughput of one;
