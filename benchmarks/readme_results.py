@@ -247,10 +247,12 @@ def ablation_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     out = []
     for path in paths:
         data = json.loads(path.read_text())
+        arms = [arm for name in data["variants"] for arm in (data["rows"][name][name], data["rows"][name][BASELINE])]
+        steps = sorted({f"{a['iterations']:,}" if a.get("iterations") else "mixed" for a in arms})
         out += [
             "",
-            f"{data['scene']} ({data['split']}), 40k steps, {data['gpu']}; each variant against the baseline trained "
-            f"in its own run ({_link(path, readme_dir)}):",
+            f"{data['scene']} ({data['split']}), {' / '.join(steps)} steps, {data['gpu']}; each variant against the "
+            f"baseline trained in its own run ({_link(path, readme_dir)}):",
             "",
             "| variant | prunes by | runs | PSNR change | LPIPS base / variant | speed-up | Gaussians of base |",
             "|---|---|---|---|---|---|---|",

@@ -134,6 +134,7 @@ def test_the_readme_block_is_written_from_the_table3_file(tmp_path):
     main(AblationArgs(results=paths, output=tmp_path / "paper_table3_GPU.json"))
     block = readme_results.ablation_block(tmp_path, tmp_path)
     assert "| `garo-deform` | both (GARO) | 2 | -0.10 dB | 0.0100 / 0.0100 | 2.50x | 22% |" in block
+    assert "jj (test), 40,000 steps, H100;" in block
     assert "| `garo-oaa` | activity alone | 1 | -0.20 dB | 0.0100 / 0.0100 | 2.60x | 30% |" in block
     assert "the joint criterion leads on PSNR and Gaussians only" in block
     assert "`garo-deform`'s runs range from 2.00x to 3.00x" in block
