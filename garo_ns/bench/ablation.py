@@ -14,14 +14,13 @@ runs are never set against each other: the table and the figure compare the rati
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Tuple
 
 import tyro
 
-from garo_ns.bench.results import publish
+from garo_ns.bench.results import publish, read_results
 from garo_ns.bench.summary import BASELINE, CLAIM_FPS_RATIO, CLAIM_PSNR_DROP_DB, combine_runs, parse_aliases, scene_rows
 
 JOINT = "garo-deform"
@@ -244,12 +243,7 @@ def write_report(result: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
 
 def main(args: AblationArgs) -> Dict[str, Any]:
     """Read, build, write JSON, table and plot; print the table."""
-    loaded = []
-    for path in args.results:
-        try:
-            loaded.append((path.name, json.loads(Path(path).read_text())))
-        except (OSError, json.JSONDecodeError) as err:
-            raise SystemExit(f"error: cannot read benchmark result {path}: {err}") from None
+    loaded = read_results(args.results)
     try:
         result = build(args, loaded)
     except ValueError as err:

@@ -1,10 +1,10 @@
-"""Writing a benchmark result: the JSON, then its Markdown table and plot next to it."""
+"""Reading benchmark results, and writing one: the JSON, then its Markdown table and plot next to it."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, Callable, Dict, Tuple
+from typing import Any, Callable, Dict, List, Sequence, Tuple
 
 
 def publish(result: Dict[str, Any], output: Path, report: Callable[[Dict[str, Any], Path], Tuple[Path, Path]]) -> None:
@@ -14,3 +14,14 @@ def publish(result: Dict[str, Any], output: Path, report: Callable[[Dict[str, An
     md, png = report(result, output)
     print(md.read_text())
     print(f"wrote {output}, {md}, {png}")
+
+
+def read_results(paths: Sequence[Path]) -> List[Tuple[str, Dict[str, Any]]]:
+    """(file name, content) of each benchmark result JSON; exits with a clear message on an unreadable one."""
+    loaded = []
+    for path in paths:
+        try:
+            loaded.append((Path(path).name, json.loads(Path(path).read_text())))
+        except (OSError, json.JSONDecodeError) as err:
+            raise SystemExit(f"error: cannot read benchmark result {path}: {err}") from None
+    return loaded

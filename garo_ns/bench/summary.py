@@ -10,14 +10,13 @@ once: each value of its row is the mean over its runs, with the runs kept beside
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 import tyro
 
-from garo_ns.bench.results import publish
+from garo_ns.bench.results import publish, read_results
 from garo_ns.bench.transfer import trained_elsewhere
 
 BASELINE = "deform-splatfacto"
@@ -270,12 +269,7 @@ def write_report(summary: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
 
 def main(args: SummaryArgs) -> Dict[str, Any]:
     """Read, summarise, write JSON, table and plot; print the table."""
-    loaded = []
-    for path in args.results:
-        try:
-            loaded.append((path.name, json.loads(Path(path).read_text())))
-        except (OSError, json.JSONDecodeError) as err:
-            raise SystemExit(f"error: cannot read benchmark result {path}: {err}") from None
+    loaded = read_results(args.results)
     try:
         summary = summarise(loaded, list(args.variants), parse_aliases(args.aliases))
     except ValueError as err:
