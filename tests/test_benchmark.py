@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -233,3 +236,32 @@ def test_a_failing_re_timing_keeps_the_measured_rows(tmp_path, monkeypatch):
     assert result["paired_timing_error"] == "RuntimeError: no memory left"
     assert json.loads(out.read_text())["variants"]["deform-splatfacto"]["psnr"] > 0
     assert "fps_paired" not in result["variants"]["deform-splatfacto"]
+
+
+SCRIPTS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+@pytest.mark.slow
+def test_removal_curve_and_curvature_share_read_an_export(tmp_path):
+    """The scripts that read a trained export on a CPU (benchmarks/removal_curve.py, curvature_share.py)."""
+    scene = generate_scene(tmp_path / "scene", SceneSpec(resolution=32, n_train=8, n_val=3, n_test=3))
+    trained = run(tiny_run(scene, tmp_path, "a", variants=["garo-deform"], export_dir=tmp_path / "export"))
+    export = tmp_path / "export" / "garo-deform"
+    n = trained["variants"]["garo-deform"]["num_gaussians"]
+
+    curve = tmp_path / "curve.json"
+    cmd = [sys.executable, str(SCRIPTS / "removal_curve.py"), "--scene", str(scene), "--export", str(export)]
+    subprocess.run([*cmd, "--guard-views", "4", "--shares", "0", "0.5", "--output", str(curve)], check=True)
+    result = json.loads(curve.read_text())
+    assert result["num_gaussians"] == n and result["guard_views"] == 4 and result["score_views"] == 8
+    nothing, half = result["rows"]
+    assert nothing["removed"] == 0 and nothing["guard"] == {"mean_db": 0.0, "worst_db": 0.0}
+    assert nothing["test"] == {"mean_db": 0.0, "worst_db": 0.0}  # the same render, bit for bit
+    assert half["removed"] == n // 2 and half["test"]["worst_db"] >= half["test"]["mean_db"]
+
+    share = tmp_path / "share.json"
+    cmd = [sys.executable, str(SCRIPTS / "curvature_share.py"), "--scene", str(scene), "--exports", str(export)]
+    subprocess.run([*cmd, "--times", "2", "--output", str(share)], check=True)
+    by_time = json.loads(share.read_text())["runs"]["garo-deform"]["by_time"]
+    assert len(by_time) == 2
+    assert all(s["count"] == n and 0.0 <= s["share_under_tau"] <= 1.0 for s in by_time.values())
