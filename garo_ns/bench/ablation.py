@@ -8,7 +8,8 @@ several files hold it, averaged over them (`garo_ns.bench.summary.combine_runs`)
 runs are never set against each other: the table and the figure compare the ratios.
 
     python -m garo_ns.bench.ablation benchmarks/results/table3_jumpingjacks_H100.json \
-        benchmarks/results/table1_jumpingjacks_run2_H100.json --output benchmarks/results/paper_table3_H100.json
+        benchmarks/results/table1_jumpingjacks_H100.json benchmarks/results/table1_jumpingjacks_run2_H100.json \
+        --aliases garo-window=garo-deform --output benchmarks/results/paper_table3_H100.json
     python -m garo_ns.bench.ablation FILES... --figure rho --output benchmarks/results/paper_fig5_H100.json
 """
 
@@ -25,9 +26,9 @@ from garo_ns.bench.summary import BASELINE, CLAIM_FPS_RATIO, CLAIM_PSNR_DROP_DB,
 
 JOINT = "garo-deform"
 SINGLE_CRITERIA = ("garo-oaa", "garo-gca")  # activity alone (the paper's "w/o GCA"), curvature alone ("w/o OAA")
-# Each measure of the ordering, as (key in a row, label, True where larger is better).
 # What a variant's rows must agree on across files to count as runs of one variant.
 SETTINGS = ("garo_mode", "rho_max")
+# Each measure of the ordering, as (key in a row, label, True where larger is better).
 MEASURES = (("psnr_drop_db", "PSNR", False), ("fps_ratio", "FPS", True), ("gaussian_ratio", "Gaussians", False))
 
 
