@@ -5,12 +5,17 @@ PSNR against rho_max) compare several variants on one scene. Five 40k arms do no
 variants may come from several benchmark files of the scene, each holding the baseline trained beside them.
 A variant's speed-up, PSNR drop and Gaussian ratio are taken within its own file (same run, same GPU) and, where
 several files hold it, averaged over them (`garo_ns.bench.summary.combine_runs`). Absolute FPS of different
-runs are never set against each other: the table and the figure compare the ratios.
+runs are never set against each other: the table and the figure compare the ratios. PSNR is also read
+against the mean of every file's baseline (one run's baseline strays by tenths of a dB), and a speed-up also
+from the benchmark's alternating re-timing where the run made one.
 
-    python -m garo_ns.bench.ablation benchmarks/results/table3_jumpingjacks_H100.json \
-        benchmarks/results/table1_jumpingjacks_H100.json benchmarks/results/table1_jumpingjacks_run2_H100.json \
-        --aliases garo-window=garo-deform --output benchmarks/results/paper_table3_H100.json
-    python -m garo_ns.bench.ablation FILES... --figure rho --output benchmarks/results/paper_fig5_H100.json
+The commands that made the committed files (R=benchmarks/results):
+    python -m garo_ns.bench.ablation $R/table3_jumpingjacks_H100.json $R/table1_jumpingjacks_H100.json \
+        $R/table1_jumpingjacks_run2_H100.json $R/fig5a_jumpingjacks_H100.json \
+        --aliases garo-window=garo-deform --output $R/paper_table3_H100.json
+    python -m garo_ns.bench.ablation $R/fig5a_jumpingjacks_H100.json $R/table1_jumpingjacks_H100.json \
+        $R/table1_jumpingjacks_run2_H100.json $R/table3_jumpingjacks_H100.json --figure rho \
+        --aliases garo-window=garo-deform --output $R/paper_fig5_H100.json
 """
 
 from __future__ import annotations
@@ -116,6 +121,32 @@ def ordering_sentence(order: Dict[str, Any]) -> str:
     return f"Measured order, best first ({'; '.join(parts)}): {verdict} here."
 
 
+def pooled_baseline(results: List[Tuple[str, Dict[str, Any]]]) -> Dict[str, Any]:
+    """The baseline's PSNR and LPIPS over every file given: its mean, its spread and each file's value.
+
+    One scene's baseline retrained with the same recipe differs by a few tenths of a dB from run to run, as
+    much as the drops an ablation compares; the mean of all its runs is the steadier reference for PSNR. (FPS
+    is never pooled: a speed-up is taken within one run.)"""
+    psnr = {source: result["variants"][BASELINE]["psnr"] for source, result in results}
+    lpips = [result["variants"][BASELINE].get("lpips") for _, result in results]
+    lpips = [v for v in lpips if v is not None]
+    return {
+        "runs": len(psnr),
+        "psnr_mean": sum(psnr.values()) / len(psnr),
+        "psnr_range": [min(psnr.values()), max(psnr.values())],
+        "lpips_mean": sum(lpips) / len(lpips) if lpips else None,
+        "psnr_per_file": psnr,
+    }
+
+
+def paired_ratio(row: Dict[str, Any], name: str) -> Optional[float]:
+    """Mean of the variant's speed-ups from the benchmark's alternating re-timing (`fps_paired`) over the runs
+    that have one, or None where none has."""
+    runs = row.get("runs", [row])
+    ratios = [r[name]["fps_ratio_paired"] for r in runs if "fps_ratio_paired" in r[name]]
+    return sum(ratios) / len(ratios) if ratios else None
+
+
 def rho_of(row: Dict[str, Any]) -> Optional[float]:
     """rho_max of a variant's row (recorded by the benchmark), or None where the row does not say."""
     value = row["settings"].get("rho_max")
@@ -132,6 +163,11 @@ def build(args: AblationArgs, results: List[Tuple[str, Dict[str, Any]]]) -> Dict
         arms = {n for _, r in results for n in _found(r, aliases) if "+" not in n}  # `+` names are render rows
         variants = sorted(n for n in arms if n == JOINT or n.startswith("garo-rho"))
     rows = variant_rows(results, variants, aliases)
+    pooled = pooled_baseline(results)
+    for name in variants:
+        v = rows[name][name]
+        v["psnr_drop_vs_pooled_db"] = pooled["psnr_mean"] - v["psnr"]
+        v["fps_ratio_paired"] = paired_ratio(rows[name], name)
     first = results[0][1]
     out: Dict[str, Any] = {
         "figure": args.figure,
@@ -140,6 +176,7 @@ def build(args: AblationArgs, results: List[Tuple[str, Dict[str, Any]]]) -> Dict
         "gpu": first.get("gpu"),
         "variants": variants,
         "rows": rows,
+        "baseline_pooled": pooled,
         "note": "Each variant's ratios are taken against the baseline of its own file (same run, same GPU) and "
         "averaged over the files that hold it",
     }
@@ -156,13 +193,25 @@ def build(args: AblationArgs, results: List[Tuple[str, Dict[str, Any]]]) -> Dict
             if rho is None:
                 raise ValueError(f"{name}: its row records no rho_max")
             v = rows[name][name]
-            sweep.append({"variant": name, "rho_max": rho, **{k: v[k] for k in ("fps_ratio", "psnr_drop_db")}})
+            keys = ("fps_ratio", "fps_ratio_paired", "psnr_drop_db", "psnr_drop_vs_pooled_db")
+            sweep.append({"variant": name, "rho_max": rho, **{k: v[k] for k in keys}})
         sweep.sort(key=lambda s: s["rho_max"])
         out["sweep"] = sweep
         out["claim_met_at_rho"] = [
             s["rho_max"] for s in sweep if s["fps_ratio"] >= CLAIM_FPS_RATIO and s["psnr_drop_db"] <= CLAIM_PSNR_DROP_DB
         ]
+        # The same verdict read with the steadier PSNR reference and the re-timed speed-up, where there is one.
+        out["claim_met_at_rho_pooled_paired"] = [
+            s["rho_max"]
+            for s in sweep
+            if (s["fps_ratio_paired"] or s["fps_ratio"]) >= CLAIM_FPS_RATIO
+            and s["psnr_drop_vs_pooled_db"] <= CLAIM_PSNR_DROP_DB
+        ]
     return out
+
+
+def _rho_list(rhos: List[float]) -> str:
+    return f"met at rho_max {', '.join(f'{r:g}' for r in rhos)}" if rhos else "met at no rho_max tried"
 
 
 def write_report(result: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
@@ -174,22 +223,33 @@ def write_report(result: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
 
     title = "Table 3 (ablation)" if result["figure"] == "table3" else "Fig. 5 (rho_max)"
     lines = [f"# {title}: {result['scene']} ({result['split']}) on {result['gpu']}", ""]
+    pooled = result["baseline_pooled"]
     lines += [
-        "| variant | rho_max | runs | PSNR | baseline PSNR | PSNR drop | LPIPS | speed-up | Gaussians | of baseline |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| variant | rho_max | runs | PSNR | baseline PSNR | PSNR drop | drop vs all baselines | LPIPS | speed-up | "
+        "re-timed | Gaussians | of baseline |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name in result["variants"]:
         row = result["rows"][name]
         v, base = row[name], row[BASELINE]
         rho = rho_of(row)
         lpips = "-" if v.get("lpips") is None else f"{v['lpips']:.4f}"
+        paired = "-" if v.get("fps_ratio_paired") is None else f"{v['fps_ratio_paired']:.2f}x"
         lines.append(
             f"| {name} | {'-' if rho is None else f'{rho:g}'} | {len(row.get('runs', [row]))} | {v['psnr']:.2f} | "
-            f"{base['psnr']:.2f} | {v['psnr_drop_db']:+.2f} | {lpips} | {v['fps_ratio']:.2f}x | "
-            f"{v['num_gaussians']:,.0f} | {v['gaussian_ratio']:.0%} |"
+            f"{base['psnr']:.2f} | {v['psnr_drop_db']:+.2f} | {v['psnr_drop_vs_pooled_db']:+.2f} | {lpips} | "
+            f"{v['fps_ratio']:.2f}x | {paired} | {v['num_gaussians']:,.0f} | {v['gaussian_ratio']:.0%} |"
         )
     lines += ["", "Sources: " + "; ".join(f"{n}: {result['rows'][n]['source']}" for n in result["variants"]) + "."]
     lines += ["", result["note"] + "."]
+    lo, hi = pooled["psnr_range"]
+    lines += [
+        "",
+        f"The baseline over these {pooled['runs']} runs: {lo:.2f} to {hi:.2f} dB (mean {pooled['psnr_mean']:.2f}). "
+        "`drop vs all baselines` sets each variant's PSNR against that mean, the steadier reference when one run's "
+        "baseline strays; `re-timed` is the speed-up of the benchmark's alternating timing passes (`fps_paired`), "
+        "where the run made them.",
+    ]
     for name in result["variants"]:  # a repeated variant shows how far one run can stray
         v = result["rows"][name][name]
         if "fps_ratio_range" in v:
@@ -207,7 +267,10 @@ def write_report(result: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
         lines += [
             "",
             f"The paper's claim ({CLAIM_FPS_RATIO:.1f}x at <= {CLAIM_PSNR_DROP_DB} dB) on this scene: "
-            + (f"met at rho_max {', '.join(f'{r:g}' for r in met)}." if met else "met at no rho_max tried."),
+            + _rho_list(met)
+            + "; read against the mean of all baselines and with the re-timed speed-up where there is one: "
+            + _rho_list(result["claim_met_at_rho_pooled_paired"])
+            + ".",
         ]
     md = output.with_suffix(".md")
     md.write_text("\n".join(lines) + "\n")
@@ -216,9 +279,17 @@ def write_report(result: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
     fig, axes = plt.subplots(1, 2 if rho_figure else 1, figsize=(9 if rho_figure else 5.5, 4))
     if rho_figure:
         rho = [s["rho_max"] for s in result["sweep"]]
-        panels = (("fps_ratio", "speed-up over the baseline"), ("psnr_drop_db", "PSNR drop (dB)"))
-        for ax, (key, label) in zip(axes, panels):
-            ax.plot(rho, [s[key] for s in result["sweep"]], "o-")
+        # Each panel: the within-run reading, and the second reading the table gives (dashed).
+        panels = (
+            ("fps_ratio", "fps_ratio_paired", "speed-up over the baseline", "re-timed"),
+            ("psnr_drop_db", "psnr_drop_vs_pooled_db", "PSNR drop (dB)", "vs all baselines"),
+        )
+        for ax, (key, second, label, second_label) in zip(axes, panels):
+            ax.plot(rho, [s[key] for s in result["sweep"]], "o-", label="own run's baseline")
+            pairs = [(r, s[second]) for r, s in zip(rho, result["sweep"]) if s[second] is not None]
+            if pairs:
+                ax.plot(*zip(*pairs), "s--", color="C1", label=second_label)
+            ax.legend(fontsize=8)
             ax.set_xscale("log")
             ax.set_xlabel("rho_max")
             ax.set_ylabel(label)
