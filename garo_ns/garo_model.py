@@ -53,7 +53,9 @@ class GaroModelConfig(
     _target: Type = field(default_factory=lambda: GaroModel)
 
     def __post_init__(self) -> None:
-        self.compaction()  # a compaction setting out of range fails here, before any training
+        # A compaction or GARO setting out of range fails here, before any training.
+        self.compaction()
+        self.validate_garo()
 
     def make_strategy(self) -> GaroStrategy:
         """The densification and GARO strategy these settings describe."""

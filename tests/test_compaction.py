@@ -728,7 +728,12 @@ def test_benchmark_variants_of_compaction(tmp_path):
         "compact_start": 12000,
     }
     assert isinstance(overrides["compact_max_rounds"], int) and split_variant(name + "+auto")[0] == name
-    with pytest.raises(ValueError, match="unknown compaction setting 'share'.*fraction"):
+    # GARO's cap too: a gentler GARO leaves more to compaction's measured removals.
+    assert variant_settings("garo-compact--rho_max-0.01--round_bound_db-0.3") == (
+        "garo-compact",
+        {"rho_max": 0.01, "compact_round_bound_db": 0.3},
+    )
+    with pytest.raises(ValueError, match="unknown compaction setting 'share'.*fraction.*GARO's \\['rho_max'\\]"):
         variant_settings("garo-compact--share-0.3")
     with pytest.raises(ValueError, match="'max_rounds' .* needs an integer, got '4.5'"):
         variant_settings("garo-compact--max_rounds-4.5")
@@ -741,6 +746,10 @@ def test_benchmark_variants_of_compaction(tmp_path):
     check_variant(name + "+auto")
     with pytest.raises(GaroConfigError, match="compact-fraction must be in"):
         check_variant("garo-compact--fraction-1.5")
+    with pytest.raises(GaroConfigError, match="rho-max must be in \\[0, 1\\], got 1.5"):
+        check_variant("garo-compact--rho_max-1.5")
+    with pytest.raises(GaroConfigError, match="rho-max must be in"):
+        check_variant("garo-rho2")
     with pytest.raises(ValueError, match="unknown render switch"):
         check_variant("garo-deform+tf32")
     args = BenchArgs(scene=tmp_path / "none", work_dir=tmp_path / "runs", variants=["garo-compact--fraction-1.5"])

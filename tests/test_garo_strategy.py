@@ -368,3 +368,34 @@ def test_step_0_keeps_the_opacities_wherever_refinement_could_reset_them(start, 
     )
     assert untouched == kept
     assert (state["count"] is not None) == recorded
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("rho_max", 1.5),  # would prune more than every candidate's cap allows
+        ("rho_max", -0.1),
+        ("rho_max", float("nan")),
+        ("tau_activity", -1e-5),
+        ("tau_curvature", float("inf")),
+        ("n_max", -1),
+        ("k_neighbors", 0),
+        ("garo_every", 0),
+        ("garo_start", -1),
+        ("prune_contribution_ratio", 1.0),  # would prune everything
+    ],
+)
+def test_garo_settings_out_of_range_fail_naming_the_flag(field, value):
+    from garo_ns.errors import GaroConfigError
+    from garo_ns.garo_model import GaroModelConfig
+
+    flag = f"--pipeline.model.{field.replace('_', '-')}"
+    with pytest.raises(GaroConfigError, match=f"^{flag} must be"):
+        GaroModelConfig(**{field: value})  # what the command line builds
+
+
+def test_garo_settings_at_their_limits_are_accepted():
+    from garo_ns.garo_model import GaroModelConfig
+
+    GaroModelConfig(rho_max=0.0, tau_activity=0.0, tau_curvature=1.0, n_max=0, k_neighbors=1, garo_every=1)
+    GaroModelConfig(rho_max=1.0, garo_start=0, garo_stop=0, prune_contribution_ratio=0.5)

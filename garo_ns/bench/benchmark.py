@@ -89,36 +89,44 @@ def split_variant(name: str) -> Tuple[str, Dict[str, Any]]:
 
 
 def compaction_overrides(name: str) -> Dict[str, Any]:
-    """The compaction settings a `garo-compact--<setting>-<value>--...` name sets, e.g.
+    """The settings a `garo-compact--<setting>-<value>--...` name sets, e.g.
     `garo-compact--fraction-0.3--round_bound_db-0.05` (settings named as `compact_<setting>` in
-    garo_ns.compaction.schedule.CompactionSettings), so that one run can train several settings side by
-    side; only letters, digits, `.`, `_` and `-`, as the result files and exports are named after it."""
+    garo_ns.compaction.schedule.CompactionSettings, plus GARO's `rho_max`: how much GARO prunes before
+    compaction measures the rest), so that one run can train several settings side by side; only letters,
+    digits, `.`, `_` and `-`, as the result files and exports are named after it."""
     from garo_ns.compaction.schedule import CompactionSettings
 
     known = {f.name[len("compact_") :]: f for f in fields(CompactionSettings) if f.name.startswith("compact_")}
+    garo = {"rho_max"}
     overrides: Dict[str, Any] = {}
     for item in name.split("--")[1:]:
         key, _, text = item.partition("-")
-        if key not in known:
-            raise ValueError(f"unknown compaction setting {key!r} in {name!r} (known: {sorted(known)})")
-        integer = isinstance(known[key].default, int) or key == "start"  # start: None or a step
+        if key not in known and key not in garo:
+            raise ValueError(
+                f"unknown compaction setting {key!r} in {name!r} (known: {sorted(known)}, and GARO's {sorted(garo)})"
+            )
+        integer = key in known and (isinstance(known[key].default, int) or key == "start")  # start: None or a step
         try:
-            overrides[f"compact_{key}"] = int(text) if integer else float(text)
+            value = int(text) if integer else float(text)
         except ValueError:
             kind = "an integer" if integer else "a number"
-            raise ValueError(f"compaction setting {key!r} in {name!r} needs {kind}, got {text!r}") from None
+            raise ValueError(f"setting {key!r} in {name!r} needs {kind}, got {text!r}") from None
+        overrides[key if key in garo else f"compact_{key}"] = value
     return overrides
 
 
 def check_variant(name: str) -> None:
-    """Raise for a variant name, render switch or compaction setting that training would refuse, before
+    """Raise for a variant name, render switch, compaction or GARO setting that training would refuse, before
     any run starts (a worker failing after the others trained would cost their GPU time)."""
     from garo_ns.compaction.schedule import CompactionSettings
+    from garo_ns.garo_strategy import GaroSettings
 
     _, overrides = variant_settings(split_variant(name)[0])
     compact = {k: v for k, v in overrides.items() if k.startswith("compact_")}
     if compact:
         CompactionSettings(**compact).compaction()  # GaroConfigError out of range
+    garo = {k: v for k, v in overrides.items() if k in {f.name for f in fields(GaroSettings)}}
+    GaroSettings(**garo).validate_garo()
 
 
 def variant_settings(name: str) -> Tuple[str, Dict[str, Any]]:
