@@ -203,7 +203,8 @@ score)
   if [ -e /tmp/kit/prelude.sh ]; then source /tmp/kit/prelude.sh; else source .device/prelude.sh; fi
   export PYTHONPATH=$W/garo_head:${PYTHONPATH:-} # the committed evaluation code (SOURCES.json names the commit)
   gpu=$(nvidia-smi --query-gpu=name --format=csv,noheader | head -1 | grep -o 'H[0-9]\{3\}' || echo GPU)
-  python3 benchmarks/official_score.py --work $W --code $W/code --scenes $(cat $W/scenes) \
+  # Scored and timed on the GPU the runs trained on: on a 2-GPU machine the other may be timing our arms.
+  CUDA_VISIBLE_DEVICES=${GPU:-0} python3 benchmarks/official_score.py --work $W --code $W/code --scenes $(cat $W/scenes) \
     --sources $W/code/SOURCES.json --note "${SHARING_NOTE:-}" --output $W/results/official_d3dgs_$gpu.json 2>&1 | tee $W/score.log
   if [ -n "${OUT:-}" ]; then
     cp $W/results/*.json $OUT/
