@@ -26,6 +26,7 @@ import sys
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
+from garo_ns.bench.ablation import paired_text
 from garo_ns.bench.transfer import trained_elsewhere
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -300,7 +301,7 @@ def rho_lines(data: Dict[str, Any], path: Path, readme_dir: Path) -> List[str]:
     for step in data["sweep"]:
         row = data["rows"][step["variant"]]
         v = row[step["variant"]]
-        paired = "-" if step["fps_ratio_paired"] is None else f"{step['fps_ratio_paired']:.2f}x"
+        paired = paired_text(v, len(row.get("runs", [row])))
         out.append(
             f"| {step['rho_max']:g} | {len(row.get('runs', [row]))} | {-step['psnr_drop_db']:+.2f} dB | "
             f"{-step['psnr_drop_vs_pooled_db']:+.2f} dB | {step['fps_ratio']:.2f}x | {paired} | "

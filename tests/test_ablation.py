@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from garo_ns.bench.ablation import AblationArgs, build, main, ordering, ordering_sentence, variant_rows
+from garo_ns.bench.ablation import AblationArgs, build, main, ordering, ordering_sentence, paired_text, variant_rows
 
 
 def _row(fps, psnr, n, **settings):
@@ -198,3 +198,15 @@ def test_the_readme_block_adds_the_rho_table_from_the_fig5_file(tmp_path):
     assert "| 0.02 | 1 | +0.10 dB | -0.00 dB | 1.50x | - | 30% |" in block
     assert "| 0.05 | 1 | -0.30 dB | -0.20 dB | 2.50x | - | 20% |" in block
     assert "holds at rho_max 0.05 within each run, and at rho_max 0.05 against all baselines" in block
+
+
+def test_a_re_timed_speed_up_from_some_of_a_variants_runs_says_how_many():
+    with_retime = _file(100.0, {"garo-deform": {**_row(200.0, 36.8, 30_000), "fps_paired": {"fps": 180.0}}})
+    with_retime["variants"]["deform-splatfacto"]["fps_paired"] = {"fps": 100.0}
+    without = _file(100.0, {"garo-deform": _row(150.0, 36.9, 30_000)})
+    result = build(AblationArgs(results=[], figure="rho"), [("a", with_retime), ("b", without)])
+    v = result["rows"]["garo-deform"]["garo-deform"]
+    assert v["fps_ratio_paired"] == pytest.approx(1.8) and v["fps_ratio_paired_runs"] == 1
+    assert paired_text(v, 2) == "1.80x (1 of 2 runs)"
+    assert paired_text(v, 1) == "1.80x"
+    assert paired_text({"fps_ratio_paired": None}, 2) == "-"

@@ -139,12 +139,21 @@ def pooled_baseline(results: List[Tuple[str, Dict[str, Any]]]) -> Dict[str, Any]
     }
 
 
-def paired_ratio(row: Dict[str, Any], name: str) -> Optional[float]:
+def paired_ratio(row: Dict[str, Any], name: str) -> Tuple[Optional[float], int]:
     """Mean of the variant's speed-ups from the benchmark's alternating re-timing (`fps_paired`) over the runs
-    that have one, or None where none has."""
+    that have one (None where none has), and how many runs that is."""
     runs = row.get("runs", [row])
     ratios = [r[name]["fps_ratio_paired"] for r in runs if "fps_ratio_paired" in r[name]]
-    return sum(ratios) / len(ratios) if ratios else None
+    return (sum(ratios) / len(ratios) if ratios else None), len(ratios)
+
+
+def paired_text(v: Dict[str, Any], runs: int) -> str:
+    """The re-timed speed-up as a table shows it, naming how many of the variant's runs it comes from when
+    not all."""
+    if v.get("fps_ratio_paired") is None:
+        return "-"
+    some = v.get("fps_ratio_paired_runs", runs)
+    return f"{v['fps_ratio_paired']:.2f}x" + (f" ({some} of {runs} runs)" if some < runs else "")
 
 
 def rho_of(row: Dict[str, Any]) -> Optional[float]:
@@ -167,7 +176,7 @@ def build(args: AblationArgs, results: List[Tuple[str, Dict[str, Any]]]) -> Dict
     for name in variants:
         v = rows[name][name]
         v["psnr_drop_vs_pooled_db"] = pooled["psnr_mean"] - v["psnr"]
-        v["fps_ratio_paired"] = paired_ratio(rows[name], name)
+        v["fps_ratio_paired"], v["fps_ratio_paired_runs"] = paired_ratio(rows[name], name)
     first = results[0][1]
     out: Dict[str, Any] = {
         "figure": args.figure,
@@ -234,7 +243,7 @@ def write_report(result: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
         v, base = row[name], row[BASELINE]
         rho = rho_of(row)
         lpips = "-" if v.get("lpips") is None else f"{v['lpips']:.4f}"
-        paired = "-" if v.get("fps_ratio_paired") is None else f"{v['fps_ratio_paired']:.2f}x"
+        paired = paired_text(v, len(row.get("runs", [row])))
         lines.append(
             f"| {name} | {'-' if rho is None else f'{rho:g}'} | {len(row.get('runs', [row]))} | {v['psnr']:.2f} | "
             f"{base['psnr']:.2f} | {v['psnr_drop_db']:+.2f} | {v['psnr_drop_vs_pooled_db']:+.2f} | {lpips} | "
