@@ -64,6 +64,10 @@ def test_refuses_what_is_not_one_scenes_runs_of_one_variant():
         variant_rows([("a", a), ("b", other)], ["garo-deform"])
     with pytest.raises(ValueError, match="Table 3 needs"):
         build(AblationArgs(results=[], variants=["garo-deform"]), [("a", a)])
+    short = _file(100.0, {"garo-deform": _row(200.0, 36.8, 40_000)})
+    short["variants"]["deform-splatfacto"]["iterations"] = 18_000
+    with pytest.raises(ValueError, match="different numbers of steps"):
+        build(AblationArgs(results=[], figure="rho"), [("a", a), ("short", short)])
 
 
 def _table3(joint, oaa, gca):

@@ -127,6 +127,9 @@ def pooled_baseline(results: List[Tuple[str, Dict[str, Any]]]) -> Dict[str, Any]
     One scene's baseline retrained with the same recipe differs by a few tenths of a dB from run to run, as
     much as the drops an ablation compares; the mean of all its runs is the steadier reference for PSNR. (FPS
     is never pooled: a speed-up is taken within one run.)"""
+    steps = {source: result["variants"][BASELINE].get("iterations") for source, result in results}
+    if len(set(steps.values())) > 1:  # a shorter schedule scores lower: its baseline is no repeat of the others
+        raise ValueError(f"the baselines were trained for different numbers of steps: {steps}")
     psnr = {source: result["variants"][BASELINE]["psnr"] for source, result in results}
     lpips = [result["variants"][BASELINE].get("lpips") for _, result in results]
     lpips = [v for v in lpips if v is not None]
