@@ -33,13 +33,9 @@ from garo_ns.render.half_field import FieldWeights, Offsets, PositionCache, head
 LayerDtype = Callable[[int], torch.dtype]
 
 
-def mixed_forward(
-    field: Any, xyz: torch.Tensor, tfeat: torch.Tensor, layer_dtype: LayerDtype, cache_dtype: torch.dtype
-) -> Offsets:
-    """The cached field (as `half_field.cached_forward` computes it) with layer i in `layer_dtype(i)`, the
-    position cache stored in `cache_dtype`, the heads in fp32."""
-    w = FieldWeights.of(field, torch.float32)
-    cache = PositionCache.build(field, xyz, cache_dtype)
+def mixed_forward(w: FieldWeights, cache: PositionCache, tfeat: torch.Tensor, layer_dtype: LayerDtype) -> Offsets:
+    """The cached field (as `half_field.cached_forward` computes it, from fp32 weights `w`) with layer i in
+    `layer_dtype(i)` and the heads in fp32; `cache` holds the position parts in the dtype they are kept in."""
     dtype = layer_dtype(0)
     h = (cache.first.to(dtype) + F.linear(tfeat.to(dtype), w.first_time.to(dtype))).relu_()
     for i in range(1, len(w.layers)):
@@ -71,12 +67,14 @@ def configurations(layers: int) -> Dict[str, tuple]:
 def offset_errors(field: Any, xyz: torch.Tensor, times: List[float]) -> Dict[str, Dict[str, float]]:
     """Per configuration: largest and RMS error of each offset against the fp32 field, over Gaussians and times."""
     extent = float((xyz.max(0).values - xyz.min(0).values).norm())
+    w = FieldWeights.of(field, torch.float32)
+    caches = {dtype: PositionCache.build(field, xyz, dtype) for dtype in (torch.float16, torch.float32)}
     sums: Dict[str, Dict[str, float]] = {}
     for t in times:
         tfeat = time_features(field, t, xyz.device)
-        ref = mixed_forward(field, xyz, tfeat, lambda i: torch.float32, torch.float32)
+        ref = mixed_forward(w, caches[torch.float32], tfeat, lambda i: torch.float32)
         for name, (layer_dtype, cache_dtype) in configurations(len(field.layers)).items():
-            got = mixed_forward(field, xyz, tfeat, layer_dtype, cache_dtype)
+            got = mixed_forward(w, caches[cache_dtype], tfeat, layer_dtype)
             errors = {
                 "xyz_of_extent": (got[0] - ref[0]).norm(dim=-1) / extent,
                 "rotation": (got[1] - ref[1]).norm(dim=-1),

@@ -1,5 +1,10 @@
 """User-facing errors of the plugin, printed as one line by the `ns-*` commands (see compat)."""
 
+from __future__ import annotations
+
+import math
+from typing import Any, Mapping, Tuple
+
 
 class GaroError(Exception):
     """An error whose message is the whole story: no traceback is shown for it."""
@@ -15,3 +20,17 @@ class GaroTrainingError(GaroError, RuntimeError):
 
 class GaroConfigError(GaroError, ValueError):
     """A setting out of its range, named by its flag; raised before training starts."""
+
+
+def finite_number(value: Any) -> bool:
+    """Whether `value` is an int or float and finite (NaN and infinities fail a range check)."""
+    return isinstance(value, (int, float)) and math.isfinite(value)
+
+
+def check_ranges(settings: Any, checks: Mapping[str, Tuple[bool, str]], flag_prefix: str = "") -> None:
+    """Raise GaroConfigError for the first failed check, naming its flag (`--pipeline.model.<prefix><name>`),
+    the range (`checks[name] = (ok, range in words)`) and the value (`settings.<name with _ for ->`)."""
+    for name, (ok, limit) in checks.items():
+        if not ok:
+            value = getattr(settings, name.replace("-", "_"))
+            raise GaroConfigError(f"--pipeline.model.{flag_prefix}{name} must be {limit}, got {value!r}")

@@ -30,7 +30,6 @@ what it did in `state["garo_last"]`, `state["compact"]` and return values; loggi
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 from typing import Any, Callable, Dict, Literal, Optional, Tuple, Union
@@ -42,7 +41,7 @@ from torch import Tensor
 
 from garo_ns.compaction.decision import CostFn, committed_cost, decide
 from garo_ns.compaction.schedule import Compaction
-from garo_ns.errors import GaroConfigError
+from garo_ns.errors import check_ranges, finite_number
 from garo_ns.redundancy.activity import mean_activity, record
 from garo_ns.redundancy.normals import normals
 from garo_ns.redundancy.select import least_contributing, select_redundant
@@ -372,30 +371,24 @@ class GaroSettings:
         rho_max above 1 or a negative threshold would not fail later, it would prune what the user did not
         ask for."""
 
-        def number(value: Any) -> bool:
-            return isinstance(value, (int, float)) and math.isfinite(value)
-
         def step(value: Optional[int], low: int) -> bool:
             return value is None or value >= low
 
         checks = {
-            "rho-max": (number(self.rho_max) and 0 <= self.rho_max <= 1, "in [0, 1]"),
-            "tau-activity": (number(self.tau_activity) and self.tau_activity >= 0, "a number >= 0"),
-            "tau-curvature": (number(self.tau_curvature) and self.tau_curvature >= 0, "a number >= 0"),
+            "rho-max": (finite_number(self.rho_max) and 0 <= self.rho_max <= 1, "in [0, 1]"),
+            "tau-activity": (finite_number(self.tau_activity) and self.tau_activity >= 0, "a number >= 0"),
+            "tau-curvature": (finite_number(self.tau_curvature) and self.tau_curvature >= 0, "a number >= 0"),
             "n-max": (self.n_max >= 0, ">= 0"),
             "k-neighbors": (self.k_neighbors >= 1, ">= 1"),
             "garo-start": (step(self.garo_start, 0), "a step >= 0 or None"),
             "garo-stop": (step(self.garo_stop, 0), "a step >= 0 or None"),
             "garo-every": (step(self.garo_every, 1), ">= 1 or None"),
             "prune-contribution-ratio": (
-                number(self.prune_contribution_ratio) and 0 <= self.prune_contribution_ratio < 1,
+                finite_number(self.prune_contribution_ratio) and 0 <= self.prune_contribution_ratio < 1,
                 "in [0, 1)",
             ),
         }
-        for name, (ok, limit) in checks.items():
-            if not ok:
-                value = getattr(self, name.replace("-", "_"))
-                raise GaroConfigError(f"--pipeline.model.{name} must be {limit}, got {value!r}")
+        check_ranges(self, checks)
 
     def garo_arguments(self) -> Dict[str, Any]:
         """GaroStrategy's GARO arguments from these settings."""

@@ -8,7 +8,7 @@ from pathlib import Path
 import torch
 
 from garo_ns.deformation import DeformationField
-from garo_ns.render.half_field import time_features
+from garo_ns.render.half_field import FieldWeights, PositionCache, time_features
 
 _spec = importlib.util.spec_from_file_location(
     "half_error", Path(__file__).resolve().parents[1] / "benchmarks" / "half_error.py"
@@ -30,9 +30,9 @@ def test_the_mixed_forward_in_fp32_is_the_field_itself():
     field, xyz = _field_and_points()
     with torch.no_grad():
         ref = field(xyz, 0.4)
-        got = half_error.mixed_forward(
-            field, xyz, time_features(field, 0.4, xyz.device), lambda i: torch.float32, torch.float32
-        )
+        w = FieldWeights.of(field, torch.float32)
+        cache = PositionCache.build(field, xyz, torch.float32)
+        got = half_error.mixed_forward(w, cache, time_features(field, 0.4, xyz.device), lambda i: torch.float32)
     for a, b in zip(got, ref):
         assert torch.allclose(a, b, atol=1e-5)
 

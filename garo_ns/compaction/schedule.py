@@ -16,7 +16,7 @@ import math
 from dataclasses import asdict, dataclass
 from typing import Any, Dict, List, Optional
 
-from garo_ns.errors import GaroConfigError
+from garo_ns.errors import check_ranges, finite_number
 
 # Why a compaction stopped: the summary's `reason`, one of these.
 REASONS = {
@@ -66,24 +66,21 @@ class Compaction:
     def validate(self, prefix: str = "compact-") -> None:
         """Raise GaroConfigError, naming the flag, for a setting out of its range (NaN included)."""
         checks = {
-            "round-bound-db": (_finite(self.round_bound_db) and self.round_bound_db >= 0, "a number of dB >= 0"),
-            "budget-db": (_finite(self.budget_db) and self.budget_db >= 0, "a number of dB >= 0"),
-            "fraction": (_finite(self.fraction) and 0 < self.fraction < 1, "in (0, 1)"),
+            "round-bound-db": (finite_number(self.round_bound_db) and self.round_bound_db >= 0, "a number of dB >= 0"),
+            "budget-db": (finite_number(self.budget_db) and self.budget_db >= 0, "a number of dB >= 0"),
+            "fraction": (finite_number(self.fraction) and 0 < self.fraction < 1, "in (0, 1)"),
             "min-fraction": (
-                _finite(self.min_fraction) and 0 < self.min_fraction <= self.fraction,
+                finite_number(self.min_fraction) and 0 < self.min_fraction <= self.fraction,
                 f"in (0, compact-fraction={self.fraction}]",
             ),
             "every": (self.every >= 1, ">= 1"),
             "max-rounds": (self.max_rounds >= 0, ">= 0"),
             "min-gaussians": (self.min_gaussians >= 0, ">= 0"),
             "guard-views": (self.guard_views >= 1, ">= 1"),
-            "volume-beta": (_finite(self.volume_beta) and self.volume_beta >= 0, "a number >= 0"),
+            "volume-beta": (finite_number(self.volume_beta) and self.volume_beta >= 0, "a number >= 0"),
             "start": (self.start is None or self.start >= 0, "a step >= 0 or None"),
         }
-        for name, (ok, limit) in checks.items():
-            if not ok:
-                value = getattr(self, name.replace("-", "_"))
-                raise GaroConfigError(f"--pipeline.model.{prefix}{name} must be {limit}, got {value!r}")
+        check_ranges(self, checks, prefix)
 
     def first_step(self, densify_stop: int) -> int:
         """Step of the first round."""
@@ -125,10 +122,6 @@ def last_training_step(start_step: int, max_num_iterations: int) -> int:
     """The last step nerfstudio's trainer runs: it runs `max_num_iterations` steps from `start_step` (0 for a
     fresh run, the loaded step + 1 for a resumed one), so a resumed run ends later than its first part did."""
     return int(start_step) + int(max_num_iterations) - 1
-
-
-def _finite(value: Any) -> bool:
-    return isinstance(value, (int, float)) and math.isfinite(value)
 
 
 @dataclass
