@@ -26,7 +26,7 @@ from typing import Any, Dict, List, Literal, Optional, Tuple
 
 import tyro
 
-from garo_ns.bench.results import publish, read_results
+from garo_ns.bench.results import publish, read_results, save_figure
 from garo_ns.bench.summary import BASELINE, CLAIM_FPS_RATIO, CLAIM_PSNR_DROP_DB, combine_runs, parse_aliases, scene_rows
 
 JOINT = "garo-deform"
@@ -318,11 +318,7 @@ def write_report(result: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
         axes.grid(alpha=0.3)
         axes.legend(fontsize=8)
     fig.suptitle(f"{title}: {result['scene']}", fontsize=10)
-    fig.tight_layout()
-    png = output.with_suffix(".png")
-    fig.savefig(png, dpi=120)
-    plt.close(fig)
-    return md, png
+    return md, save_figure(fig, output)
 
 
 def main(args: AblationArgs) -> Dict[str, Any]:

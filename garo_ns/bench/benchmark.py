@@ -41,7 +41,7 @@ from typing import Any, Dict, List, Literal, Optional, Tuple
 
 from garo_ns import compat
 from garo_ns.bench import transfer
-from garo_ns.bench.results import publish
+from garo_ns.bench.results import publish, save_figure
 
 compat.install()
 
@@ -521,11 +521,7 @@ def write_report(result: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
         legend = ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
         for handle in legend.legend_handles:
             handle.set_sizes([30])  # the legend names points; their size is in the axes
-    fig.tight_layout()
-    png = output.with_suffix(".png")
-    fig.savefig(png, dpi=120)
-    plt.close(fig)
-    return md, png
+    return md, save_figure(fig, output)
 
 
 # ---------------------------------------------------------------------------- driver

@@ -16,6 +16,17 @@ def publish(result: Dict[str, Any], output: Path, report: Callable[[Dict[str, An
     print(f"wrote {output}, {md}, {png}")
 
 
+def save_figure(fig: Any, output: Path) -> Path:
+    """Save a report's plot next to its JSON (`output` with .png) and close it; returns the path."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    png = output.with_suffix(".png")
+    fig.savefig(png, dpi=120)
+    plt.close(fig)
+    return png
+
+
 def read_results(paths: Sequence[Path]) -> List[Tuple[str, Dict[str, Any]]]:
     """(file name, content) of each benchmark result JSON; exits with a clear message on an unreadable one."""
     loaded = []

@@ -16,7 +16,7 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import tyro
 
-from garo_ns.bench.results import publish, read_results
+from garo_ns.bench.results import publish, read_results, save_figure
 from garo_ns.bench.transfer import trained_elsewhere
 
 BASELINE = "deform-splatfacto"
@@ -260,11 +260,7 @@ def write_report(summary: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
     ax.set_title(f"baseline (o) -> {', '.join(summary['variants'])} (*)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    png = output.with_suffix(".png")
-    fig.savefig(png, dpi=120)
-    plt.close(fig)
-    return md, png
+    return md, save_figure(fig, output)
 
 
 def main(args: SummaryArgs) -> Dict[str, Any]:
