@@ -1,8 +1,12 @@
 """Our D-3DGS baseline against the official D-3DGS code, scene by scene.
 
-    python benchmarks/official_compare.py --ours benchmarks/results/table1_*_H100.json \
-        --official benchmarks/results/official_d3dgs_H100.json \
-        --output benchmarks/results/baseline_vs_official_H100.json
+    R=benchmarks/results
+    python benchmarks/official_compare.py --ours $R/table1_*_H100.json $R/table3_jumpingjacks_H100.json \
+        $R/fig5a_jumpingjacks_H100.json $R/fig5b_jumpingjacks_H100.json \
+        --official $R/official_d3dgs_H100.json $R/official_d3dgs_jumpingjacks_H100.json \
+        --output $R/baseline_vs_official_H100.json
+
+(every 40k `deform-splatfacto` run of ours on the H100: one run's baseline strays by tenths of a dB.)
 
 `--ours` are result files of `python -m garo_ns.bench.benchmark` (variant `deform-splatfacto`);
 `--official` are what `benchmarks/official_score.py` wrote for the official code's runs. A pair is

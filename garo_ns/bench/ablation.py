@@ -11,10 +11,11 @@ from the benchmark's alternating re-timing where the run made one.
 
 The commands that made the committed files (R=benchmarks/results):
     python -m garo_ns.bench.ablation $R/table3_jumpingjacks_H100.json $R/table1_jumpingjacks_H100.json \
-        $R/table1_jumpingjacks_run2_H100.json $R/fig5a_jumpingjacks_H100.json \
+        $R/table1_jumpingjacks_run2_H100.json $R/fig5a_jumpingjacks_H100.json $R/fig5b_jumpingjacks_H100.json \
         --aliases garo-window=garo-deform --output $R/paper_table3_H100.json
-    python -m garo_ns.bench.ablation $R/fig5a_jumpingjacks_H100.json $R/table1_jumpingjacks_H100.json \
-        $R/table1_jumpingjacks_run2_H100.json $R/table3_jumpingjacks_H100.json --figure rho \
+    python -m garo_ns.bench.ablation $R/fig5a_jumpingjacks_H100.json $R/fig5b_jumpingjacks_H100.json \
+        $R/table1_jumpingjacks_H100.json $R/table1_jumpingjacks_run2_H100.json $R/table3_jumpingjacks_H100.json \
+        --figure rho \
         --aliases garo-window=garo-deform --output $R/paper_fig5_H100.json
 """
 
