@@ -155,3 +155,86 @@ def test_runs_of_one_scene_count_once_as_their_mean(tmp_path):
     table = (tmp_path / "s.md").read_text()
     assert "| a run 2 | test | garo-deform |" in table and "| a (mean of 2 runs) | test | garo-deform |" in table
     assert "a: 2 runs (a1.json, a2.json); garo-deform 1.00x to 3.00x at +0.00 to +0.20 dB" in table
+
+
+def _compact_result(scene, gpu, base_fps, fps, drop, lpips_up, half_mb):
+    """A baseline and a compacted arm (+auto, and its half-precision file row) of one scene."""
+    base = {"psnr": 40.0, "ssim": 0.99, "lpips": 0.010, "fps": base_fps, "num_gaussians": 100_000}
+    arm = {"psnr": 40.0 - drop, "ssim": 0.99, "lpips": 0.010 + lpips_up, "fps": fps, "num_gaussians": 20_000}
+    rows = {
+        "deform-splatfacto": {**base, "model_size_mb": 24.0},
+        "garo-compact+auto": {**arm, "model_size_mb": 2 * half_mb},
+        "garo-compact+auto+fp16": {**arm, "model_size_mb": half_mb},
+    }
+    return {"scene": scene, "split": "test", "gpu": gpu, "git_commit": "abc", "variants": rows}
+
+
+COMPACT_ROWS = ["garo-compact+auto", "garo-compact+auto+fp16"]
+
+
+def test_the_compaction_target_is_judged_criterion_by_criterion():
+    from garo_ns.bench.targets import COMPACTION, check_target
+
+    good = [
+        _compact_result("a", "NVIDIA H200", 200.0, 1400.0, 0.2, 0.002, 3.0),
+        _compact_result("b", "NVIDIA H200", 150.0, 1050.0, 0.35, 0.001, 4.5),
+    ]
+    summary = summarise([(f"{r['scene']}.json", r) for r in good], COMPACT_ROWS)
+    check = check_target(summary, "garo-compact+auto", COMPACTION, "garo-compact+auto+fp16")
+    assert check["met"] and check["judged"] == 7 and check["missed"] == []
+    # 7x and 7x; 0.275 dB on average with 0.35 on one scene (within 0.5 each)
+    by_name = {c["criterion"]: c for c in check["criteria"]}
+    assert by_name["speed-up, mean"]["values"] == [pytest.approx(7.0)]
+    assert by_name["PSNR loss, mean (dB)"]["values"] == [pytest.approx(0.275)]
+
+    # One scene at 3.9x (5.45x on average), 990 FPS, 0.6 dB, LPIPS +0.006 and a 5.5 MB file.
+    bad = good[:1] + [_compact_result("b", "NVIDIA H200", 254.0, 990.0, 0.6, 0.006, 5.5)]
+    summary = summarise([(f"{r['scene']}.json", r) for r in bad], COMPACT_ROWS)
+    check = check_target(summary, "garo-compact+auto", COMPACTION, "garo-compact+auto+fp16")
+    assert not check["met"]
+    assert check["missed"] == [
+        "speed-up, mean",
+        "speed-up, each scene",
+        "FPS on H200, each scene",
+        "PSNR loss, mean (dB)",
+        "PSNR loss, each scene (dB)",
+        "LPIPS increase, each scene",
+        "model MB in half-precision storage, each scene",
+    ]
+
+
+def test_the_target_leaves_unjudged_what_the_files_cannot_show(tmp_path):
+    from garo_ns.bench.targets import COMPACTION, check_target
+
+    runs = [_compact_result(s, "NVIDIA H100 80GB HBM3", 100.0, 700.0, 0.1, 0.001, 3.0) for s in ("a", "b")]
+    summary = summarise([(f"{r['scene']}.json", r) for r in runs], COMPACT_ROWS)
+    check = check_target(summary, "garo-compact+auto", COMPACTION)  # no size row
+    fps, size = check["criteria"][2], check["criteria"][6]
+    assert fps["met"] is None and "H100" in fps["note"]  # 700 FPS on an H100 says nothing about 1000 on an H200
+    assert size["met"] is None
+    assert not check["met"] and check["missed"] == [] and check["judged"] == 5
+    with pytest.raises(ValueError, match="not among the summary's variants"):
+        check_target(summary, "garo-compact", COMPACTION)
+
+    paths = []
+    for r in runs:
+        paths.append(tmp_path / f"{r['scene']}.json")
+        paths[-1].write_text(json.dumps(r))
+    out = tmp_path / "compact.json"
+    with pytest.raises(SystemExit, match="--target needs --target-variant"):
+        main(SummaryArgs(results=paths, output=out, variants=COMPACT_ROWS, target="compaction"))
+    main(
+        SummaryArgs(
+            results=paths,
+            output=out,
+            variants=COMPACT_ROWS,
+            target="compaction",
+            target_variant="garo-compact+auto",
+            size_variant="garo-compact+auto+fp16",
+        )
+    )
+    table = out.with_suffix(".md").read_text()
+    fps_row = "| FPS on H200, each scene | >= 1000 | 700.0, 700.0 | not judged: measured on NVIDIA H100 80GB HBM3 |"
+    assert fps_row in table
+    assert "Not settled: no criterion missed, 6 of 7 criteria judged from these files." in table
+    assert json.loads(out.read_text())["target_check"]["judged"] == 6

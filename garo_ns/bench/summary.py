@@ -12,11 +12,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Literal, Optional, Tuple
 
 import tyro
 
 from garo_ns.bench.results import publish, read_results, save_figure
+from garo_ns.bench.targets import TARGETS, check_target, target_lines
 from garo_ns.bench.transfer import trained_elsewhere
 
 BASELINE = "deform-splatfacto"
@@ -39,6 +40,12 @@ class SummaryArgs:
     aliases: List[str] = field(default_factory=list)
     """`ROW=VARIANT`: a file without VARIANT's row is read from its ROW instead, for a run made under
     another name with the settings VARIANT has now (e.g. garo-window=garo-deform); recorded per scene."""
+    target: Optional[Literal["compaction"]] = None
+    """Also judge a speed and quality target (garo_ns.bench.targets) for `--target-variant`."""
+    target_variant: Optional[str] = None
+    """The variant the target is judged for (one of --variants), e.g. garo-compact+auto."""
+    size_variant: Optional[str] = None
+    """The row whose model size is the half-precision file (one of --variants), e.g. garo-compact+auto+fp16."""
 
 
 def _mean(values: List[Optional[float]]) -> Optional[float]:
@@ -214,6 +221,8 @@ def write_report(summary: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
         )
     if summary["shortened_scenes"]:
         lines += ["", f"Shortened schedules in: {', '.join(summary['shortened_scenes'])}."]
+    if "target_check" in summary:
+        lines += ["", *target_lines(summary["target_check"])]
     for r in summary["rows"]:
         for name in summary["variants"] if "runs" in r else []:
             lo, hi = r[name]["fps_ratio_range"]
@@ -268,6 +277,12 @@ def main(args: SummaryArgs) -> Dict[str, Any]:
     loaded = read_results(args.results)
     try:
         summary = summarise(loaded, list(args.variants), parse_aliases(args.aliases))
+        if args.target is not None:
+            if args.target_variant is None:
+                raise ValueError("--target needs --target-variant (the variant it is judged for)")
+            summary["target_check"] = check_target(
+                summary, args.target_variant, TARGETS[args.target], args.size_variant
+            )
     except ValueError as err:
         raise SystemExit(f"error: {err}") from None
     publish(summary, args.output, write_report)

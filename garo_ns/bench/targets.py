@@ -1,0 +1,161 @@
+"""Speed and quality targets checked on a cross-scene summary (garo_ns.bench.summary).
+
+A target states what a variant must reach against the baseline of its own run, scene by scene and on average:
+a speed-up, an absolute frame rate (on a stated GPU model: elsewhere it is reported, not judged), a PSNR and
+LPIPS loss, and a model file size in half-precision storage. Each criterion's verdict is True, False, or None
+where the files cannot judge it (another GPU model, a row not measured); a target is met only when every
+criterion is True.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any, Dict, List, Optional
+
+BASELINE = "deform-splatfacto"
+
+
+@dataclass(frozen=True)
+class Target:
+    """What a variant must reach against the baseline (plain fp32) of its own run."""
+
+    name: str
+    fps_ratio_mean: float
+    """Speed-up, mean over scenes of the per-scene ratios."""
+    fps_ratio_each: float
+    """Speed-up on every scene."""
+    fps_each: float
+    """Frames per second on every scene, on `fps_gpu`."""
+    fps_gpu: str
+    """The GPU model the absolute frame rate is stated for (matched as a substring of the files' GPU name)."""
+    psnr_drop_mean_db: float
+    psnr_drop_each_db: float
+    lpips_increase_each: float
+    model_mb_each: float
+    """Model file in half-precision storage (the size of the `+fp16` row)."""
+
+
+# Issue #30's target for `garo-compact+auto` against `deform-splatfacto`, at the full schedule.
+COMPACTION = Target(
+    name="compaction",
+    fps_ratio_mean=6.0,
+    fps_ratio_each=4.0,
+    fps_each=1000.0,
+    fps_gpu="H200",
+    psnr_drop_mean_db=0.3,
+    psnr_drop_each_db=0.5,
+    lpips_increase_each=0.005,
+    model_mb_each=5.0,
+)
+TARGETS = {t.name: t for t in (COMPACTION,)}
+
+
+def _verdict(values: List[Optional[float]], limit: float, at_least: bool) -> Optional[bool]:
+    if not values or any(v is None for v in values):
+        return None
+    return all(v >= limit if at_least else v <= limit for v in values)
+
+
+def check_target(
+    summary: Dict[str, Any], variant: str, target: Target, size_variant: Optional[str] = None
+) -> Dict[str, Any]:
+    """Each criterion of `target` for `variant` in `summary` (the output of `summary.summarise`), with the values
+    it was judged on. `size_variant` is the row whose model size is the half-precision file (e.g.
+    `garo-compact+fp16`); without it the size criterion is not judged."""
+    if variant not in summary["variants"]:
+        raise ValueError(f"target {target.name}: {variant!r} is not among the summary's variants {summary['variants']}")
+    if size_variant is not None and size_variant not in summary["variants"]:
+        raise ValueError(f"target {target.name}: size row {size_variant!r} is not among {summary['variants']}")
+    rows, average = summary["rows"], summary["average"][variant]
+    scenes = [r["scene"] for r in rows]
+
+    def each(key: str) -> List[Optional[float]]:
+        return [r[variant].get(key) for r in rows]
+
+    lpips_up = [
+        None
+        if r[variant].get("lpips") is None or r[BASELINE].get("lpips") is None
+        else r[variant]["lpips"] - r[BASELINE]["lpips"]
+        for r in rows
+    ]
+    gpus = summary.get("gpus", [])
+    on_gpu = bool(gpus) and all(target.fps_gpu in g for g in gpus)
+    sizes = [r[size_variant].get("model_size_mb") for r in rows] if size_variant else []
+    criteria = [
+        ("speed-up, mean", [average.get("fps_ratio")], target.fps_ratio_mean, True, None),
+        ("speed-up, each scene", each("fps_ratio"), target.fps_ratio_each, True, None),
+        (
+            f"FPS on {target.fps_gpu}, each scene",
+            each("fps"),
+            target.fps_each,
+            True,
+            None if on_gpu else f"measured on {', '.join(gpus) or 'an unnamed GPU'}",
+        ),
+        ("PSNR loss, mean (dB)", [average.get("psnr_drop_db")], target.psnr_drop_mean_db, False, None),
+        ("PSNR loss, each scene (dB)", each("psnr_drop_db"), target.psnr_drop_each_db, False, None),
+        ("LPIPS increase, each scene", lpips_up, target.lpips_increase_each, False, None),
+        (
+            "model MB in half-precision storage, each scene",
+            sizes,
+            target.model_mb_each,
+            False,
+            None if size_variant else "no +fp16 row given",
+        ),
+    ]
+    out = []
+    for label, values, limit, at_least, skipped in criteria:
+        met = None if skipped else _verdict(values, limit, at_least)
+        out.append(
+            {
+                "criterion": label,
+                "values": values,
+                "limit": limit,
+                "at_least": at_least,
+                "met": met,
+                "note": skipped or ("a value is missing" if met is None else None),
+            }
+        )
+    verdicts = [c["met"] for c in out]
+    return {
+        "target": asdict(target),
+        "variant": variant,
+        "size_variant": size_variant,
+        "scenes": scenes,
+        "criteria": out,
+        "met": all(v is True for v in verdicts),
+        "judged": sum(v is not None for v in verdicts),
+        "missed": [c["criterion"] for c in out if c["met"] is False],
+    }
+
+
+def _number(v: Optional[float]) -> str:
+    if v is None:
+        return "-"
+    return f"{v:.1f}" if abs(v) >= 100 else f"{v:.3g}"
+
+
+def target_lines(result: Dict[str, Any]) -> List[str]:
+    """The check as Markdown: one row per criterion, then a sentence."""
+    scenes = result["scenes"]
+    lines = [
+        f"Target `{result['target']['name']}` for {result['variant']}"
+        + (f" (size from {result['size_variant']})" if result["size_variant"] else "")
+        + ":",
+        "",
+        "| criterion | limit | " + ("value" if len(scenes) == 1 else "values (" + ", ".join(scenes) + ")") + " | met |",
+        "|---|---|---|---|",
+    ]
+    for c in result["criteria"]:
+        values = ", ".join(_number(v) for v in c["values"]) or "-"
+        met = {True: "yes", False: "no", None: "not judged"}[c["met"]]
+        limit = (">= " if c["at_least"] else "<= ") + f"{c['limit']:g}"
+        lines.append(f"| {c['criterion']} | {limit} | {values} | {met}{': ' + c['note'] if c['note'] else ''} |")
+    lines.append("")
+    judged = f"{result['judged']} of {len(result['criteria'])} criteria judged from these files"
+    if result["met"]:
+        lines.append(f"Every criterion is met on {len(scenes)} scene(s).")
+    elif result["missed"]:
+        lines.append(f"Not met: missed {', '.join(result['missed'])} ({judged}).")
+    else:
+        lines.append(f"Not settled: no criterion missed, {judged}.")
+    return lines
