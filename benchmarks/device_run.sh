@@ -10,6 +10,8 @@
 #                                                      python -m garo_ns.bench.benchmark in the background on the
 #                                                      GPUs GPUS (e.g. 2,3; pass --gpus 0 1 to use both),
 #                                                      result $W/results/NAME.json, log $W/NAME.log
+#                                                      AFTER=JOB before it: start once job JOB has ended (a
+#                                                      second wave on the same GPUs, queued in the same call)
 #   bash benchmarks/device_run.sh extra NAME CMD...    any other command in the background (parity, ...)
 #   bash benchmarks/device_run.sh wait SECONDS         poll until every launched job ended or SECONDS passed,
 #                                                      then collect (what has landed comes back in every call)
@@ -97,10 +99,12 @@ launch)
   [ -d /tmp/$scene ] || cp -r .scenes/$scene /tmp/$scene
   start_mps; [ -e $W/mps.on ] && export GARO_MPS_ON=1
   cd $W/src
-  CUDA_VISIBLE_DEVICES=$gpus setsid nohup bash -c "python3 -m garo_ns.bench.benchmark --scene /tmp/$scene --split $split $* \
+  # AFTER=JOB queues this run behind job JOB (its deadline counts from its own start).
+  after=${AFTER:+while [ ! -e $W/jobs/$AFTER.done ]; do sleep 5; done;}
+  CUDA_VISIBLE_DEVICES=$gpus setsid nohup bash -c "$after python3 -m garo_ns.bench.benchmark --scene /tmp/$scene --split $split $* \
       --output $W/results/$name.json --work-dir $W/$name > $W/$name.log 2>&1; echo \$? > $W/jobs/$name.done" \
       > /dev/null 2>&1 &
-  touch $W/jobs/$name.job; sleep 2; echo "launched $name on GPUs $gpus" ;;
+  touch $W/jobs/$name.job; sleep 2; echo "launched $name on GPUs $gpus${AFTER:+ (starts when $AFTER has ended)}" ;;
 extra)
   name=$1; shift
   cd $W/src
