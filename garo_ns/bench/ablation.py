@@ -15,8 +15,7 @@ The commands that made the committed files (R=benchmarks/results):
         --aliases garo-window=garo-deform --output $R/paper_table3_H100.json
     python -m garo_ns.bench.ablation $R/fig5a_jumpingjacks_H100.json $R/fig5b_jumpingjacks_H100.json \
         $R/table1_jumpingjacks_H100.json $R/table1_jumpingjacks_run2_H100.json $R/table3_jumpingjacks_H100.json \
-        --figure rho \
-        --aliases garo-window=garo-deform --output $R/paper_fig5_H100.json
+        --figure rho --aliases garo-window=garo-deform --output $R/paper_fig5_H100.json
 """
 
 from __future__ import annotations

@@ -166,6 +166,7 @@ def summarise(
             "average_meets": meets(average[name]),
         }
     return {
+        "baseline": BASELINE,
         "scenes": scenes,
         "gpus": sorted({str(r["gpu"]) for r in rows}),
         "variants": variants,

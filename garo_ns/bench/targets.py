@@ -12,8 +12,6 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from typing import Any, Dict, List, Optional
 
-BASELINE = "deform-splatfacto"
-
 
 @dataclass(frozen=True)
 class Target:
@@ -66,7 +64,7 @@ def check_target(
         raise ValueError(f"target {target.name}: {variant!r} is not among the summary's variants {summary['variants']}")
     if size_variant is not None and size_variant not in summary["variants"]:
         raise ValueError(f"target {target.name}: size row {size_variant!r} is not among {summary['variants']}")
-    rows, average = summary["rows"], summary["average"][variant]
+    rows, average, baseline = summary["rows"], summary["average"][variant], summary["baseline"]
     scenes = [r["scene"] for r in rows]
 
     def each(key: str) -> List[Optional[float]]:
@@ -74,8 +72,8 @@ def check_target(
 
     lpips_up = [
         None
-        if r[variant].get("lpips") is None or r[BASELINE].get("lpips") is None
-        else r[variant]["lpips"] - r[BASELINE]["lpips"]
+        if r[variant].get("lpips") is None or r[baseline].get("lpips") is None
+        else r[variant]["lpips"] - r[baseline]["lpips"]
         for r in rows
     ]
     gpus = summary.get("gpus", [])
