@@ -140,6 +140,8 @@ def train(
     def record(step: int) -> None:
         if step % every == 0 or step == steps - 1:
             counts.append((step, int(model.num_points)))
+            # One line per record, so a run stopped by the machine's deadline still leaves its curve in the log.
+            print(f"official_terms {term} step {step} gaussians {counts[-1][1]}", flush=True)
 
     trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], record))
     try:  # the plugin's own functions come back afterwards, also for the rest of a test session
