@@ -108,7 +108,8 @@ launch)
 extra)
   name=$1; shift
   cd $W/src
-  setsid nohup bash -c "$* > $W/$name.log 2>&1; echo \$? > $W/jobs/$name.done" > /dev/null 2>&1 &
+  # Braces: the log takes the output of every command in CMD (a loop, `&` and `wait` included), not the last one's.
+  setsid nohup bash -c "{ $*; } > $W/$name.log 2>&1; echo \$? > $W/jobs/$name.done" > /dev/null 2>&1 &
   touch $W/jobs/$name.job; sleep 2; echo "launched $name" ;;
 wait)
   limit=$1; t0=$(date +%s); pending=1
