@@ -691,7 +691,10 @@ def test_the_methods_are_registered_in_pyproject():
         expected = Compaction(every=model.compact_every, max_rounds=model.compact_max_rounds)
         assert model.compact and model.compaction() == expected
         assert config.METHODS[name].config.method_name == name
+        # The chosen default GARO cap under compaction; garo-deform keeps the paper's.
+        assert model.rho_max == config.COMPACT_RHO_MAX < config.METHODS["garo-deform"].config.pipeline.model.rho_max
     assert not config.METHODS["garo-deform"].config.pipeline.model.compact
+    assert config.METHODS["garo-deform"].config.pipeline.model.rho_max == 0.02
 
 
 @pytest.mark.slow
