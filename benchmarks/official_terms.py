@@ -18,12 +18,17 @@ Each run trains `deform-splatfacto` with the named terms (`none`, `scale`, `rota
 switched to the official code's way, in this process only (nothing in the plugin changes), and records the
 number of Gaussians every `--every` steps. Densification ends at 15k, so the count at 15k is its final one;
 run the terms in parallel processes on one GPU. `rotation` renders through gsplat with covariances: CUDA only.
+Each record is also printed as a line; runs cut short by a deadline leave their curves in the log:
+
+    python benchmarks/official_terms.py --from-log terms.log --scene /tmp/mutant --gpu H100 \
+        --output benchmarks/results/official_terms_mutant_partial_H100.json
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import re
 import time
 from pathlib import Path
 from typing import Any, Callable, Dict, List, NamedTuple, Optional, Tuple
@@ -178,10 +183,46 @@ def _commit() -> Optional[str]:
         return None
 
 
+LOG_LINE = re.compile(r"^official_terms (\S+) step (\d+) gaussians (\d+)$")
+
+
+def curves_from_log(text: str) -> Dict[str, List[Tuple[int, int]]]:
+    """Each term's (step, Gaussians) records from the lines `train` prints, in step order: what a run cut
+    short (a machine's deadline) leaves. Lines of other output, and of terms not in TERMS, are skipped."""
+    curves: Dict[str, Dict[int, int]] = {}
+    for line in text.splitlines():
+        match = LOG_LINE.match(line.strip())
+        if match and match[1] in TERMS:
+            curves.setdefault(match[1], {})[int(match[2])] = int(match[3])
+    return {term: sorted(points.items()) for term, points in curves.items()}
+
+
+def from_log(log: Path, scene: str, steps: int, gpu: Optional[str]) -> Dict[str, Any]:
+    """The result file of runs cut short, from their log: per term, the counts recorded and the last step
+    reached, beside the same step of every other term (the last step all of them reached)."""
+    curves = curves_from_log(log.read_text())
+    if not curves:
+        raise ValueError(f"{log}: no `official_terms <term> step <n> gaussians <m>` lines")
+    common = min(points[-1][0] for points in curves.values())
+    return {
+        "scene": scene,
+        "steps_planned": steps,
+        "cut_short": any(points[-1][0] < steps - 1 for points in curves.values()),
+        "source_log": log.name,
+        "common_step": common,
+        "gaussians_at_common_step": {term: dict(points)[common] for term, points in curves.items()},
+        "terms": {term: {"gaussians_every": points, "last_step": points[-1][0]} for term, points in curves.items()},
+        "gpu": gpu,
+        "git_commit": _commit(),
+    }
+
+
 def main(argv: Optional[List[str]] = None) -> Dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--from-log", type=Path, default=None, help="write the result of runs cut short from their log")
+    parser.add_argument("--gpu", default=None, help="with --from-log: the GPU the log's runs used")
     parser.add_argument("--scene", type=Path, required=True)
-    parser.add_argument("--term", choices=TERMS, required=True)
+    parser.add_argument("--term", choices=TERMS, default="none")
     parser.add_argument("--steps", type=int, default=15000)
     parser.add_argument("--every", type=int, default=500)
     parser.add_argument("--work-dir", type=Path, default=Path("runs/official_terms"))
@@ -189,6 +230,12 @@ def main(argv: Optional[List[str]] = None) -> Dict[str, Any]:
     parser.add_argument("--quick", action="store_true", help="the compressed CPU schedule (a smoke test)")
     parser.add_argument("--output", type=Path, required=True)
     args = parser.parse_args(argv)
+    if args.from_log is not None:
+        result = from_log(args.from_log, args.scene.name, args.steps, args.gpu)
+        args.output.parent.mkdir(parents=True, exist_ok=True)
+        args.output.write_text(json.dumps(result, indent=1) + "\n")
+        print(json.dumps(result["gaussians_at_common_step"] | {"step": result["common_step"]}))
+        return result
     result = train(args.scene, args.term, args.steps, args.every, args.work_dir, args.device, args.quick)
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(json.dumps(result, indent=1) + "\n")

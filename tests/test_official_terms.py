@@ -55,7 +55,7 @@ def test_rotation_matrices_of_an_unnormalised_quaternion_are_scaled_rotations_pl
 
 
 @pytest.mark.slow
-def test_a_short_run_records_the_gaussian_count(tmp_path):
+def test_a_short_run_records_the_gaussian_count(tmp_path, capsys):
     scene = generate_scene(tmp_path / "scene", SceneSpec(resolution=32, n_train=8, n_val=3, n_test=3))
     out = tmp_path / "scale.json"
     result = official_terms.main(
@@ -80,6 +80,8 @@ def test_a_short_run_records_the_gaussian_count(tmp_path):
     assert [s for s, _ in result["gaussians_every"]] == [0, 10, 20, 30, 39]
     assert result["gaussians_end"] == result["gaussians_every"][-1][1] > 0 and out.exists()
     assert result["replaced_calls"]["compose"] > 0  # the official term was in the training frames
+    # The printed lines carry the same curve, so a run cut before it writes its file still leaves it.
+    assert official_terms.curves_from_log(capsys.readouterr().out) == {"scale": result["gaussians_every"]}
     import garo_ns.garo_model as garo_model
 
     assert garo_model.compose is compose and garo_model.activate is activate  # restored after the run
@@ -111,3 +113,29 @@ def test_the_rotation_term_renders_a_unit_quaternion_as_the_plugin_does():
     torch.testing.assert_close(theirs, ours, rtol=0, atol=1e-4)
     stretched, _, _ = official(splats._replace(quats=quats * 1.3), view, 0, None, "RGB", "cuda")
     assert (stretched - ours).abs().max() > 1e-3
+
+
+def test_curves_of_runs_cut_short_come_from_their_log(tmp_path):
+    log = tmp_path / "terms.log"
+    log.write_text(
+        "official_terms none step 0 gaussians 100\n"
+        "Step (% Done)  Train Iter (time)\n"  # the trainer's own output in between
+        "official_terms scale step 0 gaussians 100\n"
+        "official_terms none step 500 gaussians 180\n"
+        "official_terms scale step 500 gaussians 150\n"
+        "official_terms none step 1000 gaussians 260\n"
+        "official_terms bogus step 500 gaussians 1\n"
+    )
+    out = tmp_path / "partial.json"
+    result = official_terms.main(
+        ["--from-log", str(log), "--scene", "/tmp/mutant", "--steps", "15000", "--output", str(out)]
+    )
+    assert result["terms"]["none"]["gaussians_every"] == [(0, 100), (500, 180), (1000, 260)]
+    assert result["terms"]["scale"]["last_step"] == 500 and "bogus" not in result["terms"]
+    # Compared where every term got to, not at each one's last record.
+    assert result["common_step"] == 500 and result["gaussians_at_common_step"] == {"none": 180, "scale": 150}
+    assert result["cut_short"] and result["scene"] == "mutant" and out.exists()
+    empty = tmp_path / "empty.log"
+    empty.write_text("nothing here\n")
+    with pytest.raises(ValueError, match="no `official_terms"):
+        official_terms.main(["--from-log", str(empty), "--scene", "x", "--output", str(tmp_path / "e.json")])
