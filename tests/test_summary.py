@@ -215,6 +215,10 @@ def test_the_target_leaves_unjudged_what_the_files_cannot_show(tmp_path):
     assert not check["met"] and check["missed"] == [] and check["judged"] == 5
     with pytest.raises(ValueError, match="not among the summary's variants"):
         check_target(summary, "garo-compact", COMPACTION)
+    on_cpu = [_compact_result(s, None, 10.0, 70.0, 0.1, 0.001, 3.0) for s in ("a", "b")]  # a CPU run: gpu None
+    cpu_summary = summarise([(f"{r['scene']}.json", r) for r in on_cpu], COMPACT_ROWS)
+    assert cpu_summary["gpus"] == ["a CPU"]
+    assert check_target(cpu_summary, "garo-compact+auto", COMPACTION)["criteria"][2]["note"] == "measured on a CPU"
 
     paths = []
     for r in runs:

@@ -168,7 +168,7 @@ def summarise(
     return {
         "baseline": BASELINE,
         "scenes": scenes,
-        "gpus": sorted({str(r["gpu"]) for r in rows}),
+        "gpus": sorted({str(r["gpu"]) if r["gpu"] else "a CPU" for r in rows}),  # a CPU run records no GPU
         "variants": variants,
         "rows": rows,
         "average": average,
