@@ -74,7 +74,7 @@ def test_readme_is_at_most_15_kb():
     assert (ROOT / "README.md").stat().st_size <= 15_000
 
 
-@pytest.mark.parametrize("block", ["ablation", "demo", "tests"])
+@pytest.mark.parametrize("block", ["ablation", "compaction", "demo", "tests"])
 def test_readme_demo_and_test_figures_come_from_their_result_files(tmp_path, block):
     """The demo's and the tests' figures are rewritten from their files; a typed change is caught."""
     readme = tmp_path / "README.md"
@@ -165,3 +165,53 @@ def test_results_block_counts_a_scene_run_twice_once(tmp_path):
     # a: (3x + 1x) / 2 = 2x and -0.5 dB; b: 1x and 0 dB; over scenes 1.5x at -0.25 dB (not 5/3x over files)
     assert "| average of 2 scenes |" in block and "| 1.50x | -0.25 dB |" in block
     assert "A scene run more than once (a) counts once in the average" in block
+
+
+def test_compaction_block_comes_from_the_target_summary(tmp_path):
+    """Until `compact_<GPU>.json` exists the block says so; then each scene's row, the average and the target's
+    verdict come from it, and a summary made without --target is refused."""
+    import json
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import readme_results
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    from garo_ns.bench.summary import SummaryArgs, main
+
+    assert "has not been run at 40k yet" in readme_results.compaction_block(tmp_path, tmp_path)
+
+    def result(scene, base_fps, fps, drop):
+        base = {"psnr": 40.0, "lpips": 0.01, "fps": base_fps, "num_gaussians": 100_000, "model_size_mb": 24.0}
+        arm = {"psnr": 40.0 - drop, "lpips": 0.011, "fps": fps, "num_gaussians": 30_000, "model_size_mb": 7.0}
+        rows = {
+            "deform-splatfacto": {**base, "iterations": 40_000},
+            "garo-compact": {**arm, "fps": fps / 2, "iterations": 40_000},
+            "garo-compact+auto": {**arm, "iterations": 40_000},
+            "garo-compact+auto+fp16": {**arm, "model_size_mb": 3.5, "iterations": 40_000},
+        }
+        return {"scene": scene, "split": "test", "gpu": "NVIDIA H200", "git_commit": "abc1234", "variants": rows}
+
+    paths = []
+    for scene, drop in (("a", 0.1), ("b", 0.3)):
+        paths.append(tmp_path / f"compact40k_{scene}_H200.json")
+        paths[-1].write_text(json.dumps(result(scene, 200.0, 1400.0, drop)))
+    variants = ["garo-compact", "garo-compact+auto", "garo-compact+auto+fp16"]
+    out = tmp_path / "compact_H200.json"
+    main(SummaryArgs(results=paths, output=out, variants=variants))
+    with pytest.raises(ValueError, match="no target_check"):
+        readme_results.compaction_block(tmp_path, tmp_path)
+    main(
+        SummaryArgs(
+            results=paths,
+            output=out,
+            variants=variants,
+            target="compaction",
+            target_variant="garo-compact+auto",
+            size_variant="garo-compact+auto+fp16",
+        )
+    )
+    block = readme_results.compaction_block(tmp_path, tmp_path)
+    assert "| a | 40.00 / 39.90 | 0.0100 / 0.0110 | 200 / 1400 | 7.00x | 100,000 / 30,000 | 3.5 |" in block
+    assert "| average | 40.00 / 39.80 |" in block and "40,000 steps, NVIDIA H200" in block
+    assert "Every criterion is met on 2 scene(s)." in block and "[`compact_H200.md`](compact_H200.md)" in block
