@@ -37,7 +37,11 @@ W=/tmp/garo-work
 if [ -e .device/prelude.sh ]; then source .device/prelude.sh; else source /tmp/kit/prelude.sh; fi
 export NERFSTUDIO_METHOD_CONFIGS="garo-deform=garo_ns.config:garo_deform,deform-splatfacto=garo_ns.config:deform_splatfacto"
 export TORCHDYNAMO_DISABLE=1
+# The commit the result files name: .git-commit (`git rev-parse HEAD > .git-commit` here, carried in the first call:
+# it is excluded from git, so only `carry` brings it). Without it they would name the machine copy's git HEAD,
+# which can lag behind the work tree.
 [ -e .git-commit ] && export GARO_GIT_COMMIT=$(cat .git-commit)
+[ -e .git-commit ] || [ -e $W/src/.git-commit ] || echo "device_run.sh: no .git-commit carried; result files will name the machine's git HEAD" >&2
 mkdir -p $W/results $W/jobs
 
 start_mps() {
