@@ -18,6 +18,8 @@ Each run trains `deform-splatfacto` with the named terms (`none`, `scale`, `rota
 switched to the official code's way, in this process only (nothing in the plugin changes), and records the
 number of Gaussians every `--every` steps. Densification ends at 15k, so the count at 15k is its final one;
 run the terms in parallel processes on one GPU. `rotation` renders through gsplat with covariances: CUDA only.
+`--score test` also scores the test split at the end with the term in place (none and scale: evaluation renders
+normalised quaternions), so a 40k run of the scale term can be set against the official code's PSNR.
 Each record is also printed as a line; runs cut short by a deadline leave their curves in the log:
 
     python benchmarks/official_terms.py --from-log terms.log --scene /tmp/mutant --gpu H100 \
@@ -107,10 +109,18 @@ def official_functions(terms: str) -> Dict[str, Callable[..., Any]]:
 
 
 def train(
-    scene: Path, term: str, steps: int, every: int, work_dir: Path, device: str, quick: bool = False
+    scene: Path,
+    term: str,
+    steps: int,
+    every: int,
+    work_dir: Path,
+    device: str,
+    quick: bool = False,
+    score: Optional[str] = None,
 ) -> Dict[str, Any]:
     """Train `deform-splatfacto` with `term` for `steps` steps; the Gaussian count every `every` steps.
-    `quick`: the compressed CPU schedule (garo_ns.tools.train.QuickSchedule), for a smoke test."""
+    `quick`: the compressed CPU schedule (garo_ns.tools.train.QuickSchedule), for a smoke test. `score`: a split
+    to score at the end (PSNR, SSIM, LPIPS), rendered with the term still in place."""
     from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
     import garo_ns.garo_model as garo_model
@@ -120,6 +130,8 @@ def train(
         raise ValueError(f"unknown term {term!r} (known: {', '.join(TERMS)})")
     if "rotation" in term and device != "cuda":
         raise ValueError("the rotation term renders through gsplat with covariances: CUDA only")
+    if score is not None and "rotation" in term:  # evaluation renders normalised quaternions (see `render`)
+        raise ValueError("--score is for the none and scale terms: evaluation would not render the rotation term")
     calls = {name: 0 for name in official_functions(term)} if term != "none" else {}
 
     def counted(name: str, function: Callable[..., Any]) -> Callable[..., Any]:
@@ -149,10 +161,15 @@ def train(
             print(f"official_terms {term} step {step} gaussians {counts[-1][1]}", flush=True)
 
     trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], record))
+    scores: Dict[str, Any] = {}
     try:  # the plugin's own functions come back afterwards, also for the rest of a test session
         for name, function in replaced.items():
             setattr(garo_model, name, function)
         trainer.train()
+        if score is not None:  # while the term is still in place: the scores are of the model it trained
+            from garo_ns.tools.eval import evaluate
+
+            scores = evaluate(trainer.pipeline, Path(scene), score)
     finally:
         for name, function in originals.items():
             setattr(garo_model, name, function)
@@ -166,6 +183,7 @@ def train(
         "gaussians_end": counts[-1][1] if counts else None,
         "replaced_calls": calls,
         "train_seconds": time.time() - start,
+        "score": None if score is None else {k: v for k, v in scores.items() if k != "num_gaussians"},
         "gpu": torch.cuda.get_device_name() if device == "cuda" else "cpu",
         "git_commit": _commit(),
     }
@@ -228,6 +246,7 @@ def main(argv: Optional[List[str]] = None) -> Dict[str, Any]:
     parser.add_argument("--work-dir", type=Path, default=Path("runs/official_terms"))
     parser.add_argument("--device", choices=("cuda", "cpu"), default="cuda")
     parser.add_argument("--quick", action="store_true", help="the compressed CPU schedule (a smoke test)")
+    parser.add_argument("--score", choices=("val", "test"), default=None, help="score this split at the end")
     parser.add_argument("--output", type=Path, required=True)
     args = parser.parse_args(argv)
     if args.from_log is not None:
@@ -236,7 +255,7 @@ def main(argv: Optional[List[str]] = None) -> Dict[str, Any]:
         args.output.write_text(json.dumps(result, indent=1) + "\n")
         print(json.dumps(result["gaussians_at_common_step"] | {"step": result["common_step"]}))
         return result
-    result = train(args.scene, args.term, args.steps, args.every, args.work_dir, args.device, args.quick)
+    result = train(args.scene, args.term, args.steps, args.every, args.work_dir, args.device, args.quick, args.score)
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(json.dumps(result, indent=1) + "\n")
     print(json.dumps({k: v for k, v in result.items() if k != "gaussians_every"}))

@@ -73,11 +73,15 @@ def test_a_short_run_records_the_gaussian_count(tmp_path, capsys):
             "--quick",
             "--work-dir",
             str(tmp_path / "runs"),
+            "--score",
+            "test",
             "--output",
             str(out),
         ]
     )
     assert [s for s, _ in result["gaussians_every"]] == [0, 10, 20, 30, 39]
+    assert result["score"]["split"] == "test" and result["score"]["n_images"] == 3
+    assert math.isfinite(result["score"]["psnr"]) and result["score"]["psnr"] > 5
     assert result["gaussians_end"] == result["gaussians_every"][-1][1] > 0 and out.exists()
     assert result["replaced_calls"]["compose"] > 0  # the official term was in the training frames
     # The printed lines carry the same curve, so a run cut before it writes its file still leaves it.
@@ -87,6 +91,8 @@ def test_a_short_run_records_the_gaussian_count(tmp_path, capsys):
     assert garo_model.compose is compose and garo_model.activate is activate  # restored after the run
     with pytest.raises(ValueError, match="CUDA only"):
         official_terms.train(scene, "rotation", 10, 5, tmp_path / "r", "cpu")
+    with pytest.raises(ValueError, match="would not render the rotation term"):
+        official_terms.train(scene, "scale+rotation", 10, 5, tmp_path / "r", "cuda", score="test")
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="the rotation term renders through gsplat's CUDA kernels")
