@@ -40,8 +40,9 @@ export TORCHDYNAMO_DISABLE=1
 # The commit the result files name: .git-commit (`git rev-parse HEAD > .git-commit` here, carried in the first call:
 # it is excluded from git, so only `carry` brings it). Without it they would name the machine copy's git HEAD,
 # which can lag behind the work tree.
-[ -e .git-commit ] && export GARO_GIT_COMMIT=$(cat .git-commit)
-[ -e .git-commit ] || [ -e $W/src/.git-commit ] || echo "device_run.sh: no .git-commit carried; result files will name the machine's git HEAD" >&2
+commit_file=.git-commit; [ -e $commit_file ] || commit_file=$W/src/.git-commit
+if [ -e $commit_file ]; then export GARO_GIT_COMMIT=$(cat $commit_file)
+else echo "device_run.sh: no .git-commit carried; result files will name the machine's git HEAD" >&2; fi
 mkdir -p $W/results $W/jobs
 
 start_mps() {

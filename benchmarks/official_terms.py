@@ -240,7 +240,7 @@ def main(argv: Optional[List[str]] = None) -> Dict[str, Any]:
     parser.add_argument("--from-log", type=Path, default=None, help="write the result of runs cut short from their log")
     parser.add_argument("--gpu", default=None, help="with --from-log: the GPU the log's runs used")
     parser.add_argument("--scene", type=Path, required=True)
-    parser.add_argument("--term", choices=TERMS, default="none")
+    parser.add_argument("--term", choices=TERMS, default=None, help="required unless --from-log")
     parser.add_argument("--steps", type=int, default=15000)
     parser.add_argument("--every", type=int, default=500)
     parser.add_argument("--work-dir", type=Path, default=Path("runs/official_terms"))
@@ -255,6 +255,8 @@ def main(argv: Optional[List[str]] = None) -> Dict[str, Any]:
         args.output.write_text(json.dumps(result, indent=1) + "\n")
         print(json.dumps(result["gaussians_at_common_step"] | {"step": result["common_step"]}))
         return result
+    if args.term is None:
+        parser.error("--term is required to train (or give --from-log)")
     result = train(args.scene, args.term, args.steps, args.every, args.work_dir, args.device, args.quick, args.score)
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(json.dumps(result, indent=1) + "\n")

@@ -383,9 +383,9 @@ def compaction_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
         check = data.get("target_check")
         if check is None:
             raise ValueError(f"{path.name} has no target_check: make it with --target compaction")
-        fast, size = check["variant"], check.get("size_variant")
+        fast, size, base = check["variant"], check.get("size_variant"), data["baseline"]
         plain = fast.split("+")[0] if fast.split("+")[0] in data["variants"] else fast
-        arms = [r[v] for r in data["rows"] for v in (BASELINE, plain)]
+        arms = [r[v] for r in data["rows"] for v in (base, plain)]
         steps = sorted({f"{a['iterations']:,}" for a in arms if a.get("iterations")})
         out += [
             "",
@@ -397,7 +397,7 @@ def compaction_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
             "|---|---|---|---|---|---|" + ("---|" if size else ""),
         ]
         for label, r in [(r["scene"], r) for r in data["rows"]] + [("average", data["average"])]:
-            b, p, f = r[BASELINE], r[plain], r[fast]
+            b, p, f = r[base], r[plain], r[fast]
             out.append(
                 f"| {label} | {b['psnr']:.2f} / {p['psnr']:.2f} | {_lpips(b.get('lpips'))} / {_lpips(p.get('lpips'))} "
                 f"| {b['fps']:.0f} / {f['fps']:.0f} | {f['fps_ratio']:.2f}x "

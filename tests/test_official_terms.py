@@ -145,3 +145,5 @@ def test_curves_of_runs_cut_short_come_from_their_log(tmp_path):
     empty.write_text("nothing here\n")
     with pytest.raises(ValueError, match="no `official_terms"):
         official_terms.main(["--from-log", str(empty), "--scene", "x", "--output", str(tmp_path / "e.json")])
+    with pytest.raises(SystemExit):  # training names its term: no silent default
+        official_terms.main(["--scene", "x", "--output", str(tmp_path / "t.json")])
