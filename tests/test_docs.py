@@ -193,7 +193,7 @@ def test_compaction_block_comes_from_the_target_summary(tmp_path):
         return {"scene": scene, "split": "test", "gpu": "NVIDIA H200", "git_commit": "abc1234", "variants": rows}
 
     paths = []
-    for scene, drop in (("a", 0.1), ("b", 0.3)):
+    for scene, drop in (("jumpingjacks", 0.1), ("standup", 0.3)):
         paths.append(tmp_path / f"compact40k_{scene}_H200.json")
         paths[-1].write_text(json.dumps(result(scene, 200.0, 1400.0, drop)))
     variants = ["garo-compact", "garo-compact+auto", "garo-compact+auto+fp16"]
@@ -212,6 +212,7 @@ def test_compaction_block_comes_from_the_target_summary(tmp_path):
         )
     )
     block = readme_results.compaction_block(tmp_path, tmp_path)
-    assert "| a | 40.00 / 39.90 | 0.0100 / 0.0110 | 200 / 1400 | 7.00x | 100,000 / 30,000 | 3.5 |" in block
+    assert "| jumpingjacks | 40.00 / 39.90 | 0.0100 / 0.0110 | 200 / 1400 | 7.00x | 100,000 / 30,000 | 3.5 |" in block
+    assert "Not run at 40k yet: mutant. The average and the verdict cover 2 of the 3 scenes." in block
     assert "| average | 40.00 / 39.80 |" in block and "40,000 steps, NVIDIA H200" in block
     assert "Every criterion is met on 2 scene(s)." in block and "[`compact_H200.md`](compact_H200.md)" in block

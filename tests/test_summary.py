@@ -201,6 +201,14 @@ def test_the_compaction_target_is_judged_criterion_by_criterion():
         "LPIPS increase, each scene",
         "model MB in half-precision storage, each scene",
     ]
+    from garo_ns.bench.targets import target_lines
+
+    # The verdict counts the misses and keeps criterion names (which hold commas) apart.
+    assert target_lines(check)[-1] == (
+        "Not met: 7 missed (speed-up, mean; speed-up, each scene; FPS on H200, each scene; PSNR loss, mean (dB); "
+        "PSNR loss, each scene (dB); LPIPS increase, each scene; model MB in half-precision storage, each scene), "
+        "7 of 7 criteria judged from these files."
+    )
 
 
 def test_the_target_leaves_unjudged_what_the_files_cannot_show(tmp_path):

@@ -153,7 +153,8 @@ def target_lines(result: Dict[str, Any]) -> List[str]:
     if result["met"]:
         lines.append(f"Every criterion is met on {len(scenes)} scene(s).")
     elif result["missed"]:
-        lines.append(f"Not met: missed {', '.join(result['missed'])} ({judged}).")
+        # Criterion names hold commas ("speed-up, mean"): semicolons keep the list readable.
+        lines.append(f"Not met: {len(result['missed'])} missed ({'; '.join(result['missed'])}), {judged}.")
     else:
         lines.append(f"Not settled: no criterion missed, {judged}.")
     return lines
