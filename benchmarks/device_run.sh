@@ -58,6 +58,8 @@ start_mps() {
 # What the result files record of it (garo_ns.bench.benchmark.environment).
 [ -e $W/mps.on ] && export GARO_MPS_ON=1
 [ -d $W/src ] || cp -r . $W/src
+# A later call's tree lacks .git-commit unless carried again: keep the carried one where later calls look.
+[ -e .git-commit ] && cp .git-commit $W/src/.git-commit
 export PYTHONPATH=$W/src:${PYTHONPATH:-}
 
 case $phase in
