@@ -10,6 +10,7 @@ once: each value of its row is the mean over its runs, with the runs kept beside
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Tuple
@@ -257,7 +258,7 @@ def write_report(summary: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
 
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
     # Colour names the scene, the marker the variant: several variants of one scene stay apart.
-    markers = dict(zip(summary["variants"], "*^sDvP<>" * 4))
+    markers = dict(zip(summary["variants"], itertools.cycle("*^sDvP<>")))
     for i, row in enumerate(summary["rows"]):
         color = f"C{i}"
         base = row[BASELINE]

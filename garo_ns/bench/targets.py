@@ -80,40 +80,43 @@ def check_target(
         for r in rows
     ]
     # The absolute frame rate is judged only on rows measured on the target's GPU model; the others are shown.
-    elsewhere = sorted({str(r.get("gpu") or "a CPU") for r in rows if target.fps_gpu not in str(r.get("gpu") or "")})
-    fps_each = [r[variant].get("fps") if target.fps_gpu in str(r.get("gpu") or "") else None for r in rows]
+    on_gpu = [target.fps_gpu in str(r.get("gpu") or "") for r in rows]
+    left_out = [s for s, ok in zip(scenes, on_gpu) if not ok]
+    fps_note = None
+    if left_out:
+        where = "measured on " + ", ".join(
+            sorted({str(r.get("gpu") or "a CPU") for r, ok in zip(rows, on_gpu) if not ok})
+        )
+        fps_note = where if len(left_out) == len(scenes) else f"{', '.join(left_out)} left out ({where})"
     sizes = [r[size_variant].get("model_size_mb") for r in rows] if size_variant else []
+    # (label, values shown, values judged, limit, at least, note): no judged values leave a criterion unjudged.
     criteria = [
-        ("speed-up, mean", [average.get("fps_ratio")], target.fps_ratio_mean, True, None),
-        ("speed-up, each scene", each("fps_ratio"), target.fps_ratio_each, True, None),
+        ("speed-up, mean", [average.get("fps_ratio")], None, target.fps_ratio_mean, True, None),
+        ("speed-up, each scene", each("fps_ratio"), None, target.fps_ratio_each, True, None),
         (
             f"FPS on {target.fps_gpu}, each scene",
             each("fps"),
+            [v if ok else None for v, ok in zip(each("fps"), on_gpu)],
             target.fps_each,
             True,
-            None,
+            fps_note,
         ),
-        ("PSNR loss, mean (dB)", [average.get("psnr_drop_db")], target.psnr_drop_mean_db, False, None),
-        ("PSNR loss, each scene (dB)", each("psnr_drop_db"), target.psnr_drop_each_db, False, None),
-        ("LPIPS increase, each scene", lpips_up, target.lpips_increase_each, False, None),
+        ("PSNR loss, mean (dB)", [average.get("psnr_drop_db")], None, target.psnr_drop_mean_db, False, None),
+        ("PSNR loss, each scene (dB)", each("psnr_drop_db"), None, target.psnr_drop_each_db, False, None),
+        ("LPIPS increase, each scene", lpips_up, None, target.lpips_increase_each, False, None),
         (
             "model MB in half-precision storage, each scene",
             sizes,
+            None,
             target.model_mb_each,
             False,
             None if size_variant else "no +fp16 row given",
         ),
     ]
     out = []
-    for label, values, limit, at_least, skipped in criteria:
-        judged_values = fps_each if label.startswith("FPS on") else values
-        met = None if skipped else _verdict(judged_values, limit, at_least)
-        note = skipped
-        if note is None and label.startswith("FPS on") and elsewhere:
-            others = [s for s, v in zip(scenes, fps_each) if v is None]
-            where = f"measured on {', '.join(elsewhere)}"
-            note = where if len(others) == len(scenes) else f"{', '.join(others)} left out ({where})"
-        elif note is None and any(v is None for v in values):
+    for label, values, judged, limit, at_least, note in criteria:
+        met = _verdict(values if judged is None else judged, limit, at_least)
+        if note is None and any(v is None for v in values):
             note = "a value is missing"
         out.append(
             {"criterion": label, "values": values, "limit": limit, "at_least": at_least, "met": met, "note": note}
