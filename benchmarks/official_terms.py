@@ -19,7 +19,14 @@ switched to the official code's way, in this process only (nothing in the plugin
 number of Gaussians every `--every` steps. Densification ends at 15k, so the count at 15k is its final one;
 run the terms in parallel processes on one GPU. `rotation` renders through gsplat with covariances: CUDA only.
 `--score test` also scores the test split at the end with the term in place (none and scale: evaluation renders
-normalised quaternions), so a 40k run of the scale term can be set against the official code's PSNR.
+normalised quaternions), so a 40k run of the scale term can be set against the official code's PSNR. Each frame is
+then composed as in training (`score_with_term`); `--rescore RUN/nerfstudio_models` scores a finished run's
+checkpoint again, on any device, into its result file:
+
+    python benchmarks/official_terms.py --rescore runs/official_terms/scale/deform-splatfacto/nerfstudio_models \
+        --scene /tmp/mutant --term scale --device cpu \
+        --output benchmarks/results/official_terms_mutant_scale40k_H200.json
+
 Each record is also printed as a line; runs cut short by a deadline leave their curves in the log:
 
     python benchmarks/official_terms.py --from-log terms.log --scene /tmp/mutant --gpu H100 \
@@ -32,8 +39,9 @@ import argparse
 import json
 import re
 import time
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable, Dict, List, NamedTuple, Optional, Tuple
+from typing import Any, Callable, Dict, Iterator, List, NamedTuple, Optional, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -108,6 +116,33 @@ def official_functions(terms: str) -> Dict[str, Callable[..., Any]]:
     return out
 
 
+@contextmanager
+def term_in_place(term: str) -> Iterator[Dict[str, int]]:
+    """garo_ns.garo_model's functions replaced by the official code's for `term`, in this process only;
+    yields how often each replacement has been called. The plugin's own come back on exit (also for the
+    rest of a test session)."""
+    import garo_ns.garo_model as garo_model
+
+    replaced = official_functions(term) if term != "none" else {}
+    calls = {name: 0 for name in replaced}
+
+    def counted(name: str, function: Callable[..., Any]) -> Callable[..., Any]:
+        def call(*args: Any, **kwargs: Any) -> Any:
+            calls[name] += 1
+            return function(*args, **kwargs)
+
+        return call
+
+    originals = {name: getattr(garo_model, name) for name in replaced}
+    try:
+        for name, function in replaced.items():
+            setattr(garo_model, name, counted(name, function))
+        yield calls
+    finally:
+        for name, function in originals.items():
+            setattr(garo_model, name, function)
+
+
 def train(
     scene: Path,
     term: str,
@@ -123,7 +158,6 @@ def train(
     to score at the end (PSNR, SSIM, LPIPS), rendered with the term still in place."""
     from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
-    import garo_ns.garo_model as garo_model
     from garo_ns.tools.train import QuickSchedule, make_config, seed_everything
 
     if term not in TERMS:
@@ -132,17 +166,6 @@ def train(
         raise ValueError("the rotation term renders through gsplat with covariances: CUDA only")
     if score is not None and "rotation" in term:  # evaluation renders normalised quaternions (see `render`)
         raise ValueError("--score is for the none and scale terms: evaluation would not render the rotation term")
-    calls = {name: 0 for name in official_functions(term)} if term != "none" else {}
-
-    def counted(name: str, function: Callable[..., Any]) -> Callable[..., Any]:
-        def call(*args: Any, **kwargs: Any) -> Any:
-            calls[name] += 1
-            return function(*args, **kwargs)
-
-        return call
-
-    replaced = {name: counted(name, f) for name, f in official_functions(term).items()} if term != "none" else {}
-    originals = {name: getattr(garo_model, name) for name in replaced}
     schedule = QuickSchedule(steps=steps) if quick else None
     config = make_config("deform-splatfacto", scene, work_dir, device=device, schedule=schedule, experiment_name=term)  # type: ignore[arg-type]
     config.max_num_iterations = steps
@@ -162,31 +185,76 @@ def train(
 
     trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], record))
     scores: Dict[str, Any] = {}
-    try:  # the plugin's own functions come back afterwards, also for the rest of a test session
-        for name, function in replaced.items():
-            setattr(garo_model, name, function)
+    with term_in_place(term) as calls:
         trainer.train()
+        trained_calls = dict(calls)
         if score is not None:  # while the term is still in place: the scores are of the model it trained
-            from garo_ns.tools.eval import evaluate
-
-            scores = evaluate(trainer.pipeline, Path(scene), score)
-    finally:
-        for name, function in originals.items():
-            setattr(garo_model, name, function)
+            scores = score_with_term(trainer.pipeline, Path(scene), score)
     if term != "none" and calls.get("compose", 0) == 0:  # the plugin no longer calls what was replaced
         raise RuntimeError(f"the official {term} term never ran: garo_ns.garo_model no longer calls compose")
     return {
         "scene": Path(scene).name,
         "term": term,
         "steps": steps,
+        "quick": quick,
         "gaussians_every": counts,
         "gaussians_end": counts[-1][1] if counts else None,
-        "replaced_calls": calls,
+        "replaced_calls": trained_calls,
         "train_seconds": time.time() - start,
         "score": None if score is None else {k: v for k, v in scores.items() if k != "num_gaussians"},
+        # The replaced functions' calls while scoring: at least one per view, or the term was not rendered.
+        "replaced_calls_scoring": {name: calls[name] - trained_calls[name] for name in calls},
         "gpu": torch.cuda.get_device_name() if device == "cuda" else "cpu",
         "git_commit": _commit(),
     }
+
+
+def score_with_term(pipeline: Any, scene: Path, split: str) -> Dict[str, Any]:
+    """PSNR, SSIM and LPIPS of `split`, each frame composed by the field as trained (`exact`): outside
+    training the plugin renders through its frame path, which composes the deformation itself and would
+    leave a replaced `compose` out (a model trained with the official scale term, rendered the plugin's way,
+    scored 23.8 dB on mutant)."""
+    from garo_ns.tools.eval import evaluate
+
+    model = pipeline.model
+    as_trained = model.gaussians_at
+    model.gaussians_at = lambda time, exact=False, settings=None: as_trained(time, exact=True)
+    try:
+        return evaluate(pipeline, scene, split)
+    finally:
+        del model.gaussians_at  # the class's method again
+
+
+def rescore(run_dir: Path, scene: Path, term: str, split: str, device: str, result: Path) -> Dict[str, Any]:
+    """Score the checkpoint of a finished run (`run_dir`: the run's nerfstudio_models/ folder) again with
+    `term` in place, and write the score into its result file `result` (recording where it was scored)."""
+    from garo_ns.tools.train import QuickSchedule, make_config
+
+    record = json.loads(result.read_text())
+    if record.get("term") != term or record.get("scene") != Path(scene).name:
+        raise ValueError(f"{result} is the {record.get('term')} term on {record.get('scene')}, not {term} on {scene}")
+    # The model as the run built it: the compressed CPU schedule also shrinks the field.
+    schedule = QuickSchedule(steps=record["steps"]) if record.get("quick") else None
+    config = make_config("deform-splatfacto", scene, run_dir.parent / "rescore", device=device, schedule=schedule)  # type: ignore[arg-type]
+    config.load_dir = Path(run_dir)
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    if int(trainer.pipeline.model.num_points) != record.get("gaussians_end"):
+        raise ValueError(
+            f"{run_dir} holds {trainer.pipeline.model.num_points} Gaussians, {result} ended with "
+            f"{record.get('gaussians_end')}: not this run's checkpoint"
+        )
+    with term_in_place(term) as calls:
+        scores = score_with_term(trainer.pipeline, Path(scene), split)
+    record["score"] = {k: v for k, v in scores.items() if k != "num_gaussians"}
+    record["replaced_calls_scoring"] = calls
+    record["scored"] = {
+        "device": device if device == "cpu" else torch.cuda.get_device_name(),
+        "git_commit": _commit(),
+        "how": "the run's checkpoint scored again by --rescore",
+    }
+    result.write_text(json.dumps(record, indent=1) + "\n")
+    return record
 
 
 def _commit() -> Optional[str]:
@@ -247,8 +315,21 @@ def main(argv: Optional[List[str]] = None) -> Dict[str, Any]:
     parser.add_argument("--device", choices=("cuda", "cpu"), default="cuda")
     parser.add_argument("--quick", action="store_true", help="the compressed CPU schedule (a smoke test)")
     parser.add_argument("--score", choices=("val", "test"), default=None, help="score this split at the end")
+    parser.add_argument(
+        "--rescore",
+        type=Path,
+        default=None,
+        help="a finished run's nerfstudio_models/ folder: "
+        "score it again (--score, default test) into its result file --output",
+    )
     parser.add_argument("--output", type=Path, required=True)
     args = parser.parse_args(argv)
+    if args.rescore is not None:
+        if args.term is None:
+            parser.error("--rescore needs the --term the run trained with")
+        result = rescore(args.rescore, args.scene, args.term, args.score or "test", args.device, args.output)
+        print(json.dumps(result["score"]))
+        return result
     if args.from_log is not None:
         result = from_log(args.from_log, args.scene.name, args.steps, args.gpu)
         args.output.parent.mkdir(parents=True, exist_ok=True)

@@ -365,6 +365,24 @@ COMPACT_FILE = re.compile(r"compact_(?P<gpu>[^_]+)\.json")
 CHOICE_FILE = "compaction_choice18k_H100.json"
 
 
+def claim_sentence(summary: Dict[str, Any], variants: List[str]) -> str:
+    """One sentence: the paper's claim (its speed-up at its PSNR loss, on average over the scenes) for each of
+    `variants`, from the `paper_claim` that garo_ns.bench.summary judged."""
+    claim = summary["paper_claim"]
+    parts = []
+    for name in dict.fromkeys(variants):
+        avg = summary["average"][name]
+        parts.append(
+            f"`{name}` {'meets' if claim[name]['average_meets'] else 'misses'} it ({avg['fps_ratio']:.2f}x at "
+            f"{avg['psnr_drop_db']:+.2f} dB; {len(claim[name]['scenes_meeting'])} of {len(summary['rows'])} scenes)"
+        )
+    return (
+        f"The paper's claim ({claim['fps_ratio_min']:.1f}x at <= {claim['psnr_drop_max_db']} dB, on average): "
+        + ", ".join(parts)
+        + "."
+    )
+
+
 def compaction_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     """`garo-compact` against the baseline at 40k with the compaction target judged, from `compact_<GPU>.json`
     (`python -m garo_ns.bench.summary ... --target compaction`); until that exists, where its defaults come from."""
@@ -404,6 +422,7 @@ def compaction_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
                 f"| {b['num_gaussians']:,.0f} / {p['num_gaussians']:,.0f} |"
                 + (f" {r[size]['model_size_mb']:.1f} |" if size else "")
             )
+        out += ["", claim_sentence(data, [plain, fast])]
         out += ["", f"{target_lines(check)[-1]} Criterion by criterion: {_link(path.with_suffix('.md'), readme_dir)}."]
         missing = [s for s in SCENES if s not in {r["scene"] for r in data["rows"]}]
         if missing:  # rows land one machine hold at a time: say what the average does not cover yet

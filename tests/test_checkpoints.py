@@ -177,3 +177,22 @@ def test_killed_during_save_resumes_from_the_previous_checkpoint(scene_dir, tmp_
     trainer.train()
     assert sorted(p.name for p in trainer.checkpoint_dir.iterdir()) == [checkpoint_name(30)]
     assert is_complete(models / checkpoint_name(20))
+
+
+@pytest.mark.parametrize("writer", ["numpy.core.multiarray", "numpy._core.multiarray"])
+def test_a_checkpoint_of_either_numpy_loads_weights_only(tmp_path, writer):
+    """nerfstudio's schedulers leave numpy scalars in a checkpoint, named by the module of the numpy that
+    wrote it (numpy 2 on the GPU machine, 1.x elsewhere): a run trained under one loads under the other."""
+    import io
+
+    import numpy as np
+
+    from garo_ns.compat import allow_numpy_scalars_in_checkpoints
+
+    buffer = io.BytesIO()  # the legacy format keeps the pickle's global names as plain text, so one can be renamed
+    torch.save({"_last_lr": [np.float64(0.25)]}, buffer, _use_new_zipfile_serialization=False)
+    data = buffer.getvalue()
+    here = next(m for m in ("numpy.core.multiarray", "numpy._core.multiarray") if f"{m}\nscalar".encode() in data)
+    data = data.replace(f"{here}\nscalar".encode(), f"{writer}\nscalar".encode())
+    allow_numpy_scalars_in_checkpoints()
+    assert torch.load(io.BytesIO(data), weights_only=True) == {"_last_lr": [0.25]}

@@ -214,5 +214,9 @@ def test_compaction_block_comes_from_the_target_summary(tmp_path):
     block = readme_results.compaction_block(tmp_path, tmp_path)
     assert "| jumpingjacks | 40.00 / 39.90 | 0.0100 / 0.0110 | 200 / 1400 | 7.00x | 100,000 / 30,000 | 3.5 |" in block
     assert "Not run at 40k yet: mutant. The average and the verdict cover 2 of the 3 scenes." in block
+    assert (
+        "The paper's claim (2.0x at <= 0.5 dB, on average): `garo-compact` meets it (3.50x at +0.20 dB; 2 of 2 "
+        "scenes), `garo-compact+auto` meets it (7.00x at +0.20 dB; 2 of 2 scenes)." in block
+    )
     assert "| average | 40.00 / 39.80 |" in block and "40,000 steps, NVIDIA H200" in block
     assert "Every criterion is met on 2 scene(s)." in block and "[`compact_H200.md`](compact_H200.md)" in block

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import json
 import math
 from pathlib import Path
 
@@ -84,6 +85,30 @@ def test_a_short_run_records_the_gaussian_count(tmp_path, capsys):
     assert math.isfinite(result["score"]["psnr"]) and result["score"]["psnr"] > 5
     assert result["gaussians_end"] == result["gaussians_every"][-1][1] > 0 and out.exists()
     assert result["replaced_calls"]["compose"] > 0  # the official term was in the training frames
+    # The score rendered every view with the term too: outside training the plugin's frame path would not.
+    assert result["replaced_calls_scoring"]["compose"] >= 3
+    # The run's checkpoint scored again (another process, another day): the same model, the same score.
+    again = official_terms.main(
+        [
+            "--rescore",
+            str(tmp_path / "runs" / "scale" / "deform-splatfacto" / "nerfstudio_models"),
+            "--scene",
+            str(scene),
+            "--term",
+            "scale",
+            "--device",
+            "cpu",
+            "--output",
+            str(out),
+        ]
+    )
+    assert again["score"]["psnr"] == pytest.approx(result["score"]["psnr"], abs=1e-4)
+    assert again["replaced_calls_scoring"]["compose"] >= 3 and again["gaussians_end"] == result["gaussians_end"]
+    assert json.loads(out.read_text())["scored"]["how"].startswith("the run's checkpoint")
+    with pytest.raises(ValueError, match="is the scale term on scene, not none on"):
+        official_terms.rescore(
+            tmp_path / "runs" / "scale" / "deform-splatfacto" / "nerfstudio_models", scene, "none", "test", "cpu", out
+        )
     # The printed lines carry the same curve, so a run cut before it writes its file still leaves it.
     assert official_terms.curves_from_log(capsys.readouterr().out) == {"scale": result["gaussians_every"]}
     import garo_ns.garo_model as garo_model
