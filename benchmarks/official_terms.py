@@ -190,7 +190,7 @@ def train(
         trained_calls = dict(calls)
         if score is not None:  # while the term is still in place: the scores are of the model it trained
             scores = score_with_term(trainer.pipeline, Path(scene), score)
-    if term != "none" and calls.get("compose", 0) == 0:  # the plugin no longer calls what was replaced
+    if term != "none" and trained_calls.get("compose", 0) == 0:  # the plugin no longer calls what was replaced
         raise RuntimeError(f"the official {term} term never ran: garo_ns.garo_model no longer calls compose")
     return {
         "scene": Path(scene).name,

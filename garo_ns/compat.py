@@ -32,9 +32,11 @@ def allow_numpy_scalars_in_checkpoints() -> None:
         from numpy._core.multiarray import scalar
     except ImportError:
         from numpy.core.multiarray import scalar
-    # A checkpoint names the function by the module of the numpy that wrote it: allow both names, so a run
-    # trained under numpy 2 (a GPU machine) loads under numpy 1.x (a laptop) and the other way round.
-    safe: list = [(scalar, "numpy._core.multiarray.scalar"), (scalar, "numpy.core.multiarray.scalar"), np.dtype]
+    safe: list = [scalar, np.dtype]
+    if torch.__version__ >= "2.6":  # (function, name) entries; also the first torch that loads weights_only
+        # A checkpoint names the function by the module of the numpy that wrote it: allow both names, so a run
+        # trained under numpy 2 (a GPU machine) loads under numpy 1.x (a laptop) and the other way round.
+        safe[0:1] = [(scalar, f"{m}.multiarray.scalar") for m in ("numpy._core", "numpy.core")]
     safe += [type(np.dtype(t)) for t in (np.float64, np.float32, np.int64, np.int32, np.bool_)]
     add(safe)
 
