@@ -1,0 +1,479 @@
+"""Where a training step's time goes, measured inside nerfstudio's own training loop.
+
+At a few steps of a real run (say 2k, 10k and 30k) a window of steps is timed in two ways:
+
+* **plain**: the wall time of `plain_steps` steps with no instrument but one synchronisation at each end,
+  which is what the run costs;
+* **phases**: `phase_steps` steps with a mark at every phase boundary (a CUDA event on the training
+  stream and the host clock): the data, the deformation field's forward, the rasterizer's forward, the
+  metrics and the loss (SSIM included), then the backward pass cut where the gradient reaches the render
+  (the loss's backward done) and the deformed Gaussians (the rasterizer's backward done; the rest is the
+  field's backward and the activations'), the optimizers, the strategy, the rest of the after-step work
+  (static classification, health check, compaction) and the loop between steps (logging, checkpoints).
+
+Device milliseconds are the time between a phase's two marks on the GPU's timeline, host milliseconds
+the time the Python thread spent there: where the host time of a step exceeds its device time, the GPU
+waits for the loop. On CUDA the window also counts the host synchronisations (torch's sync debug mode:
+each `.item()`, `.cpu()`, `nonzero` ...) with the lines that cause most of them, and a short profiler
+pass gives the share of the step's wall time the GPU spends in kernels. On a CPU the marks are host
+clocks and both columns agree, so the same code runs in the tests.
+
+    python -m garo_ns.bench.train_profile --scene data/dnerf/jumpingjacks --method garo-deform \
+        --windows 2000 10000 30000 --output train_profile.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+import warnings
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
+
+import torch
+
+PHASES = (
+    "data",
+    "deformation_forward",
+    "rasterization_forward",
+    "metrics",
+    "loss_forward",
+    "loss_backward",
+    "rasterization_backward",
+    "deformation_backward",
+    "optimizers",
+    "strategy",
+    "after_step_other",
+    "loop_between_steps",
+)
+"""The phases of a step, in the order they run (see the module docstring)."""
+
+
+class Mark:
+    """A point in a step: the host clock and, on CUDA, an event recorded on the current stream."""
+
+    __slots__ = ("host", "event")
+
+    def __init__(self, cuda: bool) -> None:
+        self.host = time.perf_counter()
+        self.event = None
+        if cuda:
+            self.event = torch.cuda.Event(enable_timing=True)
+            self.event.record()
+
+    def device_ms_to(self, later: "Mark") -> float:
+        """Milliseconds from this mark to `later` on the device's timeline (the host clock without CUDA);
+        call after a synchronisation."""
+        if self.event is not None and later.event is not None:
+            return float(self.event.elapsed_time(later.event))
+        return (later.host - self.host) * 1e3
+
+    def host_ms_to(self, later: "Mark") -> float:
+        return (later.host - self.host) * 1e3
+
+
+@dataclass
+class StepMarks:
+    """The marks of one instrumented step: each phase's (start, end) and nested phases to subtract."""
+
+    spans: Dict[str, List[Tuple[Mark, Mark]]] = field(default_factory=dict)
+    points: Dict[str, Mark] = field(default_factory=dict)
+
+    def add(self, phase: str, start: Mark, end: Mark) -> None:
+        self.spans.setdefault(phase, []).append((start, end))
+
+
+def phase_times(step: StepMarks, next_start: Optional[Mark]) -> Dict[str, Dict[str, float]]:
+    """{"device": {phase: ms}, "host": {phase: ms}} of one step from its marks (after a synchronisation).
+
+    The backward pass is cut at the points its hooks marked: `backward_start` (the loss's gradient),
+    `render_grad` (the render's), `splats_grad` (the deformed Gaussians'), and ends where the optimizers
+    start; the strategy runs inside the after-step callback and is subtracted from it. `next_start`:
+    the next step's first mark (the loop between the two), None for a window's last step.
+    """
+    out: Dict[str, Dict[str, float]] = {"device": {}, "host": {}}
+
+    def put(phase: str, start: Mark, end: Mark) -> None:
+        out["device"][phase] = out["device"].get(phase, 0.0) + start.device_ms_to(end)
+        out["host"][phase] = out["host"].get(phase, 0.0) + start.host_ms_to(end)
+
+    for phase, spans in step.spans.items():
+        if phase == "step":
+            continue
+        for start, end in spans:
+            put(phase, start, end)
+    p = step.points
+    cuts = [p.get("backward_start"), p.get("render_grad"), p.get("splats_grad")]
+    # The backward pass ends where the optimizers' step starts (zero_grad, also "optimizers", runs first).
+    if all(c is not None for c in cuts) and "optimizer_step" in p:
+        ends = cuts[1:] + [p["optimizer_step"]]
+        for phase, start, end in zip(("loss_backward", "rasterization_backward", "deformation_backward"), cuts, ends):
+            put(phase, start, end)  # type: ignore[arg-type]
+    if "after_start" in p:  # from the first after-step callback to the step's end
+        put("after_step_other", p["after_start"], step.spans["step"][0][1])
+    for kind in ("device", "host"):
+        if "after_step_other" in out[kind]:
+            out[kind]["after_step_other"] -= out[kind].get("strategy", 0.0)
+    first, last = step.spans["step"][0]
+    out["device"]["step"] = first.device_ms_to(last)
+    out["host"]["step"] = first.host_ms_to(last)
+    if next_start is not None:
+        put("loop_between_steps", last, next_start)
+    return out
+
+
+class StepInstrument:
+    """Marks the phases of the steps of a nerfstudio Trainer whose model is a GaroModel.
+
+    It wraps bound methods of the trainer's own objects (the datamanager, the model, its strategy, the
+    optimizers) and adds hooks on the loss, the render and the deformed Gaussians; outside an active
+    window each wrapper costs one attribute test."""
+
+    def __init__(self, trainer: Any) -> None:
+        self.trainer = trainer
+        self.model = trainer.pipeline.model
+        self.cuda = self.model.device.type == "cuda"
+        self.active = False
+        self.steps: List[StepMarks] = []
+        self._handles: List[Any] = []
+        dm, model, opt = trainer.pipeline.datamanager, self.model, trainer.optimizers
+        self._wrap(dm, "next_train", "data")
+        self._wrap(model, "gaussians_at", "deformation_forward", self._hook_splats)
+        self._wrap(model, "render", "rasterization_forward")
+        self._wrap(model, "get_metrics_dict", "metrics")
+        self._wrap(model, "get_loss_dict", "loss_forward", self._hook_loss)
+        self._wrap(model, "get_outputs", None, self._hook_render)
+        self._wrap(model.strategy, "step_post_backward", "strategy")
+        self._wrap(opt, "zero_grad_some", "optimizers")
+        self._wrap(opt, "optimizer_scaler_step_some", "optimizers", point="optimizer_step")
+        self._wrap(opt, "scheduler_step_all", "optimizers")
+
+    def mark(self) -> Mark:
+        return Mark(self.cuda)
+
+    def _wrap(
+        self,
+        obj: Any,
+        name: str,
+        phase: Optional[str],
+        after: Optional[Callable[[Any], None]] = None,
+        point: Optional[str] = None,
+    ) -> None:
+        """Replace `obj.name` by a wrapper that marks `phase` around the call, the point `point` at its
+        start, and passes the result to `after` (to hook its tensors)."""
+        inner = getattr(obj, name)
+
+        def wrapped(*args: Any, **kwargs: Any) -> Any:
+            if not self.active or not self.steps:
+                return inner(*args, **kwargs)
+            start = self.mark() if phase else None
+            if point is not None and start is not None:
+                self.steps[-1].points.setdefault(point, start)
+            result = inner(*args, **kwargs)
+            if phase:
+                self.steps[-1].add(phase, start, self.mark())  # type: ignore[arg-type]
+            if after is not None:
+                after(result)
+            return result
+
+        setattr(obj, name, wrapped)
+
+    def _point(self, name: str) -> Callable[[Any], None]:
+        step = self.steps[-1]
+
+        def hook(grad: Any) -> None:
+            step.points.setdefault(name, self.mark())
+
+        return hook
+
+    def _hook(self, tensor: Any, name: str) -> None:
+        if isinstance(tensor, torch.Tensor) and tensor.requires_grad:
+            self._handles.append(tensor.register_hook(self._point(name)))
+
+    def _hook_splats(self, splats: Any) -> None:
+        if self.model.training:
+            self._hook(splats.means, "splats_grad")
+
+    def _hook_render(self, outputs: Any) -> None:
+        if self.model.training:
+            self._hook(outputs.get("rgb"), "render_grad")
+
+    def _hook_loss(self, losses: Dict[str, Any]) -> None:
+        self._hook(losses.get("main_loss"), "backward_start")
+
+    def begin_step(self) -> None:
+        if self.active:
+            self.steps.append(StepMarks())
+            self.steps[-1].points["step_start"] = self.mark()
+
+    def after_start(self) -> None:
+        if self.active and self.steps:
+            self.steps[-1].points["after_start"] = self.mark()
+
+    def end_step(self) -> None:
+        if self.active and self.steps:
+            step = self.steps[-1]
+            step.add("step", step.points.pop("step_start"), self.mark())
+            for handle in self._handles:  # hooks on leaf parameters would outlive the step
+                handle.remove()
+            self._handles.clear()
+
+
+@dataclass
+class ProfileSettings:
+    """Where and how long to measure."""
+
+    windows: Sequence[int] = (2000, 10_000, 30_000)
+    """Steps at which a window starts (those past the run's end are skipped)."""
+    plain_steps: int = 100
+    """Steps timed with no instrument, for the window's wall time per step."""
+    phase_steps: int = 30
+    """Steps timed phase by phase, right after the plain ones."""
+    profiler_steps: int = 10
+    """On CUDA, steps under torch's profiler after those, for the GPU's busy share (0: none)."""
+
+
+def _sync(cuda: bool) -> None:
+    if cuda:
+        torch.cuda.synchronize()
+
+
+def summarise_window(steps: List[StepMarks]) -> Dict[str, Any]:
+    """Mean device and host milliseconds per step of each phase over the instrumented steps."""
+    nexts = [s.spans["step"][0][0] for s in steps[1:]] + [None]
+    times = [phase_times(s, n) for s, n in zip(steps, nexts)]
+    out: Dict[str, Any] = {}
+    for kind in ("device", "host"):
+        names = [p for p in PHASES + ("step",) if any(p in t[kind] for t in times)]
+        means = {}
+        for p in names:
+            values = [t[kind][p] for t in times if p in t[kind]]
+            means[p] = sum(values) / len(values)
+        out[f"{kind}_ms"] = means
+    inside = out["device_ms"].get("step", 0.0)
+    labelled = sum(v for k, v in out["device_ms"].items() if k not in ("step", "loop_between_steps"))
+    out["device_ms_unlabelled_in_step"] = inside - labelled
+    return out
+
+
+class SyncCounter:
+    """Counts CUDA host synchronisations while active (torch's sync debug mode) and where they come from."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.sources: Counter = Counter()
+        self._catch: Optional[Any] = None
+        self._log: List[Any] = []
+
+    def start(self) -> None:
+        self._catch = warnings.catch_warnings(record=True)
+        self._log = self._catch.__enter__()
+        warnings.simplefilter("always")
+        torch.cuda.set_sync_debug_mode("warn")
+
+    def stop(self) -> None:
+        torch.cuda.set_sync_debug_mode("default")
+        if self._catch is not None:
+            self._catch.__exit__(None, None, None)
+        for w in self._log:
+            if "synchronizing" in str(w.message):
+                self.count += 1
+                self.sources[f"{Path(w.filename).name}:{w.lineno}"] += 1
+
+
+def kernel_share(prof: Any, wall_ms: float) -> Optional[float]:
+    """Share of `wall_ms` the GPU spent in kernels, from a finished torch profiler."""
+    total_us = 0.0
+    for e in prof.key_averages():
+        total_us += float(getattr(e, "self_device_time_total", getattr(e, "self_cuda_time_total", 0.0)) or 0.0)
+    return total_us / 1e3 / wall_ms if wall_ms > 0 else None
+
+
+class TrainProfiler:
+    """Runs the windows of `settings` inside a nerfstudio Trainer's loop (two training callbacks)."""
+
+    def __init__(self, trainer: Any, settings: ProfileSettings) -> None:
+        from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+
+        self.trainer, self.settings = trainer, settings
+        self.instrument = StepInstrument(trainer)
+        self.cuda = self.instrument.cuda
+        self.windows: List[Dict[str, Any]] = []
+        self._plan: Dict[int, Tuple[str, int]] = {}
+        per = settings.plain_steps + settings.phase_steps + (settings.profiler_steps if self.cuda else 0)
+        for start in settings.windows:
+            for i in range(per):
+                if i < settings.plain_steps:
+                    self._plan[start + i] = ("plain", start)
+                elif i < settings.plain_steps + settings.phase_steps:
+                    self._plan[start + i] = ("phases", start)
+                else:
+                    self._plan[start + i] = ("profiler", start)
+        self._current: Optional[Dict[str, Any]] = None
+        self._t0 = 0.0
+        self._sync_counter: Optional[SyncCounter] = None
+        self._prof: Any = None
+        before, after = TrainingCallbackLocation.BEFORE_TRAIN_ITERATION, TrainingCallbackLocation.AFTER_TRAIN_ITERATION
+        # First before the step, first and last after it: the step's span and its after-step part.
+        trainer.callbacks.insert(0, TrainingCallback([before], self._before))
+        trainer.callbacks.insert(1, TrainingCallback([after], lambda step: self.instrument.after_start()))
+        trainer.callbacks.append(TrainingCallback([after], self._after))
+
+    def _before(self, step: int) -> None:
+        kind, start = self._plan.get(step, (None, None))
+        prev = self._plan.get(step - 1, (None, None))
+        if kind is not None and prev != (kind, start):  # the first step of a part of a window
+            if kind == "plain":
+                self._current = {"step": start, "gaussians": int(self.instrument.model.num_points)}
+                self.windows.append(self._current)
+            _sync(self.cuda)
+            self._t0 = time.perf_counter()
+            if kind == "phases":
+                self.instrument.active = True
+                if self.cuda:
+                    self._sync_counter = SyncCounter()
+                    self._sync_counter.start()
+            if kind == "profiler":
+                self._prof = torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA])
+                self._prof.__enter__()
+        self.instrument.begin_step()
+
+    def _after(self, step: int) -> None:
+        self.instrument.end_step()
+        kind, start = self._plan.get(step, (None, None))
+        if kind is None or self._plan.get(step + 1, (None, None)) == (kind, start):
+            return
+        _sync(self.cuda)
+        wall_ms = (time.perf_counter() - self._t0) * 1e3
+        window = self._current if self._current is not None else {}
+        n = {"plain": self.settings.plain_steps, "phases": self.settings.phase_steps}.get(
+            kind, self.settings.profiler_steps
+        )
+        if kind == "plain":
+            window["plain_ms_per_step"] = wall_ms / n
+        elif kind == "phases":
+            self.instrument.active = False
+            window["instrumented_ms_per_step"] = wall_ms / n
+            window.update(summarise_window(self.instrument.steps))
+            self.instrument.steps = []
+            if self._sync_counter is not None:
+                self._sync_counter.stop()
+                window["host_syncs_per_step"] = self._sync_counter.count / n
+                window["host_sync_sources"] = dict(self._sync_counter.sources.most_common(8))
+                self._sync_counter = None
+        elif kind == "profiler" and self._prof is not None:
+            self._prof.__exit__(None, None, None)
+            window["gpu_kernel_share"] = kernel_share(self._prof, wall_ms)
+            window["profiled_ms_per_step"] = wall_ms / n
+            self._prof = None
+
+
+def markdown_table(result: Dict[str, Any]) -> str:
+    """The windows of a result as a table: device ms per step of each phase (host ms in brackets)."""
+    windows = result["windows"]
+    head = "| phase | " + " | ".join(f"step {w['step']:,} ({w['gaussians']:,} Gaussians)" for w in windows) + " |"
+    rows = [head, "|---|" + "---|" * len(windows)]
+    for phase in PHASES:
+        cells = []
+        for w in windows:
+            d, h = w.get("device_ms", {}).get(phase), w.get("host_ms", {}).get(phase)
+            cells.append("" if d is None else f"{d:.2f} ({h:.2f})")
+        rows.append(f"| {phase} | " + " | ".join(cells) + " |")
+    for key, label in (
+        ("instrumented_ms_per_step", "step, instrumented"),
+        ("plain_ms_per_step", "step, plain (wall)"),
+        ("host_syncs_per_step", "host syncs per step"),
+        ("gpu_kernel_share", "GPU busy share"),
+    ):
+        vals = [w.get(key) for w in windows]
+        if any(v is not None for v in vals):
+            rows.append(f"| {label} | " + " | ".join("" if v is None else f"{v:.2f}" for v in vals) + " |")
+    return "\n".join(rows) + "\n"
+
+
+def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
+    from garo_ns.bench import transfer
+    from garo_ns.bench.benchmark import environment
+    from garo_ns.tools.train import QuickSchedule, make_config, seed_everything
+
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scene", type=Path, required=True, help="a D-NeRF scene folder")
+    parser.add_argument("--method", default="garo-deform")
+    parser.add_argument("--steps", type=int, default=None, help="training steps (default: the method's)")
+    parser.add_argument("--windows", type=int, nargs="+", default=[2000, 10_000, 30_000])
+    parser.add_argument("--plain-steps", type=int, default=100)
+    parser.add_argument("--phase-steps", type=int, default=30)
+    parser.add_argument("--profiler-steps", type=int, default=10)
+    parser.add_argument("--device", choices=("cuda", "cpu"), default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--quick", action="store_true", help="the compressed CPU schedule (tests)")
+    parser.add_argument("--split", choices=("test", "val"), default="test", help="eval split of the run's config")
+    parser.add_argument("--work-dir", type=Path, default=Path("outputs/train_profile"))
+    parser.add_argument("--score", action="store_true", help="score the trained model on --split at the end")
+    parser.add_argument("--export-dir", type=Path, default=None, help="also export the trained model here")
+    parser.add_argument("--output", type=Path, required=True)
+    args = parser.parse_args(argv)
+
+    config = make_config(
+        args.method,
+        args.scene,
+        args.work_dir,
+        device=args.device,
+        schedule=QuickSchedule(steps=args.steps or 600, num_random=2000) if args.quick else None,
+        eval_split=args.split,
+        experiment_name=args.method,
+    )
+    config.timestamp = "profile"
+    if args.steps:
+        config.max_num_iterations = args.steps
+    config.steps_per_save = config.max_num_iterations
+    config.save_config()
+    seed_everything(config.machine.seed)
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    windows = [w for w in args.windows if w + args.plain_steps + args.phase_steps <= config.max_num_iterations]
+    settings = ProfileSettings(windows, args.plain_steps, args.phase_steps, args.profiler_steps)
+    profiler = TrainProfiler(trainer, settings)
+    start = time.perf_counter()
+    trainer.train()
+    seconds = time.perf_counter() - start
+    steps = config.max_num_iterations
+    result: Dict[str, Any] = {
+        "scene": args.scene.name,
+        "method": args.method,
+        "device": args.device,
+        "environment": environment(args.device),
+        "steps": steps,
+        "train_seconds": seconds,
+        "steps_per_second": steps / seconds,
+        "windows": profiler.windows,
+        "settings": {k: getattr(settings, k) for k in ("plain_steps", "phase_steps", "profiler_steps")},
+        "gaussians_final": int(trainer.pipeline.model.num_points),
+    }
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps(result, indent=2) + "\n")
+    args.output.with_suffix(".md").write_text(
+        f"{args.method} on {args.scene.name}, {result['environment'].get('gpu') or 'CPU'}: ms per step, device "
+        f"(host); {steps} steps in {seconds:.0f} s ({result['steps_per_second']:.1f} steps/s)\n\n"
+        + markdown_table(result)
+    )
+    if args.score:  # the trained model on the eval split, as garo-eval scores it (plain render)
+        from garo_ns.tools.eval import evaluate
+
+        model = trainer.pipeline.model
+        model.eval()
+        scores = evaluate(trainer.pipeline, args.scene, args.split)
+        result["score"] = {k: scores.get(k) for k in ("psnr", "ssim", "lpips", "num_gaussians") if k in scores}
+        args.output.write_text(json.dumps(result, indent=2) + "\n")
+    if args.export_dir is not None:
+        record = {"variant": args.method, "method": args.method, "config": str(config.get_base_dir() / "config.yml"),
+                  "iterations": steps, "train_seconds": seconds, "train_steps_per_second": steps / seconds}
+        transfer.export_run(record, result["environment"], args.export_dir / args.method)
+    print(markdown_table(result))
+    return result
+
+
+if __name__ == "__main__":
+    main()

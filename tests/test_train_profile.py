@@ -1,0 +1,81 @@
+"""The training-step profile: its arithmetic on marks with known times, and a short CPU run through nerfstudio."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from garo_ns.bench.train_profile import PHASES, Mark, StepMarks, markdown_table, phase_times, summarise_window
+
+
+def _mark(t_ms: float) -> Mark:
+    m = Mark(cuda=False)
+    m.host = t_ms / 1e3
+    return m
+
+
+def _step(offset: float = 0.0) -> StepMarks:
+    """A step of known phases (ms): 0-100 the step; forward parts, a backward cut at 40 / 45 / 60, optimizers
+    from 60, the after-step part from 75 with the strategy inside it."""
+    s = StepMarks()
+    at = lambda t: _mark(offset + t)  # noqa: E731
+    s.add("step", at(0), at(100))
+    s.add("optimizers", at(1), at(2))  # zero_grad, before the forward
+    s.add("data", at(2), at(5))
+    s.add("deformation_forward", at(5), at(15))
+    s.add("rasterization_forward", at(15), at(25))
+    s.add("metrics", at(25), at(27))
+    s.add("loss_forward", at(27), at(38))
+    s.points.update(backward_start=at(40), render_grad=at(45), splats_grad=at(60), optimizer_step=at(62))
+    s.add("optimizers", at(62), at(70))
+    s.points["after_start"] = at(75)
+    s.add("strategy", at(80), at(90))
+    return s
+
+
+def test_phase_times_cut_the_backward_and_subtract_nested_phases():
+    t = phase_times(_step(), _mark(104))["host"]
+    assert t["loss_backward"] == pytest.approx(5)
+    assert t["rasterization_backward"] == pytest.approx(15)
+    assert t["deformation_backward"] == pytest.approx(2)  # to the optimizer step, not to zero_grad
+    assert t["optimizers"] == pytest.approx(9)  # zero_grad and the step together
+    assert t["strategy"] == pytest.approx(10)
+    assert t["after_step_other"] == pytest.approx(15)  # 75..100 less the strategy
+    assert t["loop_between_steps"] == pytest.approx(4)
+    assert t["step"] == pytest.approx(100)
+    # Without a CUDA event the device column is the host clock.
+    assert phase_times(_step(), None)["device"]["deformation_forward"] == pytest.approx(10)
+
+
+def test_window_means_and_unlabelled_share():
+    out = summarise_window([_step(0), _step(110)])
+    assert out["host_ms"]["loop_between_steps"] == pytest.approx(10)  # only between the two steps
+    labelled = 3 + 10 + 10 + 2 + 11 + 5 + 15 + 2 + 9 + 10 + 15
+    assert out["device_ms_unlabelled_in_step"] == pytest.approx(100 - labelled)
+    table = markdown_table({"windows": [{"step": 10, "gaussians": 5, **out}]})
+    assert "| deformation_forward | 10.00 (10.00) |" in table
+
+
+@pytest.mark.slow
+def test_profile_of_a_short_cpu_training(tmp_path):
+    from garo_ns.bench.train_profile import main
+    from garo_ns.tools.scene import SceneSpec, generate_scene
+
+    scene = generate_scene(tmp_path / "scene", SceneSpec(resolution=24, n_train=10, n_val=2, n_test=2))
+    out = tmp_path / "profile.json"
+    args = ["--scene", str(scene), "--quick", "--steps", "24", "--windows", "2", "14", "40", "--device", "cpu"]
+    args += ["--plain-steps", "2", "--phase-steps", "3", "--score", "--split", "val"]
+    main(args + ["--work-dir", str(tmp_path / "runs"), "--output", str(out)])
+    result = json.loads(out.read_text())
+    assert [w["step"] for w in result["windows"]] == [2, 14]  # 40 is past the end
+    late = result["windows"][1]  # after the deformation warm-up (a quarter of the steps)
+    for phase in PHASES:
+        if phase != "strategy":  # the strategy may have nothing to do in 3 steps
+            assert late["host_ms"][phase] >= 0, phase
+    assert late["host_ms"]["deformation_forward"] > 0 and late["host_ms"]["deformation_backward"] > 0
+    inside = sum(v for k, v in late["host_ms"].items() if k not in ("step", "loop_between_steps"))
+    assert inside <= late["host_ms"]["step"] + 1e-6
+    assert late["plain_ms_per_step"] > 0 and result["steps_per_second"] > 0
+    assert "| rasterization_backward |" in out.with_suffix(".md").read_text()
+    assert result["score"]["psnr"] > 10  # the scored model renders the scene, not noise
