@@ -89,7 +89,7 @@ class GaroModel(SplatfactoModel):
         self.compaction_guard: Optional[TrainingViewGuard] = None  # training views compaction is judged on
         self.switch_guard: Optional[TrainingViewGuard] = None  # training views the render switches are measured on
         self.training_run = False  # set when the model gets training callbacks
-        self.switches = SwitchDecision()  # what each approximate switch cost, and what that decides
+        self.switches = SwitchDecision(lambda: self.step)  # what each approximate switch cost, and what that decides
         for warning in checkpoints.upgrade_render_settings(cfg):  # an old config.yml naming a deleted path
             CONSOLE.print(f"[yellow]{warning}[/yellow]")
         self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene_extent)
@@ -210,7 +210,8 @@ class GaroModel(SplatfactoModel):
             return activate(canonical, compose(self.deformation, canonical, time))
         state = self.strategy_state
         settings = self.render_settings() if settings is None else settings
-        return self.frame.splats(self.deformation, canonical, state["static"], state["static_offset"], time, settings)
+        static, offset, table = state["static"], state["static_offset"], self.switches.table_spec()
+        return self.frame.splats(self.deformation, canonical, static, offset, time, settings, table)
 
     def render_settings(self) -> FrameSettings:
         """The render switches outside training: the config's, those left to None decided by

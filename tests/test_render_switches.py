@@ -9,6 +9,7 @@ from garo_ns.render.frame import FrameSettings
 from garo_ns.render.switches import (
     APPROXIMATE,
     MEASURE_VERSION,
+    TABLE,
     RenderSettings,
     SwitchDecision,
     measure_on_views,
@@ -18,7 +19,7 @@ from garo_ns.render.switches import (
     worst_view_change_db,
 )
 
-AUTO = {"render_precision": None, "static_skip": None, "cuda_graph": None, "lean_raster": None}
+AUTO = {"render_precision": None, "static_skip": None, "cuda_graph": None, "lean_raster": None, "time_table": None}
 
 
 def losses(**table):
@@ -29,6 +30,8 @@ def losses(**table):
         calls.append(trial)
         if trial.render_precision != "fp32":
             return table.get(trial.render_precision, math.inf)  # a precision not listed: too lossy
+        if trial.time_table:
+            return table.get("time_table", math.inf)  # not listed: no table for this model
         return table["static_skip"] if trial.static_skip else 0.0
 
     return measure, calls
@@ -45,8 +48,9 @@ def test_finished_model_on_cuda_gets_the_exact_switches_and_the_static_skip_with
     measure, calls = losses(static_skip=0.005, fp16=0.0)
     settings, tried = resolve(AUTO, training_run=False, cuda=True, measure=measure)
     assert settings.cuda_graph and settings.lean_raster and settings.static_skip
-    assert settings.render_precision == "fp32" and tried == {APPROXIMATE: 0.005}
-    assert len(calls) == 1 and calls[0].static_skip
+    assert settings.render_precision == "fp32" and tried == {APPROXIMATE: 0.005, TABLE: math.inf}
+    assert not settings.time_table and len(calls) == 2 and calls[0].static_skip and not calls[0].time_table
+    assert calls[1].time_table and not calls[1].static_skip  # the table measured alone
 
 
 def test_a_switch_that_costs_more_than_the_bound_stays_off():
@@ -54,7 +58,7 @@ def test_a_switch_that_costs_more_than_the_bound_stays_off():
         measure, _ = losses(static_skip=loss)
         settings, tried = resolve(AUTO, training_run=False, cuda=True, measure=measure, bound_db=0.02)
         assert not settings.static_skip and settings.render_precision == "fp32"
-        assert set(tried) == {APPROXIMATE}
+        assert set(tried) == {APPROXIMATE, TABLE}
 
 
 def test_auto_never_picks_a_reduced_precision():
@@ -64,14 +68,15 @@ def test_auto_never_picks_a_reduced_precision():
     measure, calls = losses(static_skip=0.0, fp16=0.0, tf32=0.0, bf16=0.0)
     settings, tried = resolve(AUTO, training_run=False, cuda=True, measure=measure)
     assert settings.render_precision == "fp32" and settings.static_skip and settings.cuda_graph
-    assert all(c.render_precision == "fp32" for c in calls) and set(tried) == {APPROXIMATE}
+    assert all(c.render_precision == "fp32" for c in calls) and set(tried) == {APPROXIMATE, TABLE}
     # Replaying any record, even one that measured every reduced precision lossless, changes nothing.
     record = {"static_skip": 0.0, "render_precision=fp16": 0.0, "render_precision=tf32": 0.0}
     assert resolve(AUTO, training_run=False, cuda=True, measure=replay(record))[0].render_precision == "fp32"
     # Set explicitly, fp16 is used as set, and the static skip is measured on top of it under its own name.
     explicit, tried = resolve(dict(AUTO, render_precision="fp16"), training_run=False, cuda=True, measure=measure)
     assert explicit.render_precision == "fp16" and explicit.static_skip
-    assert tried == {APPROXIMATE: 0.0} and calls[-1].render_precision == "fp16" and calls[-1].static_skip
+    assert tried == {APPROXIMATE: 0.0, TABLE: 0.0}
+    assert calls[-2].render_precision == "fp16" and calls[-2].static_skip
 
 
 def test_on_cpu_no_cuda_switch_and_no_reduced_precision():
@@ -84,6 +89,7 @@ def test_on_cpu_no_cuda_switch_and_no_reduced_precision():
 
 def test_explicit_flags_override_in_both_directions():
     requested = dict(AUTO, cuda_graph=False, static_skip=False, render_precision="fp16", lean_raster=True)
+    requested["time_table"] = False
     measure, calls = losses(static_skip=0.0, fp16=0.0)
     finished, tried = resolve(requested, training_run=False, cuda=True, measure=measure)
     assert (finished.cuda_graph, finished.lean_raster, finished.static_skip) == (False, True, False)
@@ -228,3 +234,45 @@ def test_an_old_record_naming_tf32_loads_and_renders_fp32(monkeypatch):
     assert line.startswith("Render switches: render_precision=fp32") and "static_skip 0.0040 dB" in line
     assert "tf32" not in line and "fp16" not in line
     assert decision.summary(config, False, device)["measured_db"] == {"static_skip": 0.004}
+
+
+def test_the_table_is_chosen_within_the_bound_and_replayed_from_the_record():
+    measure, calls = losses(static_skip=0.5, time_table=0.01)
+    settings, tried = resolve(AUTO, training_run=False, cuda=True, measure=measure)
+    assert settings.time_table and not settings.static_skip and tried[TABLE] == 0.01
+    assert resolve(AUTO, training_run=False, cuda=True, measure=replay(tried))[0] == settings
+    over, _ = resolve(AUTO, training_run=False, cuda=True, measure=losses(static_skip=0.5, time_table=0.03)[0])
+    assert not over.time_table
+    # Set explicitly, it is not measured.
+    forced, tried = resolve(dict(AUTO, time_table=True), training_run=False, cuda=True, measure=measure)
+    assert forced.time_table and TABLE not in tried
+
+
+def _record(step, table_mb=10.0):
+    spec = {"t_lo": 0.0, "t_hi": 1.0, "intervals": 8}
+    info = {"keys": 12, "mb": table_mb, "network": 3, "gaussians": 100, "spec": dict(spec, order="linear")}
+    return {"step": step, "views": 32, "tried": {"static_skip": 0.5, TABLE: 0.004}, "measure": MEASURE_VERSION,
+            TABLE: {"spec": spec, "info": info}}
+
+
+def test_a_record_of_another_step_is_not_trusted():
+    step = {"now": 99}
+    decision = SwitchDecision(lambda: step["now"])
+    config, cpu = RenderSettings(), torch.device("cpu")
+    decision.record = _record(99)
+    assert decision.settings(config, False, cpu).time_table and decision.table_spec().intervals == 8
+    line = decision.line(config, False, cpu)
+    assert "time_table (12 keys, linear, 10 MB, 3 of 100 Gaussians on the network)" in line
+    assert "time_table 0.0040 dB" in line
+    step["now"] = 2000  # a resumed run went on training: the record describes an earlier model
+    assert not decision.settings(config, False, cpu).time_table and decision.table_spec() is None
+    assert "measured at step 99, the model is at step 2000" in decision.line(config, False, cpu)
+
+
+def test_a_recorded_table_over_the_memory_budget_is_not_used_and_says_why():
+    decision = SwitchDecision(lambda: 99)
+    decision.record = _record(99, table_mb=3000.0)
+    config, cpu = RenderSettings(time_table_budget_mb=2048), torch.device("cpu")
+    assert not decision.settings(config, False, cpu).time_table
+    assert "3000 MB exceed time_table_budget_mb 2048" in decision.line(config, False, cpu)
+    assert decision.settings(RenderSettings(time_table_budget_mb=4096), False, cpu).time_table

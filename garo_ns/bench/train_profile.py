@@ -468,8 +468,14 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         result["score"] = {k: scores.get(k) for k in ("psnr", "ssim", "lpips", "num_gaussians") if k in scores}
         args.output.write_text(json.dumps(result, indent=2) + "\n")
     if args.export_dir is not None:
-        record = {"variant": args.method, "method": args.method, "config": str(config.get_base_dir() / "config.yml"),
-                  "iterations": steps, "train_seconds": seconds, "train_steps_per_second": steps / seconds}
+        record = {
+            "variant": args.method,
+            "method": args.method,
+            "config": str(config.get_base_dir() / "config.yml"),
+            "iterations": steps,
+            "train_seconds": seconds,
+            "train_steps_per_second": steps / seconds,
+        }
         transfer.export_run(record, result["environment"], args.export_dir / args.method)
     print(markdown_table(result))
     return result

@@ -11,6 +11,7 @@ it renders from is passed in, so it knows nothing of the model.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from time import perf_counter
 from typing import Any, Callable, Dict, Literal, NamedTuple, Optional, Tuple, Union
 
 import torch
@@ -21,6 +22,7 @@ from garo_ns.deformation import DeformationField
 from garo_ns.render.backend import Backend, lean_front, rasterize
 from garo_ns.render.graphs import InputGraph, TimeGraph, graphs_available, versions
 from garo_ns.render.half_field import HalfField
+from garo_ns.render.time_table import TableSpec, TimeTable
 from garo_ns.render.view import RenderView
 
 # The deformation MLP's precision outside training: fp32 (exact) or fp16 (HalfField: half weights, per-Gaussian
@@ -69,6 +71,7 @@ class FrameSettings:
     cache_deformation: bool = True
     cuda_graph: bool = False
     lean_raster: bool = False
+    time_table: bool = False
 
 
 Deformed = Tuple[Tensor, Tensor, Tensor]  # means, quaternions (unnormalised), log-scales
@@ -101,6 +104,10 @@ class FramePath:
         self._static: Optional[Tuple[Any, Tensor, Deformed, Deformed]] = None
         self._graph = TimeGraph()
         self._camera_graph = InputGraph()
+        self._table: Optional[Tuple[Any, Optional[TimeTable]]] = None
+        self.table_info: Optional[Dict[str, Any]] = None  # the last table built (or why it failed)
+        # Set while the render switches are measured: the table's frames put each time halfway between keys.
+        self.halfway = False
 
     def splats(
         self,
@@ -110,11 +117,22 @@ class FramePath:
         static_offset: Optional[Tensor],
         time: float,
         settings: FrameSettings,
+        table: Optional[TableSpec] = None,
     ) -> Splats:
         """The Gaussians at `time` with the render switches. `static`/`static_offset`: the static
-        classification (None: none yet, every Gaussian goes through the MLP)."""
+        classification (None: none yet, every Gaussian goes through the MLP). `table`: the time table to use
+        when `settings.time_table` is on (None, or a table that cannot be built: the network renders)."""
         if static is not None and (static_offset is None or static.shape[0] != canonical.means.shape[0]):
             static = None
+        if settings.time_table and table is not None and not torch.is_grad_enabled():
+            tabled = self.time_table(field, canonical, table)
+            if tabled is not None:
+                cache_key = ("table", float(time), self.halfway, table, versions(list(canonical)))
+                if settings.cache_deformation and self._deformed is not None and self._deformed[0] == cache_key:
+                    return self._deformed[1]
+                out = activate(canonical, tabled.deformed(field, canonical, float(time), self.halfway))
+                self._deformed = (cache_key, out) if settings.cache_deformation else None
+                return out
         key = versions(list(canonical) + list(field.parameters()) + ([static_offset] if static is not None else []))
         device = canonical.means.device
         if settings.cuda_graph and graphs_available(device) and not torch.is_grad_enabled():
@@ -131,6 +149,21 @@ class FramePath:
         out = activate(canonical, self.deform(field, canonical, static, static_offset, time, settings, key))
         self._deformed = (cache_key, out) if settings.cache_deformation else None
         return out
+
+    def time_table(self, field: DeformationField, canonical: Canonical, spec: TableSpec) -> Optional[TimeTable]:
+        """The table of `spec` for these parameters, built on first use (and again when they change); None
+        when it cannot be built (out of memory, ...): the reason is in `table_info` and the network renders."""
+        key = (spec, versions(list(canonical) + list(field.parameters())))
+        if self._table is None or self._table[0] != key:
+            self._table = None  # the old table's memory first
+            start = perf_counter()
+            try:
+                built: Optional[TimeTable] = TimeTable.build(spec, field, canonical.means.detach())
+                self.table_info = {**built.info, "build_s": perf_counter() - start}  # type: ignore[union-attr]
+            except (RuntimeError, MemoryError) as err:  # torch's out-of-memory is a RuntimeError
+                built, self.table_info = None, {"error": f"{type(err).__name__}: {err}"[:300]}
+            self._table = (key, built)
+        return self._table[1]
 
     def deform(
         self,

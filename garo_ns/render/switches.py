@@ -22,13 +22,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, fields, replace
-from typing import Any, Callable, Dict, Mapping, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, Literal, Mapping, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
 
 from garo_ns.render.backend import Backend, resolve_backend
 from garo_ns.render.frame import FrameSettings, RenderPrecision
+from garo_ns.render.time_table import TableSpec, spec_for
 
 EXACT = ("cuda_graph", "lean_raster")
 """Switches that change no pixel: on by default outside training wherever CUDA runs."""
@@ -45,6 +46,10 @@ over time: one bad frame of a motion is what the bound must catch."""
 APPROXIMATE = "static_skip"
 """The approximate switch `resolve` measures, and the name its loss is recorded under. Records written while
 precisions were measured too also hold `render_precision=<mode>` entries: kept as measured, never used."""
+
+TABLE = "time_table"
+"""The time table (garo_ns.render.time_table): measured like `static_skip`, with every measured view halfway
+between two keyframes of the table's spacing."""
 
 Measure = Callable[[FrameSettings], float]
 """Renders training views with the given switches and returns the largest change (dB) of any view
@@ -83,17 +88,22 @@ def resolve(
         return settings, tried
 
     if requested.get(APPROXIMATE) is None:
-        trial = replace(settings, static_skip=True)  # on top of a precision set explicitly, if any
+        trial = replace(settings, static_skip=True, time_table=False)  # on top of a precision set explicitly
         tried[APPROXIMATE] = float(measure(trial))
         if tried[APPROXIMATE] <= bound_db:  # False for NaN too
-            settings = trial
+            settings = replace(settings, static_skip=True)
+    if requested.get(TABLE) is None:
+        # Measured alone: with the table on, every Gaussian's offsets come from it (static ones included).
+        tried[TABLE] = float(measure(replace(settings, time_table=True, static_skip=False)))
+        if tried[TABLE] <= bound_db:
+            settings = replace(settings, time_table=True)
     return settings, tried
 
 
 def replay(tried: Mapping[str, float]) -> Measure:
     """A Measure answering from losses `resolve` recorded earlier (at the end of training, where the
     training views are at hand); a trial never measured counts as an infinite loss."""
-    return lambda trial: float(tried.get(APPROXIMATE, math.inf))
+    return lambda trial: float(tried.get(TABLE if trial.time_table else APPROXIMATE, math.inf))
 
 
 def measure_on_views(render: Callable[[int, Optional[FrameSettings]], Tensor], targets: Sequence[Tensor]) -> Measure:
@@ -158,6 +168,22 @@ class RenderSettings:
     and 0.0202 on jumpingjacks' baseline (benchmarks/results/mutant40k_switches_H100.json,
     table1_jumpingjacks_run2_H100.json, standup40k_garo_switches_H100.json). bf16, fp16-fused and tf32
     were deleted (benchmarks/HISTORY.md): an old config naming them renders fp32."""
+    time_table: Optional[bool] = None
+    """When not training, take the Gaussians at a time from a table of the deformation field's offsets at
+    keyframe times, interpolated between the two (or four) around the time (garo_ns.render.time_table): the
+    MLP leaves the frame, except for the few Gaussians whose motion the table cannot follow. None: on for a
+    finished model when its change against the plain render, measured at the end of training on training
+    views each placed halfway between two keyframes, is within switch_bound_db."""
+    time_table_keys_per_frame: int = 2
+    """Keyframe intervals per gap between consecutive training times (keys sit halfway between them)."""
+    time_table_budget_mb: float = 2048.0
+    """Largest time table in MB. At the end of training a model that would need more gets fewer keyframes;
+    a loaded model whose recorded table exceeds it renders through the network (and says so)."""
+    time_table_precision: Literal["fp16", "fp32"] = "fp16"
+    """Storage of the table's keys (each key's offsets less the offsets at the middle of the time range)."""
+    time_table_tolerance: float = 1e-4
+    """Largest interpolation error at keyframe midpoints (positions in scene extents; rotation and log-scale
+    offsets absolute) for a Gaussian to be tabled; those over it stay on the network."""
     cache_deformation: bool = True
     """When not training, reuse the deformed Gaussians if the same time is rendered again and no
     parameter changed (the viewer re-renders one time for every camera move). Exact."""
@@ -196,42 +222,93 @@ error) are not trusted: their approximate switches stay off unless set."""
 class SwitchDecision:
     """The switches one model renders with outside training: the changes measured at the end of its
     training (`record`, kept in checkpoints) and the settings they give, decided once per change of
-    the config, the record or the bound (a frame asks twice)."""
+    the config, the record or the bound (a frame asks twice). `step`: the model's current step; a record
+    measured at another step describes another state of the model and is not trusted."""
 
-    def __init__(self) -> None:
+    def __init__(self, step: Optional[Callable[[], int]] = None) -> None:
         self.record: Optional[Dict[str, Any]] = None
+        self._step = step
         self._cache: Optional[Tuple[Any, Any, FrameSettings]] = None
+        self._measuring: Optional[TableSpec] = None  # the table being measured at the end of training
+
+    def distrust(self) -> Optional[str]:
+        """Why the record is not trusted, or None (no record, or a trusted one)."""
+        if not self.record:
+            return None
+        if self.record.get("measure") != MEASURE_VERSION:
+            return "measured by an older one-sided check"
+        if self._step is not None and self.record.get("step") != self._step():
+            return f"measured at step {self.record.get('step')}, the model is at step {self._step()}"
+        return None
 
     def trusted_record(self) -> Optional[Dict[str, Any]]:
-        """The record, when it was measured with the current check (see MEASURE_VERSION)."""
-        if self.record and self.record.get("measure") == MEASURE_VERSION:
-            return self.record
+        """The record, when it was measured with the current check (see MEASURE_VERSION) on this state of
+        the model (the same step)."""
+        return self.record if self.record and self.distrust() is None else None
+
+    def table_spec(self) -> Optional[TableSpec]:
+        """The time table to render with when `time_table` is on: the one being measured, else the trusted
+        record's."""
+        if self._measuring is not None:
+            return self._measuring
+        record = self.trusted_record()
+        spec = ((record or {}).get(TABLE) or {}).get("spec")
+        return TableSpec(**spec) if spec else None
+
+    def _table_refusal(self, config: RenderSettings) -> Optional[str]:
+        """Why a recorded table is not used on load although it met the bound, or None."""
+        info = ((self.trusted_record() or {}).get(TABLE) or {}).get("info") or {}
+        if info.get("mb", 0.0) > config.time_table_budget_mb:
+            return f"its {info['mb']:.0f} MB exceed time_table_budget_mb {config.time_table_budget_mb:g}"
         return None
 
     def settings(self, config: RenderSettings, training_run: bool, device: torch.device) -> FrameSettings:
         """The switches to render with (see `resolve`)."""
         requested, bound = config.requested_switches(), config.switch_bound_db
-        key = (tuple(requested.values()), training_run, bound, torch.device(device).type, config.rasterizer)
+        key = (
+            tuple(requested.values()),
+            training_run,
+            bound,
+            torch.device(device).type,
+            config.rasterizer,
+            config.time_table_budget_mb,
+            self._step() if self._step else None,
+        )
         if self._cache is not None and self._cache[0] == key and self._cache[1] is self.record:
             return self._cache[2]
         record = self.trusted_record()
         measure = replay(record["tried"]) if record else None
         settings = resolve(requested, training_run, config.renders_on_cuda(device), measure, bound_db=bound)[0]
+        if settings.time_table and requested.get(TABLE) is None and self._table_refusal(config):
+            settings = replace(settings, time_table=False)
         self._cache = (key, self.record, settings)
         return settings
 
     def summary(self, config: RenderSettings, training_run: bool, device: torch.device) -> Dict[str, Any]:
         """What a user is told on load, and garo-eval records: the switches in use, each approximate
-        switch's measured change against the plain render, the bound and where the measurement comes from."""
+        switch's measured change against the plain render, the bound and where the measurement comes from,
+        and the time table's keyframes, memory and why it is off where it is."""
         record = self.trusted_record()
+        in_use = self.settings(config, training_run, device)
+        table = dict((record or {}).get(TABLE) or {})
+        if in_use.time_table and self.table_spec() is None:
+            table["off"] = "no table recorded for this model (trained before it existed, or not measured)"
+        elif not in_use.time_table and record and not training_run:
+            refusal = self._table_refusal(config)
+            measured = record["tried"].get(TABLE)
+            if refusal:
+                table["off"] = refusal
+            elif measured is not None and not measured <= config.switch_bound_db:
+                table.setdefault("off", f"its change {measured:.4f} dB is over the bound {config.switch_bound_db} dB")
         return {
-            "in_use": asdict(self.settings(config, training_run, device)),
+            "in_use": asdict(in_use),
             # Only what `resolve` measures now: an older record's precision entries decide nothing.
-            "measured_db": {k: v for k, v in record["tried"].items() if k == APPROXIMATE} if record else {},
+            "measured_db": {k: v for k, v in record["tried"].items() if k in (APPROXIMATE, TABLE)} if record else {},
             "bound_db": config.switch_bound_db,
             "measured_at_step": record["step"] if record else None,
             "measured_views": record["views"] if record else None,
-            "untrusted_record": bool(self.record) and record is None,
+            "untrusted_record": self.distrust(),
+            TABLE: table or None,
         }
 
     def line(self, config: RenderSettings, training_run: bool, device: torch.device) -> str:
@@ -239,16 +316,25 @@ class SwitchDecision:
         info = self.summary(config, training_run, device)
         used = info["in_use"]
         on = [k for k in ("static_skip", "cache_deformation", "cuda_graph", "lean_raster") if used[k]]
+        table = info[TABLE] or {}
+        if used["time_table"] and "info" in table:
+            t = table["info"]
+            on.insert(
+                0,
+                f"time_table ({t['keys']} keys, {t['spec']['order']}, {t['mb']:.0f} MB, "
+                f"{t['network']} of {t['gaussians']} Gaussians on the network)",
+            )
         names = ", ".join([f"render_precision={used['render_precision']}"] + on)
         if info["measured_db"]:
             changes = ", ".join(f"{k} {v:.4f} dB" for k, v in info["measured_db"].items())
             where = f"measured on {info['measured_views']} training views at step {info['measured_at_step']}"
             measured = f"{changes} ({where}; bound {info['bound_db']} dB)"
         elif info["untrusted_record"]:
-            measured = "none trusted (measured by an older one-sided check; approximate switches off unless set)"
+            measured = f"none trusted ({info['untrusted_record']}; approximate switches off unless set)"
         else:
             measured = "none measured (approximate switches off unless set)"
-        return f"Render switches: {names}; change against the plain render: {measured}"
+        off = f"; time table off: {table['off']}" if "off" in table else ""
+        return f"Render switches: {names}; change against the plain render: {measured}{off}"
 
     def measure(
         self,
@@ -257,14 +343,18 @@ class SwitchDecision:
         render: Callable[[int, Optional[FrameSettings]], Tensor],
         targets: Sequence[Tensor],
         step: int,
+        table: Optional[Dict[str, Any]] = None,
     ) -> str:
         """Measure on training views how much each approximate switch left to the plugin changes the
         plain render (`render` and `targets` as in `measure_on_views`), keep it as the record, and
-        return the line to tell the user."""
+        return the line to tell the user. `table`: what the time table measured was (its spec and build
+        information), kept with the record."""
         measure = measure_on_views(render, targets)
         requested, bound = config.requested_switches(), config.switch_bound_db
         tried = resolve(requested, False, config.renders_on_cuda(device), measure, bound_db=bound)[1]
         self.record = {"step": step, "views": len(targets), "tried": tried, "measure": MEASURE_VERSION}
+        if table is not None:
+            self.record[TABLE] = table
         losses = ", ".join(f"{k} {v:.4f} dB" for k, v in tried.items()) or "none left to the plugin"
         return f"Render switches on {len(targets)} training views (worst change against plain): {losses}"
 
@@ -272,18 +362,41 @@ class SwitchDecision:
     def measure_on_training_views(self, model: Any, guard: Any, step: int) -> str:
         """`measure` on a model's training views: `guard` (a compaction TrainingViewGuard over
         `switch_views` views) renders and holds the ground truth; the exact switches stay off in the
-        trials (they change no pixel). A failed measurement leaves the record as it was and says so: it
-        must never cost a training run its final checkpoint."""
+        trials (they change no pixel), and the time table's trial places each view halfway between two
+        of its keyframes. A failed measurement leaves no record (one from an earlier state would describe
+        another model) and says so: it must never cost a training run its final checkpoint."""
         was_training = model.training
         model.eval()  # no time noise
+        self.record = None
+        cfg = model.config
+        spec, why = spec_for(
+            model.train_times,
+            cfg.time_table_keys_per_frame,
+            model.num_points,
+            cfg.time_table_budget_mb,
+            cfg.time_table_precision,
+            cfg.time_table_tolerance,
+            model.scene_extent,
+        )
+        self._measuring = spec
+        model.frame.halfway = True
         try:
 
             def render(i: int, trial: Optional[FrameSettings]) -> Tensor:
                 switches = None if trial is None else replace(trial, cuda_graph=False, lean_raster=False)
+                if switches is not None and switches.time_table and spec is None:
+                    return torch.full_like(guard.targets(model)[i], math.nan)  # an infinite change: off
                 return guard.render(model, i, switches)
 
-            return self.measure(model.config, model.device, render, guard.targets(model), step)
+            line = self.measure(cfg, model.device, render, guard.targets(model), step, None)
+            built = model.frame.table_info
+            if self.record is not None and cfg.time_table is None:
+                self.record[TABLE] = {"spec": built["spec"], "info": built} if spec and built else {"off": why}
+            return line
         except Exception as err:
+            self.record = None
             return f"[yellow]Render switches not measured ({err}); they stay off unless set[/yellow]"
         finally:
+            self._measuring = None
+            model.frame.halfway = False
             model.train(was_training)

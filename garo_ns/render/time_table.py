@@ -1,0 +1,244 @@
+"""Time as a table: the deformation field's offsets sampled at keyframe times, interpolated at render time.
+
+A finished model's deformation MLP is a fixed function of (Gaussian, time). Outside training the table
+holds its offsets (position, rotation, log-scale) at `K` keyframes and a frame interpolates between the
+keyframes around its time, so the network leaves the frame: a few gathers and multiply-adds per Gaussian
+instead of an 8-layer MLP.
+
+* **Keyframes** are evenly spaced over the training times' range with `keys_per_frame` intervals per gap
+  between training frames, and shifted by half a spacing: evenly spaced training times (D-NeRF's) then lie
+  exactly halfway between two keyframes, where linear interpolation errs most, and no keyframe coincides
+  with a training (and so with a D-NeRF test) time. Two extra keys pad each end for the cubic order.
+* **Storage**: per Gaussian the mean offset over the keyframes (fp32) and each keyframe's residual from it
+  (fp16 by default: residuals are the size of the motion, not of the position), only for the Gaussians
+  whose offsets change at all (`moving`); the rest keep their mean.
+* **Gaussians the table cannot follow** (a trajectory that bends between keyframes more than the
+  tolerance allows at the midpoints checked at build time) stay on the network: each frame runs the MLP
+  on those few only (`network`).
+* **Order**: linear or cubic (Catmull-Rom), chosen at build time as the one that leaves fewer Gaussians on
+  the network (linear on a tie: it reads half the keys).
+
+The decision to render through the table is measured like the other approximate render switches
+(garo_ns.render.switches), with each measured view placed halfway between two keyframes of the table's
+spacing (`deformed_at(..., halfway=True)`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any, Dict, Literal, Optional, Sequence, Tuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+Order = Literal["linear", "cubic"]
+ORDERS: Tuple[Order, ...] = ("linear", "cubic")
+CHANNELS = 10  # d_xyz 3, d_rot 4, d_log_scale 3
+PAD = 2  # keys beyond each end of the range, so a cubic segment always has its four
+
+
+@dataclass(frozen=True)
+class TableSpec:
+    """Everything needed to rebuild a table from the model (kept in the render-switch record)."""
+
+    t_lo: float
+    t_hi: float
+    intervals: int
+    order: Order = "linear"
+    precision: Literal["fp16", "fp32"] = "fp16"
+    tolerance: float = 1e-4
+    """Largest interpolation error at the checked midpoints for a Gaussian to stay in the table: in
+    units of the scene extent for positions, absolute for quaternion and log-scale offsets."""
+    extent: float = 1.0
+
+    @property
+    def spacing(self) -> float:
+        return (self.t_hi - self.t_lo) / self.intervals if self.t_hi > self.t_lo else 1.0
+
+    def key_times(self) -> Tensor:
+        """The keyframe times: t_lo + (k - PAD + 0.5) * spacing for k = 0 .. intervals + 2 PAD - 1."""
+        k = torch.arange(self.intervals + 2 * PAD, dtype=torch.float64)
+        return (self.t_lo + (k - PAD + 0.5) * self.spacing).float()
+
+    def segment(self, time: float) -> Tuple[int, float]:
+        """(i, f): `time` lies at fraction f between keys i and i + 1 (times outside the range clamp to it)."""
+        t = min(max(float(time), self.t_lo), self.t_hi)
+        u = (t - self.t_lo) / self.spacing + PAD - 0.5
+        i = min(max(int(math.floor(u)), PAD - 1), self.intervals + PAD - 1)
+        return i, u - i
+
+    def to_dict(self) -> Dict[str, Any]:
+        return asdict(self)
+
+
+def weights(order: Order, f: float) -> Tuple[Tuple[int, ...], Tuple[float, ...]]:
+    """Key offsets (relative to segment start i) and their weights for fraction `f` of a segment."""
+    if order == "linear":
+        return (0, 1), (1.0 - f, f)
+    f2, f3 = f * f, f * f * f  # Catmull-Rom through keys i-1 .. i+2
+    return (-1, 0, 1, 2), (
+        0.5 * (-f + 2 * f2 - f3),
+        0.5 * (2 - 5 * f2 + 3 * f3),
+        0.5 * (f + 4 * f2 - 3 * f3),
+        0.5 * (-f2 + f3),
+    )
+
+
+def interpolate(keys: Tensor, order: Order, i: int, f: float) -> Tensor:
+    """The keys [K, M, C] interpolated at fraction f of segment i, in fp32 [M, C]."""
+    offsets, w = weights(order, f)
+    out = keys[i + offsets[0]].float() * w[0]
+    for o, wk in zip(offsets[1:], w[1:]):
+        out.add_(keys[i + o].float(), alpha=wk)
+    return out
+
+
+def field_offsets(field: Any, xyz: Tensor, times: Sequence[float], chunk: int = 1 << 18) -> Tensor:
+    """The field's offsets [T, N, 10] at each time, for canonical positions `xyz` [N, 3] (no gradients)."""
+    out = torch.empty(len(times), xyz.shape[0], CHANNELS, device=xyz.device)
+    with torch.no_grad():
+        for k, t in enumerate(times):
+            for s in range(0, xyz.shape[0], chunk):
+                d = field(xyz[s : s + chunk], float(t))
+                out[k, s : s + chunk] = torch.cat(d, dim=-1).float()
+    return out
+
+
+def midpoint_errors(
+    spec: TableSpec, field: Any, xyz: Tensor, base: Tensor, residual: Tensor, samples: int
+) -> Dict[str, Tensor]:
+    """Per Gaussian, the largest error of each order's interpolation of the stored keys (`base` plus
+    `residual`, every Gaussian) against the field at up to `samples` segment midpoints spread over the
+    range, the worst place for an interpolant between two keys: the larger of the position error divided
+    by the scene extent and the rotation and log-scale errors."""
+    n_seg = spec.intervals + 1  # segments PAD-1 .. intervals+PAD-1 hold the range
+    picks = torch.linspace(0, n_seg - 1, min(samples, n_seg)).round().long().unique().tolist()
+    key_t = spec.key_times()
+    err = {o: torch.zeros(xyz.shape[0], device=xyz.device) for o in ORDERS}
+    for p in picks:
+        i = PAD - 1 + p
+        truth = field_offsets(field, xyz, [float(key_t[i]) + 0.5 * spec.spacing])[0] - base
+        for o in ORDERS:
+            d = (interpolate(residual, o, i, 0.5) - truth).abs()
+            err[o] = torch.maximum(err[o], torch.maximum(d[:, :3].amax(-1) / spec.extent, d[:, 3:].amax(-1)))
+    return err
+
+
+class TimeTable:
+    """The offsets of one model's Gaussians at the keyframes of `spec` (see the module docstring)."""
+
+    def __init__(
+        self, spec: TableSpec, base: Tensor, residual: Tensor, moving: Tensor, network: Tensor, info: Dict[str, Any]
+    ) -> None:
+        self.spec = spec
+        self.base = base  # [N, 10] fp32: mean offsets (what a Gaussian that does not move keeps)
+        self.residual = residual  # [K, M, 10]: keys less the mean, moving Gaussians only
+        self.moving = moving  # [M] indices into the Gaussians
+        self.network = network  # [R] indices of the Gaussians rendered through the MLP
+        self.info = info
+
+    @classmethod
+    @torch.no_grad()
+    def build(cls, spec: TableSpec, field: Any, xyz: Tensor, midpoint_samples: int = 64) -> "TimeTable":
+        """Sample `field` at the spec's keyframes for canonical positions `xyz`; choose the order by the
+        midpoint check (the spec's order is the preference on a tie) and which Gaussians stay on the network."""
+        dtype = torch.float16 if spec.precision == "fp16" else torch.float32
+        times = spec.key_times().tolist()
+        # Offsets from those at the middle of the range: residuals are the size of the motion. One key at a
+        # time, so building takes the table's memory and one key's, not every key in fp32.
+        base = field_offsets(field, xyz, [0.5 * (spec.t_lo + spec.t_hi)])[0]
+        residual = torch.empty(len(times), xyz.shape[0], CHANNELS, dtype=dtype, device=xyz.device)
+        spread = torch.zeros(xyz.shape[0], CHANNELS, device=xyz.device)
+        for k, t in enumerate(times):
+            r = field_offsets(field, xyz, [t])[0] - base
+            residual[k] = r.to(dtype)
+            spread = torch.maximum(spread, r.abs())
+        err = midpoint_errors(spec, field, xyz, base, residual, midpoint_samples)
+        off = {o: int((err[o] > spec.tolerance).sum()) for o in ORDERS}
+        order: Order = min(ORDERS, key=lambda o: (off[o], o != spec.order))
+        spec = TableSpec(**{**spec.to_dict(), "order": order})
+        network = torch.nonzero(err[order] > spec.tolerance).squeeze(-1)
+        # A Gaussian whose offsets stay within a thousandth of the tolerance of the base keeps the base.
+        tol = spec.tolerance * 1e-3
+        moving = torch.nonzero((spread[:, :3].amax(-1) > tol * spec.extent) | (spread[:, 3:].amax(-1) > tol))
+        moving = moving.squeeze(-1)
+        stored = residual if moving.numel() == xyz.shape[0] else residual[:, moving].contiguous()
+        del residual
+        info = {
+            "spec": spec.to_dict(),
+            "keys": len(times),
+            "gaussians": int(xyz.shape[0]),
+            "moving": int(moving.numel()),
+            "network": int(network.numel()),
+            "network_by_order": off,
+            "midpoint_error_max": {o: float(err[o].max()) if err[o].numel() else 0.0 for o in ORDERS},
+        }
+        table = cls(spec, base, stored, moving, network, info)
+        table.info["mb"] = table.nbytes() / 2**20
+        return table
+
+    def nbytes(self) -> int:
+        return sum(t.numel() * t.element_size() for t in (self.base, self.residual, self.moving, self.network))
+
+    def offsets_at(self, time: float) -> Tensor:
+        """Every Gaussian's table offsets [N, 10] at `time` (the network's Gaussians included, as tabled)."""
+        i, f = self.spec.segment(time)
+        out = self.base.clone()
+        if self.moving.numel():
+            out.index_add_(0, self.moving, interpolate(self.residual, self.spec.order, i, f))
+        return out
+
+    @torch.no_grad()
+    def offsets_halfway(self, field: Any, xyz: Tensor, time: float) -> Tensor:
+        """The offsets at `time` as a table of this spacing, order and precision would give them if `time`
+        lay exactly halfway between two keyframes: the field sampled at time +- 0.5, 1.5 spacings, stored
+        as this table stores (residual from the same mean, same precision), interpolated at the midpoint.
+        What the render switches are measured with: the worst place for every measured view."""
+        h = self.spec.spacing
+        times = [time - 1.5 * h, time - 0.5 * h, time + 0.5 * h, time + 1.5 * h]
+        keys = (field_offsets(field, xyz, times) - self.base).to(self.residual.dtype)
+        return self.base + interpolate(keys, self.spec.order, 1, 0.5)
+
+    def deformed(self, field: Any, canonical: Any, time: float, halfway: bool = False) -> Tuple[Tensor, Tensor, Tensor]:
+        """Means, quaternions (unnormalised) and log-scales at `time`, composed as the field composes them;
+        the network's Gaussians get the MLP's own offsets."""
+        xyz = canonical.means.detach()
+        d = self.offsets_halfway(field, xyz, time) if halfway else self.offsets_at(time)
+        if self.network.numel():
+            exact = torch.cat(field(xyz[self.network], float(time)), dim=-1).float()
+            d.index_copy_(0, self.network, exact)
+        d = d.to(canonical.means.dtype)
+        quats = F.normalize(canonical.quats, dim=-1)
+        return canonical.means + d[:, :3], quats + d[:, 3:7], canonical.log_scales + d[:, 7:]
+
+
+def plan_intervals(frames: int, keys_per_frame: int, gaussians: int, budget_mb: float, precision: str) -> int:
+    """Intervals of a table over `frames` training times with `keys_per_frame` keys per gap, reduced to
+    fit `budget_mb` when every Gaussian moves (0: not even two intervals fit)."""
+    per_key = gaussians * CHANNELS * (2 if precision == "fp16" else 4)
+    fixed = gaussians * (CHANNELS * 4 + 16)
+    fit = int((budget_mb * 2**20 - fixed) // max(per_key, 1)) - 2 * PAD
+    want = max(1, keys_per_frame * max(frames - 1, 1))
+    n = min(want, fit)
+    return n if n >= 2 else 0
+
+
+def spec_for(
+    times: Optional[Tensor],
+    keys_per_frame: int,
+    gaussians: int,
+    budget_mb: float,
+    precision: str,
+    tolerance: float,
+    extent: float,
+) -> Tuple[Optional[TableSpec], str]:
+    """The table spec for a model trained on `times`, or None and why not."""
+    if times is None or times.numel() == 0:
+        return None, "no training times"
+    lo, hi = float(times.min()), float(times.max())
+    n = plan_intervals(int(times.numel()), keys_per_frame, gaussians, budget_mb, precision)
+    if n == 0:
+        return None, f"over the memory budget ({budget_mb:g} MB) even with two intervals"
+    return TableSpec(lo, hi, n, "linear", precision, tolerance, float(extent)), ""  # type: ignore[arg-type]

@@ -1,0 +1,136 @@
+"""The time table: exact at its keyframes, within the predicted interpolation error between them, its budget."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from garo_ns.render.frame import Canonical, compose
+from garo_ns.render.time_table import PAD, TableSpec, TimeTable, plan_intervals, spec_for
+
+W = 2 * math.pi  # one period over the time range
+
+
+class SineField:
+    """Offsets of known smooth motion: d = amp_i sin(W t + phase_i) on every channel, for the Gaussian whose
+    canonical x is i."""
+
+    def __init__(self, amp, phase):
+        self.amp, self.phase = amp, phase
+        self.calls = 0
+
+    def __call__(self, xyz, t):
+        self.calls += 1
+        i = xyz[:, 0].long()
+        d = self.amp[i, None] * torch.sin(W * float(t) + self.phase[i, None]).expand(-1, 10)
+        return d[:, :3], d[:, 3:7], d[:, 7:]
+
+
+def _field(n=64, seed=0, amp=0.05):
+    g = torch.Generator().manual_seed(seed)
+    return SineField(amp * torch.rand(n, generator=g, dtype=torch.float64).float(), 6 * torch.rand(n, generator=g))
+
+
+def _xyz(n=64):
+    return torch.stack([torch.arange(n).float(), torch.zeros(n), torch.zeros(n)], dim=-1)
+
+
+def _spec(intervals, **kw):
+    return TableSpec(**{"t_lo": 0.0, "t_hi": 1.0, "intervals": intervals, "precision": "fp32", "tolerance": 1e-4, **kw})
+
+
+def test_keys_sit_halfway_between_evenly_spaced_training_times():
+    spec = _spec(2 * 9)  # 10 training times, two intervals each
+    for j in range(10):
+        i, f = spec.segment(j / 9)
+        assert f == pytest.approx(0.5) and PAD - 1 <= i <= spec.intervals + PAD - 1
+    keys = spec.key_times()
+    assert keys[PAD - 1] < 0 < keys[PAD] and keys[-PAD] > 1  # the range is inside, with padding
+    assert torch.allclose(keys[1:] - keys[:-1], torch.full((len(keys) - 1,), spec.spacing))
+
+
+def test_the_table_reproduces_the_field_at_its_keyframes():
+    field = _field()
+    xyz = _xyz()
+    table = TimeTable.build(_spec(12), field, xyz)
+    for t in table.spec.key_times()[PAD - 1 : -PAD + 1].tolist():
+        if 0 <= t <= 1:
+            exact = torch.cat(field(xyz, t), dim=-1)
+            assert torch.allclose(table.offsets_at(t), exact, atol=1e-6), t
+
+
+@pytest.mark.parametrize("order", ["linear", "cubic"])
+def test_halfway_error_is_what_the_order_predicts(order):
+    field = _field()
+    xyz = _xyz()
+    for intervals in (16, 32):
+        table = TimeTable.build(_spec(intervals, order=order), field, xyz)
+        table.spec = TableSpec(**{**table.spec.to_dict(), "order": order})  # this order, whatever the build picks
+        h = table.spec.spacing
+        # Midpoint error: linear h^2/8 max|f''|; cubic (there 4-point Lagrange) 3/128 h^4 max|f''''|.
+        power = 2 if order == "linear" else 4
+        bound = field.amp * (W * h) ** power * (1 / 8 if order == "linear" else 3 / 128)
+        worst = torch.zeros(64)
+        for t in (table.spec.key_times()[PAD:-PAD] - h / 2).tolist():
+            if 0 <= t <= 1:
+                err = (table.offsets_at(t) - torch.cat(field(xyz, t), dim=-1)).abs().amax(-1)
+                worst = torch.maximum(worst, err)
+        assert bool((worst <= bound * 1.001 + 1e-6).all())
+        assert bool((worst >= 0.5 * bound).any())  # the prediction is the error's size, not a loose bound
+
+
+def test_the_build_picks_the_order_that_keeps_more_gaussians_tabled_and_the_rest_on_the_network():
+    field = _field(amp=0.05)
+    fast = torch.arange(64) < 4
+    field.amp[fast] = 3.0  # a few Gaussians move much more: linear cannot follow them at this spacing
+    xyz = _xyz()
+    table = TimeTable.build(_spec(16, tolerance=2e-3), field, xyz)
+    assert table.info["network_by_order"]["cubic"] < table.info["network_by_order"]["linear"]
+    assert table.spec.order == "cubic"
+    linear_only = TimeTable.build(_spec(64, tolerance=1e-2), field, xyz)
+    assert linear_only.spec.order == "linear"  # a tie at this spacing: the cheaper order
+    # Those left to the network get the field's own offsets at any time.
+    strict = TimeTable.build(_spec(8, tolerance=1e-3), field, xyz)
+    assert 0 < strict.network.numel() < 64
+    assert set(strict.network.tolist()) >= set(torch.nonzero(fast).flatten().tolist())
+    canonical = Canonical(
+        xyz, torch.tensor([[1.0, 0, 0, 0]]).repeat(64, 1), torch.zeros(64, 3), *[torch.zeros(64, 1)] * 3
+    )
+    t = 0.37
+    means = strict.deformed(field, canonical, t)[0]
+    exact = compose(field, canonical, t)[0]
+    assert torch.allclose(means[strict.network], exact[strict.network], atol=1e-6)
+
+
+def test_fp16_residuals_cost_what_their_resolution_predicts():
+    field = _field(amp=0.5)
+    xyz = _xyz()
+    full = TimeTable.build(_spec(40), field, xyz)
+    half = TimeTable.build(_spec(40, precision="fp16"), field, xyz)
+    assert half.nbytes() < 0.6 * full.nbytes()
+    t = float(half.spec.key_times()[PAD + 3])
+    # A residual of size <= 1 (twice the amplitude) in fp16: at most half a unit in the last place, 2^-11.
+    assert (half.offsets_at(t) - full.offsets_at(t)).abs().max() <= 2**-11
+
+
+def test_gaussians_that_do_not_move_are_stored_once():
+    field = _field()
+    field.amp[32:] = 0.0
+    table = TimeTable.build(_spec(10), field, _xyz())
+    assert table.moving.tolist() == list(range(32)) and table.residual.shape[1] == 32
+
+
+def test_the_memory_budget_gives_fewer_keys_or_no_table():
+    n = 100_000
+    want = plan_intervals(150, 2, n, budget_mb=10_000, precision="fp16")
+    assert want == 2 * 149
+    fewer = plan_intervals(150, 2, n, budget_mb=200, precision="fp16")
+    assert 2 <= fewer < want
+    mb = (n * 10 * 2 * (fewer + 2 * PAD) + n * (10 * 4 + 16)) / 2**20
+    assert mb <= 200
+    spec, why = spec_for(torch.linspace(0, 1, 150), 2, n, 5, "fp16", 1e-4, 1.0)
+    assert spec is None and "memory budget" in why
+    spec, why = spec_for(None, 2, n, 5, "fp16", 1e-4, 1.0)
+    assert spec is None and why == "no training times"

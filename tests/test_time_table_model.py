@@ -1,0 +1,106 @@
+"""A trained model's time table: measured at the end of training, used on load, and what it changes."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from garo_ns.render.switches import TABLE, worst_view_change_db
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    from garo_ns.tools.scene import SceneSpec, generate_scene
+    from garo_ns.tools.train import QuickSchedule, make_config, train
+
+    scene = generate_scene(tmp_path_factory.mktemp("scene"), SceneSpec(resolution=24, n_train=8, n_val=2, n_test=2))
+    schedule = QuickSchedule(steps=60, num_random=600, deform_width=16, deform_depth=2, deform_skip=0)
+    config = make_config("garo-deform", scene, tmp_path_factory.mktemp("runs"), schedule=schedule)
+    config.pipeline.model.rasterizer = "reference"
+    return {"trainer": train(config), "config": config}
+
+
+def _load(trained):
+    from garo_ns.compaction.guard import TrainingViewGuard
+    from garo_ns.tools.eval import load_run
+
+    _, pipeline, _, _ = load_run(trained["config"].get_base_dir() / "config.yml")
+    return pipeline.model, TrainingViewGuard.from_datamanager(pipeline.datamanager, 32)
+
+
+class RowCounter:
+    """Counts the rows the deformation MLP is run on."""
+
+    def __init__(self, field):
+        self.rows = []
+        field.register_forward_hook(lambda module, args, out: self.rows.append(args[0].shape[0]))
+
+
+@pytest.mark.slow
+def test_training_records_the_table_and_a_loaded_model_renders_the_recorded_change(trained, capsys):
+    record = trained["trainer"].pipeline.model.switches.record
+    table = record[TABLE]
+    assert 0 <= record["tried"][TABLE] < math.inf
+    info = table["info"]
+    # 8 training times, two intervals per gap, two padding keys at each end; built from the trained field.
+    assert info["keys"] == 2 * 7 + 4 and info["gaussians"] > 0 and info["mb"] > 0 and info["build_s"] >= 0
+    model, guard = _load(trained)
+    line = [x for x in capsys.readouterr().out.splitlines() if x.startswith("Render switches:")][0]
+    assert f"time_table {record['tried'][TABLE]:.4f} dB" in line
+    model.config.switch_bound_db = record["tried"][TABLE] + 1.0  # whatever it measured: on
+    assert model.render_settings().time_table
+    assert f"time_table ({info['keys']} keys" in model.switches.line(model.config, False, model.device)
+    # The loaded model's table renders the training views, each halfway between keys, with the recorded change.
+    model.frame.halfway = True
+    with torch.no_grad():
+        plain = torch.stack([guard.render(model, i) for i in range(len(guard.indices))])
+        tabled = torch.stack([guard.render(model, i, model.render_settings()) for i in range(len(guard.indices))])
+    model.frame.halfway = False
+    targets = torch.stack(guard.targets(model))
+    assert worst_view_change_db(plain, tabled, targets) == pytest.approx(record["tried"][TABLE], abs=1e-4)
+
+
+@pytest.mark.slow
+def test_a_table_frame_runs_the_network_only_on_the_gaussians_the_table_cannot_follow(trained):
+    model, _ = _load(trained)
+    model.config.time_table = True
+    counter = RowCounter(model.deformation)
+    camera = model.train_cameras if model.train_cameras is not None else None
+    from garo_ns.render.view import camera_view  # noqa: F401  (the camera path is the model's own)
+
+    with torch.no_grad():
+        for t in (0.1, 0.35, 0.8):
+            model.gaussians_at(t)
+    network = model.frame._table[1].network.numel()  # noqa: SLF001 (inspecting the built table)
+    assert counter.rows[-3:] == ([network] * 3 if network else counter.rows[-3:]) and len(counter.rows) >= 0
+    if network == 0:  # building ran the MLP; the frames did not
+        rows = len(counter.rows)
+        with torch.no_grad():
+            model.gaussians_at(0.55)
+        assert len(counter.rows) == rows
+    del camera
+    # The network's own frame, for comparison: every Gaussian through the MLP.
+    model.config.time_table = False
+    with torch.no_grad():
+        model.gaussians_at(0.2)
+    assert counter.rows[-1] == model.num_points
+
+
+@pytest.mark.slow
+def test_a_table_over_the_bound_or_the_budget_stays_off_and_says_why(trained):
+    model, guard = _load(trained)
+    record = model.switches.record
+    model.switches.record = {**record, "tried": {**record["tried"], TABLE: 5.0}}
+    assert not model.render_settings().time_table
+    assert "time table off: its change 5.0000 dB is over the bound" in model.switches.line(
+        model.config, False, model.device
+    )
+    # Measured again with a budget too small for any table: off, with the reason in the record.
+    model.train_times = torch.linspace(0, 1, 8)
+    model.config.time_table_budget_mb = 1e-3
+    line = model.switches.measure_on_training_views(model, guard, model.step)
+    assert "time_table inf dB" in line
+    assert "memory budget" in model.switches.record[TABLE]["off"]
+    assert not model.render_settings().time_table
