@@ -55,7 +55,15 @@ RENDER_SWITCHES: Dict[str, Dict[str, Any]] = {
     "fp16": {"storage": "fp16"},
     # What a user of ns-viewer, ns-render or garo-eval gets without flags: every switch left to the
     # finished model, which decides from the losses it measured at the end of training.
-    "auto": {"static_skip": None, "render_precision": None, "cuda_graph": None, "lean_raster": None},
+    "auto": {
+        "static_skip": None,
+        "render_precision": None,
+        "cuda_graph": None,
+        "lean_raster": None,
+        "time_table": None,
+    },
+    # The time table forced on (garo_ns.render.time_table), whatever the model measured.
+    "table": {"time_table": True},
 }
 # Render-time rows added by --speed for every trained variant: each switch alone, then together.
 SPEED_ROWS = (
@@ -79,6 +87,7 @@ def split_variant(name: str) -> Tuple[str, Dict[str, Any]]:
         "render_precision": "fp32",
         "cuda_graph": False,
         "lean_raster": False,
+        "time_table": False,
         "storage": "fp32",
     }
     for switch in switches:
@@ -174,6 +183,9 @@ class BenchArgs:
     """Also train garo-rho<r> for r in 0.005, 0.01, 0.02, 0.05, 0.1."""
     speed: bool = False
     """Also report every trained variant with the render-time switches of SPEED_ROWS."""
+    remeasure_switches: bool = False
+    """Measure the approximate render switches again on the loaded model's training views before its rows (as
+    the end of training does; for arms trained, or imported, from before a switch existed)."""
     profile: bool = True
     """Add a per-stage breakdown of one frame (garo_ns.bench.frame_profile) to every variant."""
     iterations: int = FULL_ITERATIONS
@@ -309,6 +321,13 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
     trained_threshold = model.config.static_threshold
     if model.static_fraction() is None:  # a checkpoint from before the classification existed
         model.refresh_static(train_times)
+    if args.remeasure_switches:
+        from garo_ns.compaction.guard import TrainingViewGuard
+
+        model.train_times = torch.unique(torch.as_tensor(read_split(args.scene, "train")[2], dtype=torch.float32))
+        guard = TrainingViewGuard.from_datamanager(pipeline.datamanager, model.config.switch_views)
+        print(model.switches.measure_on_training_views(model, guard, int(step)), flush=True)
+        print(model.switches.line(model.config, False, model.device), flush=True)
     results = {}
     original = storage.snapshot(model)
     state: Dict[str, Any] = {"classified_at": trained_threshold, "rounded": False, "compact_mb": None}
@@ -349,6 +368,8 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
             "render_settings": {**settings, "static_threshold": model.config.static_threshold, "storage_fp16": half},
             # The switches the frame path used: the row's own, or with +auto the model's choice.
             "render_switches_used": asdict(model.render_settings()),
+            "time_table": model.frame.table_info if model.render_settings().time_table else None,
+            "switch_record": {k: v for k, v in (model.switches.record or {}).items() if k != "views"},
             "peak_memory_mb": {
                 "training": record["train_peak_memory_mb"],
                 "rendering": timing["render_peak_memory_mb"],

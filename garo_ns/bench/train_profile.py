@@ -475,6 +475,9 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
             "iterations": steps,
             "train_seconds": seconds,
             "train_steps_per_second": steps / seconds,
+            "stopped_by_deadline": False,
+            "train_peak_memory_mb": None,
+            "deformation_collapsed": False,
         }
         transfer.export_run(record, result["environment"], args.export_dir / args.method)
     print(markdown_table(result))
