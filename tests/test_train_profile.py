@@ -79,3 +79,16 @@ def test_profile_of_a_short_cpu_training(tmp_path):
     assert late["plain_ms_per_step"] > 0 and result["steps_per_second"] > 0
     assert "| rasterization_backward |" in out.with_suffix(".md").read_text()
     assert result["score"]["psnr"] > 10  # the scored model renders the scene, not noise
+
+
+def test_the_docs_profile_block_is_written_from_the_committed_files(tmp_path):
+    from pathlib import Path
+
+    from garo_ns.bench.train_profile import DOCS_BEGIN, DOCS_END, docs_block
+
+    root = Path(__file__).resolve().parents[1]
+    text = (root / "docs" / "benchmarks.md").read_text()
+    block = text.split(DOCS_BEGIN, 1)[1].split(DOCS_END, 1)[0]
+    files = sorted((root / "benchmarks" / "results").glob("train_profile_*.json"))
+    files = [f for f in files if f.name in block]  # the block names each file it shows
+    assert files and block.strip() == docs_block(files).strip()

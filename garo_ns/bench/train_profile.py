@@ -394,6 +394,36 @@ def markdown_table(result: Dict[str, Any]) -> str:
     return "\n".join(rows) + "\n"
 
 
+DOCS_BEGIN, DOCS_END = "<!-- train-profile:begin -->", "<!-- train-profile:end -->"
+
+
+def docs_block(results: Sequence[Path]) -> str:
+    """The docs' block for these result files: one table per file, with its run's figures."""
+    parts = []
+    for path in results:
+        r = json.loads(Path(path).read_text())
+        gpu = r["environment"].get("gpu") or "a CPU"
+        score = r.get("score") or {}
+        scored = f", test PSNR {score['psnr']:.2f} dB" if "psnr" in score else ""
+        parts.append(
+            f"`{r['method']}` on {r['scene']}, {gpu}, alone on its GPU: {r['steps']:,} steps in "
+            f"{r['train_seconds']:.0f} s ({r['steps_per_second']:.1f} steps/s){scored} "
+            f"([`{Path(path).name}`](../benchmarks/results/{Path(path).name})). Device ms per step (host ms):\n\n"
+            + markdown_table(r)
+        )
+    return "\n".join(parts)
+
+
+def write_docs(doc: Path, results: Sequence[Path]) -> bool:
+    """Replace the block between the markers in `doc` with `docs_block(results)`; True if it changed."""
+    text = doc.read_text()
+    head, rest = text.split(DOCS_BEGIN, 1)
+    _, tail = rest.split(DOCS_END, 1)
+    new = f"{head}{DOCS_BEGIN}\n{docs_block(results)}{DOCS_END}{tail}"
+    doc.write_text(new)
+    return new != text
+
+
 def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
     from garo_ns.bench import transfer
     from garo_ns.bench.benchmark import environment
@@ -484,5 +514,15 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
     return result
 
 
+def docs_main() -> None:
+    """`python -m garo_ns.bench.train_profile --docs DOC RESULT...`: rewrite DOC's profile block."""
+    import sys
+
+    doc, *results = sys.argv[2:]
+    print(f"{doc}: {'rewritten' if write_docs(Path(doc), [Path(r) for r in results]) else 'unchanged'}")
+
+
 if __name__ == "__main__":
-    main()
+    import sys
+
+    docs_main() if sys.argv[1:2] == ["--docs"] else main()
