@@ -230,6 +230,7 @@ class SwitchDecision:
         self._step = step
         self._cache: Optional[Tuple[Any, Any, FrameSettings]] = None
         self._measuring: Optional[TableSpec] = None  # the table being measured at the end of training
+        self.table_override: Optional[TableSpec] = None  # a table to render with instead of the record's
 
     def distrust(self) -> Optional[str]:
         """Why the record is not trusted, or None (no record, or a trusted one)."""
@@ -249,8 +250,8 @@ class SwitchDecision:
     def table_spec(self) -> Optional[TableSpec]:
         """The time table to render with when `time_table` is on: the one being measured, else the trusted
         record's."""
-        if self._measuring is not None:
-            return self._measuring
+        if self._measuring is not None or self.table_override is not None:
+            return self._measuring or self.table_override
         record = self.trusted_record()
         spec = ((record or {}).get(TABLE) or {}).get("spec")
         return TableSpec(**spec) if spec else None

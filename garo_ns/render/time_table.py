@@ -174,6 +174,10 @@ class TimeTable:
             "network": int(network.numel()),
             "network_by_order": off,
             "midpoint_error_max": {o: float(err[o].max()) if err[o].numel() else 0.0 for o in ORDERS},
+            # How the chosen order's errors spread over the Gaussians: what a tolerance would leave to the network.
+            "midpoint_error_quantiles": {
+                str(q): float(err[order].quantile(q)) if err[order].numel() else 0.0 for q in (0.5, 0.9, 0.99, 0.999)
+            },
         }
         table = cls(spec, base, stored, moving, network, info)
         table.info["mb"] = table.nbytes() / 2**20

@@ -1,0 +1,108 @@
+"""The time table on finished models: its tolerance against its error, its memory and its frame rate.
+
+For each benchmark export (garo_ns.bench.transfer) and each tolerance, the model renders the split's views
+through the network (plain, fp32) and through a table of that tolerance (`time_table_tolerance`: how far a
+Gaussian's interpolated trajectory may stray at keyframe midpoints before it stays on the network), and
+records the worst view's two-sided change (garo_ns.render.switches.view_change_db), how many Gaussians the
+table leaves to the network, the table's size and build time, and the frame rate of both. The table's keys
+sit halfway between the training times (garo_ns.render.time_table), so D-NeRF's test views, taken at training
+times, are the worst place for it.
+
+    python benchmarks/time_table.py --scene SCENE --exports EXPORT... --output RESULT.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import torch
+
+from garo_ns import compat
+
+compat.install()
+
+
+def main() -> None:
+    from garo_ns.bench import transfer
+    from garo_ns.bench.benchmark import environment
+    from garo_ns.bench.timing import measure_fps
+    from garo_ns.data.dnerf import read_split
+    from garo_ns.render.switches import view_change_db
+    from garo_ns.render.time_table import spec_for
+    from garo_ns.tools.eval import load_run, load_split
+
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scene", type=Path, required=True)
+    parser.add_argument("--exports", type=Path, nargs="+", required=True)
+    parser.add_argument("--split", default="test")
+    parser.add_argument("--tolerances", type=float, nargs="+", default=[1e-2, 3e-3, 1e-3, 3e-4, 1e-4])
+    parser.add_argument("--work-dir", type=Path, default=Path("outputs/time_table"))
+    parser.add_argument("--output", type=Path, required=True)
+    args = parser.parse_args()
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    result = {**environment(device), "scene": args.scene.name, "split": args.split, "models": {}}
+    for export in args.exports:
+        record = transfer.import_run(export, args.work_dir, args.scene)
+        _, pipeline, _, _ = load_run(Path(record["config"]))
+        model = pipeline.model
+        model.eval()
+        cfg = model.config
+        for key in ("static_skip", "cuda_graph", "lean_raster", "time_table"):
+            setattr(cfg, key, False)
+        cameras, images = load_split(args.scene, args.split, model.background_color)
+        gt = torch.stack(images).to(model.device)
+        times = torch.unique(torch.as_tensor(read_split(args.scene, "train")[2], dtype=torch.float32))
+
+        def renders() -> torch.Tensor:
+            with torch.no_grad():
+                return torch.stack(
+                    [
+                        model.get_outputs_for_camera(cameras[i : i + 1].to(model.device))["rgb"]
+                        for i in range(len(images))
+                    ]
+                )
+
+        plain = renders()
+        rows = {"network": {"fps": measure_fps(model, cameras)["fps"]}}
+        cfg.time_table = True
+        for tol in args.tolerances:
+            spec, why = spec_for(
+                times,
+                cfg.time_table_keys_per_frame,
+                model.num_points,
+                cfg.time_table_budget_mb,
+                cfg.time_table_precision,
+                tol,
+                model.scene_extent,
+            )
+            model.switches.table_override = spec
+            if spec is None:
+                rows[f"tol={tol:g}"] = {"off": why}
+                continue
+            tabled = renders()
+            change = view_change_db(plain, tabled, gt)
+            rows[f"tol={tol:g}"] = {
+                "tolerance": tol,
+                "worst_view_change_db": float(change.max()),
+                "mean_view_change_db": float(change.mean()),
+                "fps": measure_fps(model, cameras)["fps"],
+                "table": model.frame.table_info,
+            }
+            print(
+                record["variant"],
+                tol,
+                rows[f"tol={tol:g}"]["worst_view_change_db"],
+                rows[f"tol={tol:g}"]["fps"],
+                model.frame.table_info.get("network"),
+                flush=True,
+            )
+        result["models"][record["variant"]] = {"gaussians": model.num_points, "rows": rows}
+        torch.cuda.empty_cache() if device == "cuda" else None
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps(result, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()
