@@ -38,6 +38,8 @@ def main() -> None:
     parser.add_argument("--exports", type=Path, nargs="+", required=True)
     parser.add_argument("--split", default="test")
     parser.add_argument("--tolerances", type=float, nargs="+", default=[1e-2, 3e-3, 1e-3, 3e-4, 1e-4])
+    parser.add_argument("--precisions", nargs="+", default=["fp16"], choices=["fp16", "fp32"])
+    parser.add_argument("--keys-per-frame", type=int, nargs="+", default=[2])
     parser.add_argument("--work-dir", type=Path, default=Path("outputs/time_table"))
     parser.add_argument("--output", type=Path, required=True)
     args = parser.parse_args()
@@ -67,35 +69,36 @@ def main() -> None:
         plain = renders()
         rows = {"network": {"fps": measure_fps(model, cameras)["fps"]}}
         cfg.time_table = True
-        for tol in args.tolerances:
+        for tol, precision, keys in [
+            (t, p, k) for t in args.tolerances for p in args.precisions for k in args.keys_per_frame
+        ]:
+            name = f"tol={tol:g},{precision},keys={keys}"
             spec, why = spec_for(
-                times,
-                cfg.time_table_keys_per_frame,
-                model.num_points,
-                cfg.time_table_budget_mb,
-                cfg.time_table_precision,
-                tol,
-                model.scene_extent,
+                times, keys, model.num_points, cfg.time_table_budget_mb, precision, tol, model.scene_extent
             )
             model.switches.table_override = spec
             if spec is None:
-                rows[f"tol={tol:g}"] = {"off": why}
+                rows[name] = {"off": why}
                 continue
             tabled = renders()
             change = view_change_db(plain, tabled, gt)
-            rows[f"tol={tol:g}"] = {
+            rows[name] = {
                 "tolerance": tol,
+                "precision": precision,
+                "keys_per_frame": keys,
                 "worst_view_change_db": float(change.max()),
                 "mean_view_change_db": float(change.mean()),
                 "fps": measure_fps(model, cameras)["fps"],
                 "table": model.frame.table_info,
             }
+            row = rows[name]
             print(
                 record["variant"],
-                tol,
-                rows[f"tol={tol:g}"]["worst_view_change_db"],
-                rows[f"tol={tol:g}"]["fps"],
-                model.frame.table_info.get("network"),
+                name,
+                f"{row['worst_view_change_db']:.4f} dB",
+                f"{row['fps']:.0f} fps",
+                row["table"].get("network"),
+                f"{row['table'].get('mb', 0):.0f} MB",
                 flush=True,
             )
         result["models"][record["variant"]] = {"gaussians": model.num_points, "rows": rows}
