@@ -76,7 +76,7 @@ setup)
 gputests)
   export CUDA_VISIBLE_DEVICES=$1
   cd $W/src
-  python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py tests/test_rendering_cuda.py tests/test_half_field.py tests/test_official_terms.py \
+  python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py tests/test_rendering_cuda.py tests/test_half_field.py \
       2>&1 | tail -6 ;;
 smoke)
   scene=$1; export CUDA_VISIBLE_DEVICES=$2

@@ -89,8 +89,8 @@ def scene_row(path: Path) -> Dict[str, Any]:
 
 
 def retime_ratios(results: Path, row: Dict[str, Any]) -> List[float]:
-    """GARO's speed-up in each re-timing of a scene's Table 1 checkpoints (`<scene>40k_retime_<GPU>.json`, runs of
-    benchmarks/retime.py on the same machine), if such a file exists."""
+    """GARO's speed-up in each re-timing of a scene's Table 1 checkpoints (`<scene>40k_retime_<GPU>.json`, made on
+    the same machine by a script now retired: benchmarks/HISTORY.md), if such a file exists."""
     ratios = []
     for path in sorted(results.glob(f"{row['scene']}40k_retime_*.json")):
         for run in json.loads(path.read_text()).get("runs", []):

@@ -212,7 +212,7 @@ class DeformationSettings:
     """Initial output heads of the MLP: PyTorch's default (as D-3DGS) or zero (identity at the
     switch-on). Zero heads give every unit of the last hidden layer the same first updates; on lego
     their last layer died wholesale in 1 of 5 runs, the field then modelled no motion
-    (benchmarks/results/deform_health_H200.json; 0 of 5 with the default)."""
+    (benchmarks/results/deform_health_H200.json, benchmarks/HISTORY.md; 0 of 5 with the default)."""
     health_every: int = 500
     """Check every this many steps after the warm-up that the deformation field still models
     motion (garo_ns.deformation.field_health): logged, with a warning when it has collapsed. 0: off."""

@@ -2,7 +2,8 @@
 
 Canonical Gaussians live in `gauss_params` as in splatfacto; `gaussians_at` moves them to a time (the one way
 to get the Gaussians at a time). Elsewhere: the settings (`recipe` and the modules they configure), the starting
-Gaussians (`initialisation`), every change of their count (`GaroStrategy`), rendering (`render`), the static
+Gaussians (`initialisation`), what it takes from its training data (`training_data`), every change of their
+count (`GaroStrategy`), rendering (`render`, the outputs of a camera in `render.outputs`), the static
 classification (`static`), the field (`deformation`) and checkpoints of earlier versions (`checkpoints`).
 Changes to splatfacto a user may notice are documented on the settings they come from.
 """
@@ -35,9 +36,11 @@ from garo_ns.recipe import D3dgsRecipe
 from garo_ns.render.backend import Backend
 from garo_ns.render.contribution import summed_contribution
 from garo_ns.render.frame import Canonical, FramePath, FrameSettings, Splats, activate, compose, render_splats
+from garo_ns.render.outputs import camera_outputs
 from garo_ns.render.switches import RenderSettings, SwitchDecision
-from garo_ns.render.view import RenderView, camera_extent, camera_time, camera_view
+from garo_ns.render.view import RenderView, camera_time, camera_view
 from garo_ns.static import StaticSettings, classification_due, classify, sample_times, static_fraction
+from garo_ns.training_data import adopt_training_data
 
 
 @dataclass
@@ -84,7 +87,8 @@ class GaroModel(SplatfactoModel):
         self._warned_no_time = False
         # A buffer, so the background the model was trained on travels with its checkpoints.
         self.register_buffer("background_rgb", cfg.background_for(metadata).clone())
-        self._extent_from_data = cfg.scene_extent is None and "camera_extent" in metadata
+        # Set by the config or the dataparser: the training cameras do not replace it (garo_ns.training_data).
+        self.extent_fixed = cfg.scene_extent is not None or "camera_extent" in metadata
         self.strategy = cfg.make_strategy()
         self.compaction_guard: Optional[TrainingViewGuard] = None  # training views compaction is judged on
         self.switch_guard: Optional[TrainingViewGuard] = None  # training views the render switches are measured on
@@ -115,26 +119,8 @@ class GaroModel(SplatfactoModel):
         self.background_rgb.copy_(torch.as_tensor(value, dtype=torch.float32).reshape(3))
 
     def adopt_training_data(self, pipeline: Any) -> None:
-        """Make the model agree with its training data whatever the dataparser: render on the
-        data's alpha colour, and (unless set) scale densification by the 3DGS camera extent."""
-        outputs = getattr(getattr(pipeline, "datamanager", None), "train_dataparser_outputs", None)
-        if outputs is None:
-            return
-        self.train_cameras = outputs.cameras
-        if outputs.cameras.times is not None:
-            self.train_times = torch.unique(outputs.cameras.times.detach().reshape(-1).float().cpu())
-        alpha = outputs.alpha_color
-        if alpha is not None and not torch.allclose(alpha.float().cpu(), self.background_rgb.cpu()):
-            CONSOLE.print(f"[yellow]Background set to the data's alpha colour {alpha.tolist()}[/yellow]")
-            self.background_color = alpha
-        if self.config.scene_extent is None and not self._extent_from_data:
-            self.scene_extent = camera_extent(outputs.cameras.camera_to_worlds.detach().cpu().numpy())
-            self.strategy_state["scene_scale"] = self.scene_extent
-        # Training views (the training split only) for compaction's guard and the render switches' measurement.
-        self.compaction_guard = TrainingViewGuard.from_datamanager(
-            pipeline.datamanager, self.config.compact_guard_views
-        )
-        self.switch_guard = TrainingViewGuard.from_datamanager(pipeline.datamanager, self.config.switch_views)
+        """Make the model agree with its training data whatever the dataparser (garo_ns.training_data)."""
+        adopt_training_data(self, pipeline)
 
     # ------------------------------------------------------------------ training callbacks
     def get_training_callbacks(
@@ -289,8 +275,7 @@ class GaroModel(SplatfactoModel):
             if keep.sum() == 0:
                 return self.get_empty_outputs(view.width, view.height, self.background_color)
             splats = splats.select(keep)
-        W, H = view.width, view.height
-        self.last_size = (H, W)
+        self.last_size = (view.height, view.width)
         render_mode = "RGB+ED" if (self.config.output_depth_during_training or not self.training) else "RGB"
         render, alpha, info = self.render(view, render_mode, splats=splats)
         # The geometry GARO measures, for the strategy (no copies: detached views).
@@ -299,17 +284,7 @@ class GaroModel(SplatfactoModel):
         if self.training:
             self.strategy.step_pre_backward(self.gauss_params, self.optimizers, self.strategy_state, self.step, info)
         background = self.background_color.to(self.device)
-        rgb = render[..., :3] + (1 - alpha) * background
-        # The loss sees the render unclamped, as D-3DGS's does: a clamp would stop the gradient of
-        # every over-bright pixel (and with it part of the densification signal).
-        rgb = rgb if self.training else torch.clamp(rgb, 0.0, 1.0)
-        depth = None
-        if render_mode == "RGB+ED":
-            depth = render[..., 3:4]
-            depth = torch.where(alpha > 0, depth, depth.detach().max()).squeeze(0)
-        if not self.training:
-            background = background.expand(H, W, 3)
-        return {"rgb": rgb.squeeze(0), "depth": depth, "accumulation": alpha.squeeze(0), "background": background}
+        return camera_outputs(render, alpha, background, render_mode == "RGB+ED", self.training)
 
     # ------------------------------------------------------------------ losses and metrics
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, Tensor]:

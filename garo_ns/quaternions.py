@@ -7,14 +7,11 @@ import torch.nn.functional as F
 from torch import Tensor
 
 
-def quat_to_rotmat(quats: Tensor, normalise: bool = True) -> Tensor:
-    """Rotation matrices of (w, x, y, z) quaternions; normalised here, a zero quaternion gives I. With
-    `normalise=False` the unit-quaternion formula is applied to the quaternions as they are, as the
-    official D-3DGS rasterizer reads an unnormalised one (benchmarks/official_terms.py)."""
-    q = F.normalize(quats, dim=-1) if normalise else quats
+def quat_to_rotmat(quats: Tensor) -> Tensor:
+    """Rotation matrices of (w, x, y, z) quaternions; normalised here, a zero quaternion gives I."""
+    q = F.normalize(quats, dim=-1)
     w, x, y, z = q.unbind(-1)
-    if normalise:
-        w = w + (q.abs().sum(-1) == 0).to(q.dtype)  # the zero quaternion reads as the identity rotation
+    w = w + (q.abs().sum(-1) == 0).to(q.dtype)  # the zero quaternion reads as the identity rotation
     rot = torch.stack(
         [
             1 - 2 * (y * y + z * z),

@@ -3,10 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 import torch
@@ -237,56 +233,3 @@ def test_a_failing_re_timing_keeps_the_measured_rows(tmp_path, monkeypatch):
     assert result["paired_timing_error"] == "RuntimeError: no memory left"
     assert json.loads(out.read_text())["variants"]["deform-splatfacto"]["psnr"] > 0
     assert "fps_paired" not in result["variants"]["deform-splatfacto"]
-
-
-SCRIPTS = Path(__file__).resolve().parents[1] / "benchmarks"
-
-
-@pytest.mark.slow
-def test_removal_curve_and_curvature_share_read_an_export(tmp_path):
-    """The scripts that read a trained export on a CPU (benchmarks/removal_curve.py, curvature_share.py)."""
-    scene = generate_scene(tmp_path / "scene", SceneSpec(resolution=32, n_train=8, n_val=3, n_test=3))
-    trained = run(tiny_run(scene, tmp_path, "a", variants=["garo-deform"], export_dir=tmp_path / "export"))
-    export = tmp_path / "export" / "garo-deform"
-    n = trained["variants"]["garo-deform"]["num_gaussians"]
-
-    curve = tmp_path / "curve.json"
-    cmd = [sys.executable, str(SCRIPTS / "removal_curve.py"), "--scene", str(scene), "--export", str(export)]
-    subprocess.run([*cmd, "--guard-views", "4", "--shares", "0", "0.5", "--output", str(curve)], check=True)
-    result = json.loads(curve.read_text())
-    assert result["num_gaussians"] == n and result["guard_views"] == 4 and result["score_views"] == 8
-    assert [(r["score"], r["share"]) for r in result["rows"]] == [
-        ("sum", 0.0),
-        ("sum", 0.5),
-        ("max", 0.0),
-        ("max", 0.5),
-    ]
-    for nothing, half in (result["rows"][:2], result["rows"][2:]):
-        assert nothing["removed"] == 0 and len(nothing["guard"]["per_view_db"]) == 4
-        for split in ("guard", "test"):  # the same render, bit for bit
-            assert nothing[split]["per_view_db"] == [0.0] * len(nothing[split]["per_view_db"])
-            assert nothing[split]["worst_db"] == nothing[split]["pooled_db"] == 0.0
-        assert half["removed"] == n // 2 and half["test"]["worst_db"] >= half["test"]["mean_db"]
-
-    share = tmp_path / "share.json"
-    cmd = [sys.executable, str(SCRIPTS / "curvature_share.py"), "--scene", str(scene), "--exports", str(export)]
-    subprocess.run([*cmd, "--times", "2", "--output", str(share)], check=True)
-    by_time = json.loads(share.read_text())["runs"]["garo-deform"]["by_time"]
-    assert len(by_time) == 2
-    assert all(s["count"] == n and 0.0 <= s["share_under_tau"] <= 1.0 for s in by_time.values())
-
-
-def test_removal_costs_pool_the_views_by_their_squared_error():
-    """A view at 30 dB losing 1 dB beside an untouched one at 40 dB: 0.5 dB on the mean of views, 0.92 dB pooled
-    (the 30 dB view holds most of the error)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("removal_curve", SCRIPTS / "removal_curve.py")
-    removal_curve = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(removal_curve)
-    out = removal_curve.costs(
-        torch.tensor([30.0, 40.0], dtype=torch.float64), torch.tensor([29.0, 40.0], dtype=torch.float64)
-    )
-    assert out["mean_db"] == pytest.approx(0.5) and out["worst_db"] == pytest.approx(1.0)
-    assert out["pooled_db"] == pytest.approx(10 * math.log10((10**-2.9 + 1e-4) / (1e-3 + 1e-4)))
-    assert out["per_view_db"] == [1.0, 0.0]

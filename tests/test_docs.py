@@ -74,6 +74,18 @@ def test_readme_is_at_most_15_kb():
     assert (ROOT / "README.md").stat().st_size <= 15_000
 
 
+def test_benchmarks_holds_only_scripts_the_docs_name_and_none_that_history_retired():
+    """Each script in benchmarks/ is named in the README or docs/ (what it makes is cited there); a script that
+    HISTORY's "Retired scripts" table lists is not in the folder."""
+    named = "\n".join(page.read_text() for page in PAGES)
+    scripts = sorted(p.name for p in (ROOT / "benchmarks").iterdir() if p.suffix in (".py", ".sh"))
+    assert scripts and not [name for name in scripts if name not in named], "scripts the docs do not name"
+    history = (ROOT / "benchmarks" / "HISTORY.md").read_text()
+    table = history.split("## Retired scripts", 1)[1].split("\n## ", 1)[0]
+    retired = re.findall(r"^\| `([\w.]+\.(?:py|sh))` \|", table, flags=re.M)
+    assert retired and not set(retired) & set(scripts), "a retired script is back in benchmarks/"
+
+
 @pytest.mark.parametrize("block", ["ablation", "compaction", "demo", "tests"])
 def test_readme_demo_and_test_figures_come_from_their_result_files(tmp_path, block):
     """The demo's and the tests' figures are rewritten from their files; a typed change is caught."""

@@ -15,15 +15,16 @@ standup's GARO arm 0.045 (standup40k_garo_switches_H100.json). Within the 0.02 d
 jumpingjacks' GARO arm, over it on standup and by 0.0002 dB on jumpingjacks' baseline: `render_precision`
 fp16 is an explicit opt-in, never chosen by default (garo_ns.render.switches).
 
-Chosen by `benchmarks/deform_mlp.py` (`benchmarks/results/deform_mlp_H100.json`, the recipe's field,
-50k / 200k moving Gaussians, ms per frame): fp32 1.93 / 6.98; tf32 (since deleted) + CUDA graph
-0.94 / 3.50; half weights + graph 0.51 / 2.26; half weights with the position part cached + graph
-(this) 0.44 / 1.68, largest position-offset error 1.6e-4 of the scene extent (bf16: 1.3e-3).
-torch.compile + graph is a little faster (0.40 / 1.33) but autotunes for minutes at the first frame
-(and, compiled for fixed shapes as measured, for every new number of Gaussians): too costly for a
-viewer. The cache takes 2 x N x width half values (49 MB at 50k Gaussians). Its bound on real
-scenes: a rendered PSNR within 0.02 dB of the fp32 field on every view (the benchmark's `+half` rows,
-`psnr_vs_plain`), met on the scenes above except standup and jumpingjacks' baseline.
+Chosen by a micro-benchmark of the field alone (`benchmarks/results/deform_mlp_H100.json`, its script
+retired: benchmarks/HISTORY.md; the recipe's field, 50k / 200k moving Gaussians, ms per frame): fp32
+1.93 / 6.98; tf32 (since deleted) + CUDA graph 0.94 / 3.50; half weights + graph 0.51 / 2.26; half
+weights with the position part cached + graph (this) 0.44 / 1.68, largest position-offset error 1.6e-4
+of the scene extent (bf16: 1.3e-3). torch.compile + graph is a little faster (0.40 / 1.33) but autotunes
+for minutes at the first frame (and, compiled for fixed shapes as measured, for every new number of
+Gaussians): too costly for a viewer. The cache takes 2 x N x width half values (49 MB at 50k Gaussians).
+Its bound on real scenes: a rendered PSNR within 0.02 dB of the fp32 field on every view (the
+benchmark's `+half` rows, `psnr_vs_plain`), met on the scenes above except standup and jumpingjacks'
+baseline.
 
 Training never comes here: it keeps the fp32 field and its gradients (`garo_ns.render.frame.compose`).
 """

@@ -1,0 +1,34 @@
+"""What a model takes from its training data, whatever the dataparser: the training cameras and their times,
+the background (the data's alpha colour), the scene extent that densification scales by, and the training
+views that compaction and the render switches are measured on (the training split only)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from garo_ns.compaction.guard import TrainingViewGuard
+from garo_ns.render.view import camera_extent
+
+
+def adopt_training_data(model: Any, pipeline: Any) -> None:
+    """Make `model` (a GaroModel) agree with `pipeline`'s training data: render on the data's alpha colour,
+    and (unless the config or the dataparser set it) scale densification by the 3DGS camera extent. Nothing
+    changes when the pipeline has no dataparser outputs."""
+    outputs = getattr(getattr(pipeline, "datamanager", None), "train_dataparser_outputs", None)
+    if outputs is None:
+        return
+    model.train_cameras = outputs.cameras
+    if outputs.cameras.times is not None:
+        model.train_times = torch.unique(outputs.cameras.times.detach().reshape(-1).float().cpu())
+    alpha = outputs.alpha_color
+    if alpha is not None and not torch.allclose(alpha.float().cpu(), model.background_rgb.cpu()):
+        CONSOLE.print(f"[yellow]Background set to the data's alpha colour {alpha.tolist()}[/yellow]")
+        model.background_color = alpha
+    if not model.extent_fixed:
+        model.scene_extent = camera_extent(outputs.cameras.camera_to_worlds.detach().cpu().numpy())
+        model.strategy_state["scene_scale"] = model.scene_extent
+    model.compaction_guard = TrainingViewGuard.from_datamanager(pipeline.datamanager, model.config.compact_guard_views)
+    model.switch_guard = TrainingViewGuard.from_datamanager(pipeline.datamanager, model.config.switch_views)
