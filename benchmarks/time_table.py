@@ -40,6 +40,9 @@ def main() -> None:
     parser.add_argument("--tolerances", type=float, nargs="+", default=[1e-2, 3e-3, 1e-3, 3e-4, 1e-4])
     parser.add_argument("--precisions", nargs="+", default=["fp16"], choices=["fp16", "fp32"])
     parser.add_argument("--keys-per-frame", type=int, nargs="+", default=[2])
+    parser.add_argument(
+        "--budget-mb", type=float, default=None, help="the table's memory budget (default: the model's)"
+    )
     parser.add_argument("--work-dir", type=Path, default=Path("outputs/time_table"))
     parser.add_argument("--output", type=Path, required=True)
     args = parser.parse_args()
@@ -69,6 +72,8 @@ def main() -> None:
         plain = renders()
         rows = {"network": {"fps": measure_fps(model, cameras)["fps"]}}
         cfg.time_table = True
+        budget = args.budget_mb or cfg.time_table_budget_mb
+        cfg.time_table_budget_mb = budget
         for tol, precision, keys in [
             (t, p, k) for t in args.tolerances for p in args.precisions for k in args.keys_per_frame
         ]:
