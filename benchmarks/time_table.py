@@ -93,6 +93,7 @@ def main() -> None:
                 "keys_per_frame": keys,
                 "worst_view_change_db": float(change.max()),
                 "mean_view_change_db": float(change.mean()),
+                "view_change_db": [round(float(c), 5) for c in change],
                 "fps": measure_fps(model, cameras)["fps"],
                 "table": model.frame.table_info,
             }
