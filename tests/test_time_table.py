@@ -134,3 +134,22 @@ def test_the_memory_budget_gives_fewer_keys_or_no_table():
     assert spec is None and "memory budget" in why
     spec, why = spec_for(None, 2, n, 5, "fp16", 1e-4, 1.0)
     assert spec is None and why == "no training times"
+
+
+def test_int16_keys_resolve_each_gaussians_motion_evenly():
+    field = _field(amp=0.5)
+    field.amp[0] = 40.0  # one Gaussian far from the base: fp16's steps there are coarse
+    xyz = _xyz()
+    full = TimeTable.build(_spec(40), field, xyz)
+    q16 = TimeTable.build(_spec(40, precision="int16"), field, xyz)
+    half = TimeTable.build(_spec(40, precision="fp16"), field, xyz)
+    assert q16.residual.dtype == torch.int16 and q16.nbytes() < 0.6 * full.nbytes()
+    worst16, worst_half = torch.zeros(64, 10), torch.zeros(64, 10)
+    for t in torch.linspace(0, 1, 51).tolist():
+        worst16 = torch.maximum(worst16, (q16.offsets_at(t) - full.offsets_at(t)).abs())
+        worst_half = torch.maximum(worst_half, (half.offsets_at(t) - full.offsets_at(t)).abs())
+    # At most half a step of each Gaussian's own scale (its largest residual / 32767), plus float rounding.
+    step = (2 * field.amp)[:, None] / 32767
+    assert bool((worst16 <= 0.5 * step * 1.01 + 1e-5).all())
+    # fp16's step grows with the residual: on the far Gaussian it errs many times more.
+    assert worst16[0].max() < 0.25 * worst_half[0].max()

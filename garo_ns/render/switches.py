@@ -175,12 +175,17 @@ class RenderSettings:
     finished model when its change against the plain render, measured at the end of training on training
     views each placed halfway between two keyframes, is within switch_bound_db."""
     time_table_keys_per_frame: int = 2
-    """Keyframe intervals per gap between consecutive training times (keys sit halfway between them)."""
-    time_table_budget_mb: float = 2048.0
+    """Keyframe intervals per gap between consecutive training times (keys sit halfway between them) of the
+    first table tried at the end of training; while a table misses the bound, one with twice the keys is tried,
+    up to time_table_max_keys_per_frame and within the memory budget."""
+    time_table_max_keys_per_frame: int = 16
+    """The densest table tried at the end of training."""
+    time_table_budget_mb: float = 3072.0
     """Largest time table in MB. At the end of training a model that would need more gets fewer keyframes;
     a loaded model whose recorded table exceeds it renders through the network (and says so)."""
-    time_table_precision: Literal["fp16", "fp32"] = "fp16"
-    """Storage of the table's keys (each key's offsets less the offsets at the middle of the time range)."""
+    time_table_precision: Literal["int16", "fp16", "fp32"] = "int16"
+    """Storage of the table's keys (each key's offsets less the offsets at the middle of the time range); int16
+    with a scale per Gaussian and channel resolves each Gaussian's motion evenly at fp16's size."""
     time_table_tolerance: float = 1e-4
     """Largest interpolation error at keyframe midpoints (positions in scene extents; rotation and log-scale
     offsets absolute) for a Gaussian to be tabled; those over it stay on the network."""
@@ -370,15 +375,23 @@ class SwitchDecision:
         model.eval()  # no time noise
         self.record = None
         cfg = model.config
-        spec, why = spec_for(
-            model.train_times,
-            cfg.time_table_keys_per_frame,
-            model.num_points,
-            cfg.time_table_budget_mb,
-            cfg.time_table_precision,
-            cfg.time_table_tolerance,
-            model.scene_extent,
-        )
+        specs, why = [], ""
+        keys = max(1, cfg.time_table_keys_per_frame)
+        while keys <= max(cfg.time_table_max_keys_per_frame, cfg.time_table_keys_per_frame):
+            spec, why = spec_for(
+                model.train_times,
+                keys,
+                model.num_points,
+                cfg.time_table_budget_mb,
+                cfg.time_table_precision,
+                cfg.time_table_tolerance,
+                model.scene_extent,
+            )
+            if spec is None or (specs and spec.intervals <= specs[-1].intervals):  # the budget caps the keys
+                break
+            specs.append(spec)
+            keys *= 2
+        spec = specs[0] if specs else None
         self._measuring = spec
         model.frame.halfway = True
         try:
@@ -389,10 +402,20 @@ class SwitchDecision:
                     return torch.full_like(guard.targets(model)[i], math.nan)  # an infinite change: off
                 return guard.render(model, i, switches)
 
-            line = self.measure(cfg, model.device, render, guard.targets(model), step, None)
+            targets = guard.targets(model)
+            ladder: Dict[str, float] = {}
+            if cfg.time_table is None and len(specs) > 1:  # the fewest keys within the bound
+                probe = measure_on_views(render, targets)
+                for candidate in specs:
+                    self._measuring = spec = candidate
+                    ladder[str(candidate.intervals)] = probe(FrameSettings(time_table=True))
+                    if ladder[str(candidate.intervals)] <= cfg.switch_bound_db:
+                        break
+            line = self.measure(cfg, model.device, render, targets, step, None)
             built = model.frame.table_info
             if self.record is not None and cfg.time_table is None:
-                self.record[TABLE] = {"spec": built["spec"], "info": built} if spec and built else {"off": why}
+                entry = {"spec": built["spec"], "info": built} if spec and built else {"off": why}
+                self.record[TABLE] = {**entry, "intervals_tried_db": ladder} if ladder else entry
             return line
         except Exception as err:
             self.record = None

@@ -9,9 +9,10 @@ instead of an 8-layer MLP.
   between training frames, and shifted by half a spacing: evenly spaced training times (D-NeRF's) then lie
   exactly halfway between two keyframes, where linear interpolation errs most, and no keyframe coincides
   with a training (and so with a D-NeRF test) time. Two extra keys pad each end for the cubic order.
-* **Storage**: per Gaussian the mean offset over the keyframes (fp32) and each keyframe's residual from it
-  (fp16 by default: residuals are the size of the motion, not of the position), only for the Gaussians
-  whose offsets change at all (`moving`); the rest keep their mean.
+* **Storage**: per Gaussian the offsets at the middle of the range (fp32) and each keyframe's residual from
+  them, only for the Gaussians whose offsets change at all (`moving`; the rest keep the base): int16 with a
+  scale per Gaussian and channel by default (uniform resolution over each Gaussian's own motion; fp16's
+  coarser resolution on large residuals set the error's floor on a 40k model), or fp16, or fp32.
 * **Gaussians the table cannot follow** (a trajectory that bends between keyframes more than the
   tolerance allows at the midpoints checked at build time) stay on the network: each frame runs the MLP
   on those few only (`network`).
@@ -47,7 +48,7 @@ class TableSpec:
     t_hi: float
     intervals: int
     order: Order = "linear"
-    precision: Literal["fp16", "fp32"] = "fp16"
+    precision: Literal["int16", "fp16", "fp32"] = "int16"
     tolerance: float = 1e-4
     """Largest interpolation error at the checked midpoints for a Gaussian to stay in the table: in
     units of the scene extent for positions, absolute for quaternion and log-scale offsets."""
@@ -95,6 +96,36 @@ def interpolate(keys: Tensor, order: Order, i: int, f: float) -> Tensor:
     return out
 
 
+Q16 = 32767.0  # int16 keys: a residual of the Gaussian's own largest size maps to +-Q16
+
+
+class Codec:
+    """How keys are stored: fp32, fp16, or int16 with a scale per Gaussian and channel (a residual of at most
+    `spread` stored to spread / 32767: uniform resolution over the Gaussian's own motion, where fp16's
+    resolution coarsens with the value and, measured, set the error's floor)."""
+
+    def __init__(self, precision: str, spread: Optional[Tensor] = None) -> None:
+        self.precision = precision
+        self.dtype = {"fp16": torch.float16, "fp32": torch.float32, "int16": torch.int16}[precision]
+        self.scale = (spread.clamp_min(1e-12) / Q16) if precision == "int16" and spread is not None else None
+
+    def encode(self, r: Tensor) -> Tensor:
+        if self.scale is None:
+            return r.to(self.dtype)
+        return torch.round(r / self.scale).clamp_(-Q16, Q16).to(torch.int16)
+
+    def interpolate(self, keys: Tensor, order: Order, i: int, f: float, rows: Optional[Tensor] = None) -> Tensor:
+        """`interpolate` of stored keys, back in fp32 (`rows`: which Gaussians' scales the keys hold)."""
+        out = interpolate(keys, order, i, f)
+        if self.scale is None:
+            return out
+        return out * (self.scale if rows is None else self.scale[rows])
+
+    def select(self, rows: Tensor) -> None:
+        if self.scale is not None:
+            self.scale = self.scale[rows].contiguous()
+
+
 def field_offsets(field: Any, xyz: Tensor, times: Sequence[float], chunk: int = 1 << 18) -> Tensor:
     """The field's offsets [T, N, 10] at each time, for canonical positions `xyz` [N, 3] (no gradients)."""
     out = torch.empty(len(times), xyz.shape[0], CHANNELS, device=xyz.device)
@@ -107,7 +138,7 @@ def field_offsets(field: Any, xyz: Tensor, times: Sequence[float], chunk: int = 
 
 
 def midpoint_errors(
-    spec: TableSpec, field: Any, xyz: Tensor, base: Tensor, residual: Tensor, samples: int
+    spec: TableSpec, field: Any, xyz: Tensor, base: Tensor, residual: Tensor, codec: "Codec", samples: int
 ) -> Dict[str, Tensor]:
     """Per Gaussian, the largest error of each order's interpolation of the stored keys (`base` plus
     `residual`, every Gaussian) against the field at up to `samples` segment midpoints spread over the
@@ -121,7 +152,7 @@ def midpoint_errors(
         i = PAD - 1 + p
         truth = field_offsets(field, xyz, [float(key_t[i]) + 0.5 * spec.spacing])[0] - base
         for o in ORDERS:
-            d = (interpolate(residual, o, i, 0.5) - truth).abs()
+            d = (codec.interpolate(residual, o, i, 0.5) - truth).abs()
             err[o] = torch.maximum(err[o], torch.maximum(d[:, :3].amax(-1) / spec.extent, d[:, 3:].amax(-1)))
     return err
 
@@ -130,9 +161,17 @@ class TimeTable:
     """The offsets of one model's Gaussians at the keyframes of `spec` (see the module docstring)."""
 
     def __init__(
-        self, spec: TableSpec, base: Tensor, residual: Tensor, moving: Tensor, network: Tensor, info: Dict[str, Any]
+        self,
+        spec: TableSpec,
+        base: Tensor,
+        residual: Tensor,
+        moving: Tensor,
+        network: Tensor,
+        info: Dict[str, Any],
+        codec: Optional[Codec] = None,
     ) -> None:
         self.spec = spec
+        self.codec = codec if codec is not None else Codec(str(residual.dtype).split(".")[-1].replace("float", "fp"))
         self.base = base  # [N, 10] fp32: mean offsets (what a Gaussian that does not move keeps)
         self.residual = residual  # [K, M, 10]: keys less the mean, moving Gaussians only
         self.moving = moving  # [M] indices into the Gaussians
@@ -144,18 +183,19 @@ class TimeTable:
     def build(cls, spec: TableSpec, field: Any, xyz: Tensor, midpoint_samples: int = 64) -> "TimeTable":
         """Sample `field` at the spec's keyframes for canonical positions `xyz`; choose the order by the
         midpoint check (the spec's order is the preference on a tie) and which Gaussians stay on the network."""
-        dtype = torch.float16 if spec.precision == "fp16" else torch.float32
         times = spec.key_times().tolist()
         # Offsets from those at the middle of the range: residuals are the size of the motion. One key at a
-        # time, so building takes the table's memory and one key's, not every key in fp32.
+        # time, so building takes the table's memory and one key's, not every key in fp32; int16 keys need each
+        # Gaussian's largest residual first (a pass of its own).
         base = field_offsets(field, xyz, [0.5 * (spec.t_lo + spec.t_hi)])[0]
-        residual = torch.empty(len(times), xyz.shape[0], CHANNELS, dtype=dtype, device=xyz.device)
         spread = torch.zeros(xyz.shape[0], CHANNELS, device=xyz.device)
+        for t in times:
+            spread = torch.maximum(spread, (field_offsets(field, xyz, [t])[0] - base).abs())
+        codec = Codec(spec.precision, spread)
+        residual = torch.empty(len(times), xyz.shape[0], CHANNELS, dtype=codec.dtype, device=xyz.device)
         for k, t in enumerate(times):
-            r = field_offsets(field, xyz, [t])[0] - base
-            residual[k] = r.to(dtype)
-            spread = torch.maximum(spread, r.abs())
-        err = midpoint_errors(spec, field, xyz, base, residual, midpoint_samples)
+            residual[k] = codec.encode(field_offsets(field, xyz, [t])[0] - base)
+        err = midpoint_errors(spec, field, xyz, base, residual, codec, midpoint_samples)
         off = {o: int((err[o] > spec.tolerance).sum()) for o in ORDERS}
         order: Order = min(ORDERS, key=lambda o: (off[o], o != spec.order))
         spec = TableSpec(**{**spec.to_dict(), "order": order})
@@ -166,6 +206,8 @@ class TimeTable:
         moving = moving.squeeze(-1)
         stored = residual if moving.numel() == xyz.shape[0] else residual[:, moving].contiguous()
         del residual
+        if moving.numel() != xyz.shape[0]:
+            codec.select(moving)
         info = {
             "spec": spec.to_dict(),
             "keys": len(times),
@@ -179,19 +221,22 @@ class TimeTable:
                 str(q): float(err[order].quantile(q)) if err[order].numel() else 0.0 for q in (0.5, 0.9, 0.99, 0.999)
             },
         }
-        table = cls(spec, base, stored, moving, network, info)
+        table = cls(spec, base, stored, moving, network, info, codec)
         table.info["mb"] = table.nbytes() / 2**20
         return table
 
     def nbytes(self) -> int:
-        return sum(t.numel() * t.element_size() for t in (self.base, self.residual, self.moving, self.network))
+        parts = (self.base, self.residual, self.moving, self.network) + (
+            (self.codec.scale,) if self.codec.scale is not None else ()
+        )
+        return sum(t.numel() * t.element_size() for t in parts)
 
     def offsets_at(self, time: float) -> Tensor:
         """Every Gaussian's table offsets [N, 10] at `time` (the network's Gaussians included, as tabled)."""
         i, f = self.spec.segment(time)
         out = self.base.clone()
         if self.moving.numel():
-            out.index_add_(0, self.moving, interpolate(self.residual, self.spec.order, i, f))
+            out.index_add_(0, self.moving, self.codec.interpolate(self.residual, self.spec.order, i, f))
         return out
 
     @torch.no_grad()
@@ -202,8 +247,13 @@ class TimeTable:
         What the render switches are measured with: the worst place for every measured view."""
         h = self.spec.spacing
         times = [time - 1.5 * h, time - 0.5 * h, time + 0.5 * h, time + 1.5 * h]
-        keys = (field_offsets(field, xyz, times) - self.base).to(self.residual.dtype)
-        return self.base + interpolate(keys, self.spec.order, 1, 0.5)
+        residual = field_offsets(field, xyz, times) - self.base
+        out = self.base.clone()
+        if self.moving.numel():
+            moving = residual[:, self.moving]
+            keys = torch.stack([self.codec.encode(k) for k in moving])
+            out.index_add_(0, self.moving, self.codec.interpolate(keys, self.spec.order, 1, 0.5))
+        return out
 
     def deformed(self, field: Any, canonical: Any, time: float, halfway: bool = False) -> Tuple[Tensor, Tensor, Tensor]:
         """Means, quaternions (unnormalised) and log-scales at `time`, composed as the field composes them;
@@ -221,8 +271,8 @@ class TimeTable:
 def plan_intervals(frames: int, keys_per_frame: int, gaussians: int, budget_mb: float, precision: str) -> int:
     """Intervals of a table over `frames` training times with `keys_per_frame` keys per gap, reduced to
     fit `budget_mb` when every Gaussian moves (0: not even two intervals fit)."""
-    per_key = gaussians * CHANNELS * (2 if precision == "fp16" else 4)
-    fixed = gaussians * (CHANNELS * 4 + 16)
+    per_key = gaussians * CHANNELS * (4 if precision == "fp32" else 2)
+    fixed = gaussians * (CHANNELS * 8 + 16)  # base, int16 scales, indices
     fit = int((budget_mb * 2**20 - fixed) // max(per_key, 1)) - 2 * PAD
     want = max(1, keys_per_frame * max(frames - 1, 1))
     n = min(want, fit)
