@@ -186,7 +186,7 @@ class RenderSettings:
     time_table_precision: Literal["int16", "fp16", "fp32"] = "int16"
     """Storage of the table's keys (each key's offsets less the offsets at the middle of the time range); int16
     with a scale per Gaussian and channel resolves each Gaussian's motion evenly at fp16's size."""
-    time_table_tolerance: float = 1e-4
+    time_table_tolerance: float = 0.03
     """Largest interpolation error at keyframe midpoints (positions in scene extents; rotation and log-scale
     offsets absolute) for a Gaussian to be tabled; those over it stay on the network."""
     cache_deformation: bool = True
