@@ -38,7 +38,7 @@ from garo_ns.render.contribution import summed_contribution
 from garo_ns.render.frame import Canonical, FramePath, FrameSettings, Splats, activate, compose, render_splats
 from garo_ns.render.outputs import camera_outputs
 from garo_ns.render.switches import RenderSettings, SwitchDecision
-from garo_ns.render.view import RenderView, camera_time, camera_view
+from garo_ns.render.view import RenderView, camera_numbers, camera_view
 from garo_ns.static import StaticSettings, classification_due, classify, sample_times, static_fraction
 from garo_ns.training_data import adopt_training_data
 
@@ -234,7 +234,8 @@ class GaroModel(SplatfactoModel):
         """`camera` (one) as the rasterizer takes it, at this step's resolution and the camera's time
         (`default_time`, warned once, when it has none); `c2w` replaces its pose (the camera
         optimizer's correction during training)."""
-        time = camera_time(camera)
+        numbers = camera_numbers(camera, self._get_downscale_factor())
+        time = numbers[3]
         if time is None:
             if not self._warned_no_time:
                 CONSOLE.print(
@@ -243,7 +244,7 @@ class GaroModel(SplatfactoModel):
                 self._warned_no_time = True
             time = float(self.config.default_time)
         c2w = camera.camera_to_worlds if c2w is None else c2w
-        return camera_view(camera, c2w, self._get_downscale_factor(), self.device, time)
+        return camera_view(camera, c2w, self._get_downscale_factor(), self.device, time, numbers)
 
     def render(
         self,

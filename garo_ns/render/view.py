@@ -3,7 +3,7 @@ camera), and the scene extent that a set of cameras implies."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple, Optional, Union
+from typing import TYPE_CHECKING, NamedTuple, Optional, Tuple, Union
 
 import numpy as np
 import torch
@@ -36,21 +36,40 @@ class RenderView(NamedTuple):
     time: float
 
 
-def camera_time(camera: "Cameras") -> Optional[float]:
-    """The time in [0, 1] that `camera` (one) carries, or None when it carries none."""
-    return None if camera.times is None else float(camera.times.reshape(-1)[0])
+def camera_numbers(
+    camera: "Cameras", downscale: float = 1.0
+) -> Tuple[Tuple[float, float, float, float], int, int, Optional[float]]:
+    """(fx, fy, cx, cy), width, height of `camera` (one) with its image `downscale`d, and its time (None when
+    it carries none), read in one device-to-host copy: each `.item()` or host-built tensor of a camera on the
+    GPU would wait for the GPU (a training step read six). Same float32 arithmetic as nerfstudio's
+    `rescale_output_resolution`, without changing the camera."""
+    parts = [camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height]
+    if camera.times is not None:
+        parts.append(camera.times)
+    host = torch.cat([p.reshape(-1)[:1].to(torch.float64) for p in parts]).cpu()
+    s = torch.tensor(1.0 / downscale, dtype=torch.float32)
+    scaled = host[:6].to(torch.float32) * s
+    fx, fy, cx, cy = (float(v) for v in scaled[:4])
+    width, height = int(torch.floor(scaled[4])), int(torch.floor(scaled[5]))
+    time = float(host[6].to(torch.float32)) if camera.times is not None else None
+    return (fx, fy, cx, cy), width, height, time
 
 
 def camera_view(
-    camera: "Cameras", c2w: Tensor, downscale: float, device: Union[str, torch.device], time: float
+    camera: "Cameras",
+    c2w: Tensor,
+    downscale: float,
+    device: Union[str, torch.device],
+    time: Optional[float],
+    numbers: Optional[Tuple[Tuple[float, float, float, float], int, int, Optional[float]]] = None,
 ) -> RenderView:
     """`camera` (one) as the rasterizer takes it: posed by `c2w` [1, 3, 4] (its own pose, or one the
-    camera optimizer corrected), its image `downscale`d, on `device`, at `time`."""
-    camera.rescale_output_resolution(1 / downscale)
-    K = camera.get_intrinsics_matrices().to(device)
-    width, height = int(camera.width.item()), int(camera.height.item())
-    camera.rescale_output_resolution(downscale)  # the camera is the caller's: leave it as it was
-    return RenderView(viewmat_from_c2w(c2w.to(device)), K, width, height, time)
+    camera optimizer corrected), its image `downscale`d, on `device`, at `time`. `numbers`: its
+    `camera_numbers` at this downscale, when the caller has read them already."""
+    (fx, fy, cx, cy), width, height, _ = camera_numbers(camera, downscale) if numbers is None else numbers
+    K = torch.tensor([[[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]], dtype=torch.float32)
+    K = K.pin_memory().to(device, non_blocking=True) if torch.device(device).type == "cuda" else K.to(device)
+    return RenderView(viewmat_from_c2w(c2w.to(device)), K, width, height, float(time) if time is not None else 0.0)
 
 
 def camera_extent(c2w: np.ndarray) -> float:
