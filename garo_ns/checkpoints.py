@@ -113,10 +113,11 @@ def checkpoint_to_load(config: Any) -> Optional[Path]:
     return None
 
 
-def check_checkpoint_file(path: Path) -> None:
+def check_checkpoint_file(path: Path, model_config: Any = None) -> None:
     """Raise GaroInputError (naming `path`) unless it is a whole nerfstudio checkpoint: a torch archive that
-    loads weights-only into a dict with the step and the pipeline's state. The tensors are memory-mapped,
-    not read, so this costs little even for a large checkpoint."""
+    loads weights-only into a dict with the step and the pipeline's state, and, given the model's settings
+    (`model_config`, the plugin's), whose Gaussians and deformation field fit a model built from them.
+    The tensors are memory-mapped, not read, so this costs little even for a large checkpoint."""
     path = Path(path)
     if not is_complete(path):
         raise GaroInputError(f"cannot load the checkpoint {path}: not a whole checkpoint file (cut short or not one)")
@@ -129,6 +130,37 @@ def check_checkpoint_file(path: Path) -> None:
         raise GaroInputError(f"cannot load the checkpoint {path}: it holds no pipeline state (not nerfstudio's)")
     if not isinstance(state.get("step"), int) or isinstance(state.get("step"), bool):
         raise GaroInputError(f"cannot load the checkpoint {path}: it records no step")
+    if callable(getattr(model_config, "make_deformation", None)):
+        try:
+            check_fit(expected_state(model_config, model_state(state["pipeline"])), model_state(state["pipeline"]))
+        except GaroInputError as err:
+            raise GaroInputError(f"cannot load the checkpoint {path}: {err}") from None
+
+
+def model_state(pipeline_state: Dict[str, Any]) -> Dict[str, Any]:
+    """The model's part of a pipeline's state, its keys as the model names them (nerfstudio's `_model.`
+    prefix, and DDP's `module.`, removed; very old Gaussian names upgraded)."""
+    state = {k[len("_model.") :]: v for k, v in pipeline_state.items() if k.startswith("_model.")}
+    if state and all(k.startswith("module.") for k in state):
+        state = {k[len("module.") :]: v for k, v in state.items()}
+    upgrade_gaussian_keys(state)
+    return state
+
+
+def expected_state(model_config: Any, given: Dict[str, Any]) -> Dict[str, Tensor]:
+    """The Gaussians' (one of each) and the deformation field's tensors a model built from `model_config`
+    has, for a checkpoint holding `given` (a field without a time network for one written before it)."""
+    from dataclasses import replace
+
+    from garo_ns.initialisation import initial_gaussians
+
+    config = model_config
+    if getattr(config, "deform_time_net", 0) and not has_time_net(given):
+        config = replace(config, deform_time_net=0)
+    gaussians = initial_gaussians(None, True, 4, 1.0, config.sh_degree)
+    expected = {f"gauss_params.{k}": v for k, v in gaussians.items()}
+    expected.update({f"deformation.{k}": v for k, v in config.make_deformation().state_dict().items()})
+    return expected
 
 
 def _fsync_dir(folder: Path) -> None:
@@ -255,7 +287,7 @@ def install() -> bool:
         pinned = _resolve_load_step(self.config)
         path = checkpoint_to_load(self.config)
         if path is not None:
-            check_checkpoint_file(path)
+            check_checkpoint_file(path, self.config.pipeline.model)
         try:
             original_load(self)
         except GaroInputError as err:  # the model's state does not fit (garo_ns.checkpoints.check_fit)
@@ -307,9 +339,13 @@ def check_fit(expected: Dict[str, Any], given: Dict[str, Any]) -> None:
         )
         if not fits:
             shape = tuple(got.shape) if isinstance(got, Tensor) else type(got).__name__
+            dims = [str(d) for d in want.shape]
+            if key.startswith("gauss_params.") and dims:
+                dims[0] = "N"  # any number of Gaussians
+            mine = f"({', '.join(dims)})"
             raise GaroInputError(
-                f"{key} is {shape}, this model's is {tuple(want.shape)}: a checkpoint of other settings or of "
-                "another version (load it with the config.yml it was trained with)"
+                f"{key} is {shape}, this model's is {mine}: a checkpoint of other settings or of another version "
+                "(load it with the config.yml it was trained with)"
             )
 
 

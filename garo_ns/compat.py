@@ -71,7 +71,7 @@ def check_inputs(config: Any) -> None:
     check_dataset(config)
     path = checkpoints.checkpoint_to_load(config)
     if path is not None:
-        checkpoints.check_checkpoint_file(path)
+        checkpoints.check_checkpoint_file(path, getattr(getattr(config, "pipeline", None), "model", None))
 
 
 def _remove_empty_run_dir(base_dir: Path, output_dir: Path) -> None:

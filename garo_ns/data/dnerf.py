@@ -107,7 +107,7 @@ def inside(root: Path, rel: str) -> Optional[Path]:
     its own files. Checked on the path's text (absolute, or `..` leading out), so folders inside the
     dataset may still be symbolic links to elsewhere."""
     norm = os.path.normpath(rel)
-    if os.path.isabs(norm) or norm == ".." or norm.startswith(".." + os.sep):
+    if os.path.isabs(norm) or norm in (".", "..") or norm.startswith(".." + os.sep):
         return None
     return root / norm
 

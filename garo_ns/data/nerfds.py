@@ -95,7 +95,7 @@ def read_capture(data: Path, downscale: int = 2) -> Capture:
     if not data.is_dir():
         raise GaroInputError(f"data directory does not exist: {data}")
     if not isinstance(downscale, int) or downscale < 1:
-        raise GaroInputError(f"downscale factor must be an int >= 1, got {downscale!r}")
+        raise GaroInputError(f"nerfds-data --downscale-factor must be an int >= 1, got {downscale!r}")
     dataset = read_json_object(data / "dataset.json", "dataset file")
     splits: Dict[str, List[str]] = {}
     for key in ("train_ids", "val_ids"):
