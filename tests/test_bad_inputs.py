@@ -249,7 +249,9 @@ CASES: List[Tuple[str, str, Build]] = [
     (
         "D-NeRF",
         "transforms file is a list",
-        dnerf_case(lambda d: train_json(d).write_text(f"[{train_json(d).read_text()}]"), lambda d: [str(train_json(d))]),  # noqa: E501
+        dnerf_case(
+            lambda d: train_json(d).write_text(f"[{train_json(d).read_text()}]"), lambda d: [str(train_json(d))]
+        ),
     ),
     (
         "D-NeRF",
