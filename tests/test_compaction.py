@@ -796,3 +796,36 @@ def test_summary_edges_the_round_limits_and_the_default_start():
     state = filled_state(unstarted, N, g)
     unstarted.compact(params, optimizers, state, 150, never, never, last_step=150)
     assert state["compact"]["detail"] == "before the first round (step 200)"
+
+
+@pytest.mark.parametrize("method", ["garo-compact", "garo-compact-real"])
+def test_the_presets_comments_name_the_steps_their_rounds_remove_at(method):
+    """garo_ns/config.py says, above each preset, at which steps its rounds run and how long the model
+    trains after the last: the preset's own strategy, driven over every step of its schedule with removals
+    that cost nothing, removes at exactly those steps."""
+    import inspect
+    import re
+
+    import garo_ns.config as presets
+
+    config = presets.METHODS[method].config
+    strategy = config.pipeline.model.make_strategy()
+    strategy.compaction.min_gaussians = 0
+    n = 5000
+    params, optimizers, g = gaussians(n)
+    state = filled_state(strategy, n, g)
+    scene = Scene(torch.zeros(n, V, dtype=torch.float64), params)
+    last = config.max_num_iterations - 1
+    events = run_rounds(strategy, params, optimizers, state, scene, range(config.max_num_iterations), last)
+    removing = [e["step"] for e in events if e["removed"]]
+    assert state["compact"]["reason"] == "max_rounds"  # every round removed: the schedule alone ended it
+    name = method.replace("-", "_")
+    source = inspect.getsource(presets)
+    comment = source[: source.index(f"\n{name} = MethodSpecification(")].splitlines()[-1]
+    match = re.match(r"# (\d+)k steps: rounds at ([\d.]+)k, ([\d.]+)k, \.\.\., ([\d.]+)k at the latest", comment)
+    assert match, comment
+    steps, first, second, latest = (round(float(x) * 1000) for x in match.groups())
+    assert (steps, first, second, latest) == (config.max_num_iterations, *removing[:2], removing[-1]), comment
+    after = re.search(r"then ([\d.]+)k steps of training", comment)
+    if after:
+        assert round(float(after.group(1)) * 1000) == config.max_num_iterations - removing[-1], comment
