@@ -513,8 +513,12 @@ def test_a_resumed_run_ends_and_measures_its_render_switches_at_its_real_last_st
     assert model._last_step == 59
     guard = TrainingViewGuard(model.train_cameras, images=[torch.rand(16, 16, 3)] * 3, indices=[0, 1, 2])
     model.compaction_guard = model.switch_guard = guard  # compaction's views and the switches' views
-    stale = {"step": 19, "views": 3, "tried": {"static_skip": 0.5}}
+    from garo_ns.render.switches import MEASURE_VERSION
+
+    # A record the current check wrote (so trusted, and valid to decide from), but of the first part's end.
+    stale = {"step": 19, "views": 3, "tried": {"static_skip": 0.5}, "measure": MEASURE_VERSION}
     model.switches.record = stale
+    assert model.switches.trusted_record() is stale
     for step in (58, 59):
         model.train()
         model.step = step
