@@ -91,6 +91,78 @@ def latest_complete_step(folder: Path) -> Tuple[int, List[Path]]:
     raise GaroInputError(f"cannot load the checkpoint: no complete step-*.ckpt in {folder}{detail}")
 
 
+def checkpoint_to_load(config: Any) -> Optional[Path]:
+    """The file `ns-train` will load (`--load-dir` with `--load-step` or its newest complete checkpoint, or
+    `--load-checkpoint`), None when it loads none. Raises GaroInputError when that file is missing."""
+    load_dir, load_file = getattr(config, "load_dir", None), getattr(config, "load_checkpoint", None)
+    if load_dir is not None:
+        load_dir = Path(load_dir)
+        step = config.load_step
+        if step is None:
+            step = latest_complete_step(load_dir)[0]
+        elif not load_dir.is_dir():
+            raise GaroInputError(f"cannot load the checkpoint: no checkpoint folder {load_dir}")
+        path = load_dir / checkpoint_name(step)
+        if not path.is_file():
+            raise GaroInputError(f"cannot load the checkpoint: no {path.name} in {load_dir} (--load-step {step})")
+        return path
+    if load_file is not None:
+        if not Path(load_file).is_file():
+            raise GaroInputError(f"cannot load the checkpoint: no file {load_file}")
+        return Path(load_file)
+    return None
+
+
+def check_checkpoint_file(path: Path, model_config: Any = None) -> None:
+    """Raise GaroInputError (naming `path`) unless it is a whole nerfstudio checkpoint: a torch archive that
+    loads weights-only into a dict with the step and the pipeline's state, and, given the model's settings
+    (`model_config`, the plugin's), whose Gaussians and deformation field fit a model built from them.
+    The tensors are memory-mapped, not read, so this costs little even for a large checkpoint."""
+    path = Path(path)
+    if not is_complete(path):
+        raise GaroInputError(f"cannot load the checkpoint {path}: not a whole checkpoint file (cut short or not one)")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except Exception as err:  # pickled objects weights_only refuses, or a zip that torch did not write
+        reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise GaroInputError(f"cannot load the checkpoint {path}: {reason}") from None
+    if not isinstance(state, dict) or not isinstance(state.get("pipeline"), dict):
+        raise GaroInputError(f"cannot load the checkpoint {path}: it holds no pipeline state (not nerfstudio's)")
+    if not isinstance(state.get("step"), int) or isinstance(state.get("step"), bool):
+        raise GaroInputError(f"cannot load the checkpoint {path}: it records no step")
+    if callable(getattr(model_config, "make_deformation", None)):
+        try:
+            check_fit(expected_state(model_config, model_state(state["pipeline"])), model_state(state["pipeline"]))
+        except GaroInputError as err:
+            raise GaroInputError(f"cannot load the checkpoint {path}: {err}") from None
+
+
+def model_state(pipeline_state: Dict[str, Any]) -> Dict[str, Any]:
+    """The model's part of a pipeline's state, its keys as the model names them (nerfstudio's `_model.`
+    prefix, and DDP's `module.`, removed; very old Gaussian names upgraded)."""
+    state = {k[len("_model.") :]: v for k, v in pipeline_state.items() if k.startswith("_model.")}
+    if state and all(k.startswith("module.") for k in state):
+        state = {k[len("module.") :]: v for k, v in state.items()}
+    upgrade_gaussian_keys(state)
+    return state
+
+
+def expected_state(model_config: Any, given: Dict[str, Any]) -> Dict[str, Tensor]:
+    """The Gaussians' (one of each) and the deformation field's tensors a model built from `model_config`
+    has, for a checkpoint holding `given` (a field without a time network for one written before it)."""
+    from dataclasses import replace
+
+    from garo_ns.initialisation import initial_gaussians
+
+    config = model_config
+    if getattr(config, "deform_time_net", 0) and not has_time_net(given):
+        config = replace(config, deform_time_net=0)
+    gaussians = initial_gaussians(None, True, 4, 1.0, config.sh_degree)
+    expected = {f"gauss_params.{k}": v for k, v in gaussians.items()}
+    expected.update({f"deformation.{k}": v for k, v in config.make_deformation().state_dict().items()})
+    return expected
+
+
 def _fsync_dir(folder: Path) -> None:
     try:
         fd = os.open(folder, os.O_RDONLY)
@@ -213,8 +285,13 @@ def install() -> bool:
 
     def _load_checkpoint(self: Any) -> None:
         pinned = _resolve_load_step(self.config)
+        path = checkpoint_to_load(self.config)
+        if path is not None:
+            check_checkpoint_file(path, self.config.pipeline.model)
         try:
             original_load(self)
+        except GaroInputError as err:  # the model's state does not fit (garo_ns.checkpoints.check_fit)
+            raise GaroInputError(f"cannot load the checkpoint {path}: {err}") from None
         finally:
             if pinned is not None:  # leave the config as the user gave it ("the latest")
                 self.config.load_step = None
@@ -238,6 +315,38 @@ def resize_gaussians(params: nn.ParameterDict, n: int) -> None:
     so optimizers built before loading stay bound to the loaded Gaussians."""
     for param in params.values():
         param.data = param.data.new_zeros((n,) + tuple(param.shape[1:]))
+
+
+def check_fit(expected: Dict[str, Any], given: Dict[str, Any]) -> None:
+    """Raise GaroInputError, naming the first key, when the checkpoint's state `given` lacks one of the
+    Gaussians' or the deformation field's tensors of `expected` (the model's own state) or holds one of
+    another shape: a checkpoint of another method or of an incompatible version. (nerfstudio would load
+    the rest non-strictly, leaving that part as initialised; torch would print a wall of keys.)"""
+    core = [k for k in expected if k.startswith(("gauss_params.", "deformation."))]
+    missing = [k for k in core if k not in given]
+    if missing:
+        more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
+        raise GaroInputError(
+            f"it has no {missing[0]}{more}: a checkpoint of another method or version, not of this model"
+        )
+    for key in core:
+        want, got = expected[key], given[key]
+        if not isinstance(want, Tensor):
+            continue
+        # The Gaussians' count is the checkpoint's (the model resizes to it); every other extent must agree.
+        fits = isinstance(got, Tensor) and (
+            got.shape[1:] == want.shape[1:] if key.startswith("gauss_params.") else got.shape == want.shape
+        )
+        if not fits:
+            shape = tuple(got.shape) if isinstance(got, Tensor) else type(got).__name__
+            dims = [str(d) for d in want.shape]
+            if key.startswith("gauss_params.") and dims:
+                dims[0] = "N"  # any number of Gaussians
+            mine = f"({', '.join(dims)})"
+            raise GaroInputError(
+                f"{key} is {shape}, this model's is {mine}: a checkpoint of other settings or of another version "
+                "(load it with the config.yml it was trained with)"
+            )
 
 
 def has_time_net(state_dict: Dict[str, Any]) -> bool:

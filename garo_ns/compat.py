@@ -2,8 +2,9 @@
 
 nerfstudio imports plugin entry points before it parses arguments or loads a checkpoint, so
 importing `garo_ns.config` is early enough for all of them: checkpoints that load under torch >= 2.6,
-one-line input errors, a bad dataset reported before ns-train prints and saves its configuration (no run
-folder left behind), and crash-safe checkpoint writing and loading (`garo_ns.checkpoints`).
+one-line input errors, a bad dataset or checkpoint reported before ns-train prints and saves its
+configuration (no run folder left behind, nor after a failed set-up), and crash-safe checkpoint writing
+and loading (`garo_ns.checkpoints`).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from typing import Any, Optional, Type
 import numpy as np
 import torch
 
-from garo_ns.errors import GaroError, GaroInputError
+from garo_ns.errors import GaroError
 
 _installed = False
 
@@ -62,6 +63,17 @@ def check_dataset(config: Any) -> None:
         check(getattr(datamanager, "data", None))  # ns-train's --data alias lands on the datamanager
 
 
+def check_inputs(config: Any) -> None:
+    """Everything `ns-train` can check before it creates the run folder: the dataset (`check_dataset`) and
+    the checkpoint it is asked to load, if any (present, whole, nerfstudio's). Raises GaroInputError."""
+    from garo_ns import checkpoints
+
+    check_dataset(config)
+    path = checkpoints.checkpoint_to_load(config)
+    if path is not None:
+        checkpoints.check_checkpoint_file(path, getattr(getattr(config, "pipeline", None), "model", None))
+
+
 def _remove_empty_run_dir(base_dir: Path, output_dir: Path) -> None:
     """Delete a run folder that holds nothing but its config.yml, and the folders between it and
     `output_dir` that this leaves empty (never `output_dir` itself)."""
@@ -93,7 +105,7 @@ def _patch_trainer_entry() -> bool:
     def print_to_terminal(self: Any) -> None:
         # ns-train calls this right before save_config creates the run folder: the earliest point
         # after the command line is parsed.
-        check_dataset(self)
+        check_inputs(self)
         original_print(self)
 
     ExperimentConfig.print_to_terminal = print_to_terminal
@@ -103,7 +115,7 @@ def _patch_trainer_entry() -> bool:
     def setup(self: Any, *args: Any, **kwargs: Any) -> None:
         try:
             original_setup(self, *args, **kwargs)
-        except GaroInputError:
+        except Exception:  # whatever stopped it, a run folder holding only its config.yml is no run
             _remove_empty_run_dir(self.base_dir, self.config.output_dir)
             raise
 

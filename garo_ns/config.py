@@ -145,13 +145,13 @@ def with_compaction(config: TrainerConfig, every: int, max_rounds: int) -> Train
     return config
 
 
-# 40k steps: rounds at 15k, 16k, ..., 30k at the latest, then 10k steps of training on what is left.
+# 40k steps: rounds at 15k, 16k, ..., 29k at the latest, then 11k steps of training on what is left.
 garo_compact = MethodSpecification(
     config=with_compaction(trainer_config("garo-compact", "full"), every=1000, max_rounds=15),
     description="GARO, then compaction that finds each scene's budget under a training-view PSNR guard.",
 )
 
-# 20k steps: rounds at 15k, 15.4k, ..., 19k at the latest.
+# 20k steps: rounds at 15k, 15.4k, ..., 18.6k at the latest, then 1.4k steps of training on what is left.
 garo_compact_real = MethodSpecification(
     config=with_compaction(real_trainer_config("garo-compact-real", "full"), every=400, max_rounds=10),
     description="garo-compact on real captures (NeRF-DS / HyperNeRF layout, nerfds-data).",

@@ -18,8 +18,11 @@ class GaroTrainingError(GaroError, RuntimeError):
     """Training cannot go on (e.g. a non-finite loss); earlier checkpoints are left untouched."""
 
 
-class GaroConfigError(GaroError, ValueError):
-    """A setting out of its range, named by its flag; raised before training starts."""
+class GaroConfigError(GaroError):
+    """A setting out of its range, named by its flag; raised before training starts.
+
+    Not a ValueError on purpose: tyro catches ValueErrors raised while it builds a config from the command
+    line and redraws them as a multi-line box; this one reaches the plugin's one-line handler instead."""
 
 
 def finite_number(value: Any) -> bool:

@@ -56,7 +56,8 @@ class GaroModelConfig(
     _target: Type = field(default_factory=lambda: GaroModel)
 
     def __post_init__(self) -> None:
-        # A compaction or GARO setting out of range fails here, before any training.
+        # A recipe, compaction or GARO setting out of range fails here, before any training.
+        self.validate_recipe()
         self.compaction()
         self.validate_garo()
 
@@ -315,8 +316,10 @@ class GaroModel(SplatfactoModel):
         loaded Gaussians; the step is the checkpoint's, set through `update_to_step`.
         """
         checkpoints.upgrade_gaussian_keys(state_dict)
+        checkpoints.check_fit({k: v for k, v in self.state_dict().items() if k.startswith("gauss_params.")}, state_dict)
         checkpoints.resize_gaussians(self.gauss_params, state_dict["gauss_params.means"].shape[0])
         self.deformation = checkpoints.field_for(state_dict, self.deformation, self.config)
+        checkpoints.check_fit(self.state_dict(), state_dict)
         return torch.nn.Module.load_state_dict(self, state_dict, strict=strict)
 
     def get_extra_state(self) -> Dict[str, Any]:

@@ -127,7 +127,7 @@ class GaroStrategy(DefaultStrategy):
         if self.is_garo_step(step):
             keep = self.prune_redundant(params, optimizers, state, step, info)
             if keep is not None:
-                info = restrict_info(info, keep)
+                info = restrict_info(info, keep, packed)
         if step == 0 and not self.reset_at_start and self.refine_start_iter >= 0 and self.refine_stop_iter > 0:
             # Step 0 never refines (refine_start_iter >= 0), so gsplat's step would only update the
             # gradient record and reset the opacities: do the first alone.
@@ -313,16 +313,33 @@ def garo_scalars(state: Dict[str, Any], step: int) -> Dict[str, float]:
     }
 
 
-def restrict_info(info: Dict[str, Any], keep: Tensor) -> Dict[str, Any]:
-    """The rasterizer's per-camera, per-Gaussian info restricted to the kept Gaussians, so that
-    DefaultStrategy's bookkeeping after GARO sees consistent sizes (unpacked info only)."""
+# The rasterizer's info entries with one value per Gaussian and camera: [C, N, ...] unpacked, [nnz, ...] packed.
+_PER_VIEW_KEYS = ("radii", "depths", "conics", "opacities", "compensations")
+
+
+def restrict_info(info: Dict[str, Any], keep: Tensor, packed: Optional[bool] = None) -> Dict[str, Any]:
+    """The rasterizer's info restricted to the kept Gaussians (`keep` [N], bool), so that
+    DefaultStrategy's bookkeeping after GARO sees consistent sizes. Unpacked, the per-view entries are
+    [C, N, ...] and lose the removed columns; packed, they are [nnz, ...], one row per visible (camera,
+    Gaussian) pair: the removed Gaussians' rows go and `gaussian_ids` are renumbered to the kept order.
+    `packed` None: packed when the info has `gaussian_ids` (gsplat leaves them None unpacked)."""
+    packed = info.get("gaussian_ids") is not None if packed is None else packed
     out = dict(info)
-    for key in ("radii", "depths", "conics", "opacities"):
-        if isinstance(info.get(key), Tensor) and info[key].dim() >= 2:
-            out[key] = info[key][:, keep]
     m2d = info["means2d"]
-    filtered = m2d.detach()[:, keep].clone()
-    filtered.grad = None if m2d.grad is None else m2d.grad[:, keep].clone()
+    if packed:
+        rows = keep[info["gaussian_ids"]]  # [nnz]: the pairs whose Gaussian stays
+        new_ids = torch.cumsum(keep.long(), 0) - 1  # old index -> index among the kept
+        for key in (*_PER_VIEW_KEYS, "camera_ids"):
+            if isinstance(info.get(key), Tensor):
+                out[key] = info[key][rows]
+        out["gaussian_ids"] = new_ids[info["gaussian_ids"][rows]]
+    else:
+        rows = (slice(None), keep)  # [C, N] -> [C, kept]
+        for key in _PER_VIEW_KEYS:
+            if isinstance(info.get(key), Tensor) and info[key].dim() >= 2:
+                out[key] = info[key][rows]
+    filtered = m2d.detach()[rows].clone()
+    filtered.grad = None if m2d.grad is None else m2d.grad[rows].clone()
     out["means2d"] = filtered
     for key in ("means3d", "quats3d", "scales3d"):
         if isinstance(info.get(key), Tensor) and info[key].shape[0] == keep.shape[0]:

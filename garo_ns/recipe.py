@@ -18,6 +18,8 @@ from nerfstudio.models.splatfacto import SplatfactoModelConfig
 from nerfstudio.utils.colors import get_color
 from torch import Tensor
 
+from garo_ns.errors import GaroConfigError
+
 
 @dataclass
 class D3dgsRecipe(SplatfactoModelConfig):
@@ -40,7 +42,7 @@ class D3dgsRecipe(SplatfactoModelConfig):
     densify_grad_thresh: float = 0.0002
     """Grow Gaussians whose mean view-space gradient exceeds this (3DGS densify_grad_threshold)."""
     use_absgrad: bool = False
-    """D-3DGS uses the plain gradient."""
+    """D-3DGS uses the plain gradient; the renderer computes no other, so True is refused."""
     densify_size_thresh: float = 0.01
     """Clone below, split above this fraction of the scene extent (3DGS percent_dense)."""
     stop_screen_size_at: int = 0
@@ -58,6 +60,15 @@ class D3dgsRecipe(SplatfactoModelConfig):
     ssim_lambda: float = 0.2
     scene_extent: Optional[float] = None
     """Scene extent for densification thresholds; None takes the dataparser's camera extent."""
+
+    def validate_recipe(self) -> None:
+        """Raise GaroConfigError for a recipe setting the renderer cannot honour: `use_absgrad` (the
+        rasterizer's absolute gradients are never computed, so densification would find none)."""
+        if self.use_absgrad:
+            raise GaroConfigError(
+                "--pipeline.model.use-absgrad True is not supported: the renderer computes the plain view-space "
+                "gradient only (D-3DGS's densification signal)"
+            )
 
     def densification_arguments(self) -> Dict[str, Any]:
         """gsplat DefaultStrategy's arguments for this recipe (its names for splatfacto's settings)."""

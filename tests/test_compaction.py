@@ -512,8 +512,15 @@ def test_a_resumed_run_ends_and_measures_its_render_switches_at_its_real_last_st
     model.get_training_callbacks(attributes)  # the last step is seen below: the switches measured at 59, not 58
     guard = TrainingViewGuard(model.train_cameras, images=[torch.rand(16, 16, 3)] * 3, indices=[0, 1, 2])
     model.compaction_guard = model.switch_guard = guard  # compaction's views and the switches' views
-    stale = {"step": 19, "views": 3, "tried": {"static_skip": 0.5}}
+    from garo_ns.render.switches import MEASURE_VERSION
+
+    # A record the current check wrote (so trusted, and valid to decide from), but of the first part's end.
+    stale = {"step": 19, "views": 3, "tried": {"static_skip": 0.5}, "measure": MEASURE_VERSION}
     model.switches.record = stale
+    model.step = 19
+    assert model.switches.trusted_record() is stale  # as the first part left it
+    model.step = 40
+    assert model.switches.trusted_record() is None  # of an earlier state: no decision is taken from it
     for step in (58, 59):
         model.train()
         model.step = step
@@ -795,3 +802,36 @@ def test_summary_edges_the_round_limits_and_the_default_start():
     state = filled_state(unstarted, N, g)
     unstarted.compact(params, optimizers, state, 150, never, never, last_step=150)
     assert state["compact"]["detail"] == "before the first round (step 200)"
+
+
+@pytest.mark.parametrize("method", ["garo-compact", "garo-compact-real"])
+def test_the_presets_comments_name_the_steps_their_rounds_remove_at(method):
+    """garo_ns/config.py says, above each preset, at which steps its rounds run and how long the model
+    trains after the last: the preset's own strategy, driven over every step of its schedule with removals
+    that cost nothing, removes at exactly those steps."""
+    import inspect
+    import re
+
+    import garo_ns.config as presets
+
+    config = presets.METHODS[method].config
+    strategy = config.pipeline.model.make_strategy()
+    strategy.compaction.min_gaussians = 0
+    n = 5000
+    params, optimizers, g = gaussians(n)
+    state = filled_state(strategy, n, g)
+    scene = Scene(torch.zeros(n, V, dtype=torch.float64), params)
+    last = config.max_num_iterations - 1
+    events = run_rounds(strategy, params, optimizers, state, scene, range(config.max_num_iterations), last)
+    removing = [e["step"] for e in events if e["removed"]]
+    assert state["compact"]["reason"] == "max_rounds"  # every round removed: the schedule alone ended it
+    name = method.replace("-", "_")
+    source = inspect.getsource(presets)
+    comment = source[: source.index(f"\n{name} = MethodSpecification(")].splitlines()[-1]
+    match = re.match(r"# (\d+)k steps: rounds at ([\d.]+)k, ([\d.]+)k, \.\.\., ([\d.]+)k at the latest", comment)
+    assert match, comment
+    steps, first, second, latest = (round(float(x) * 1000) for x in match.groups())
+    assert (steps, first, second, latest) == (config.max_num_iterations, *removing[:2], removing[-1]), comment
+    after = re.search(r"then ([\d.]+)k steps of training", comment)
+    if after:
+        assert round(float(after.group(1)) * 1000) == config.max_num_iterations - removing[-1], comment

@@ -88,3 +88,25 @@ def test_a_run_folder_with_results_is_never_removed(small_scene, tmp_path):
     with pytest.raises(GaroInputError, match="missing transforms file"):
         trainer.setup()
     assert (config.get_base_dir() / "config.yml").exists()
+
+
+def test_any_error_during_setup_leaves_no_empty_run_folder(small_scene, tmp_path, monkeypatch):
+    """Not only bad input: whatever stops the set-up (here the optimizers failing) takes the run folder that
+    holds nothing but its config.yml with it, and the error itself still propagates."""
+    from nerfstudio.engine.trainer import Trainer
+
+    from garo_ns.tools.train import make_config
+
+    out = tmp_path / "outputs"
+    config = make_config("garo-deform", small_scene, out, experiment_name="failed")
+    config.set_timestamp()
+    config.save_config()
+    trainer = config.setup(local_rank=0, world_size=1)
+
+    def fail(self):
+        raise RuntimeError("no memory left for the optimizers")
+
+    monkeypatch.setattr(Trainer, "setup_optimizers", fail)
+    with pytest.raises(RuntimeError, match="no memory left"):
+        trainer.setup()
+    assert out.is_dir() and not any(out.iterdir())

@@ -291,3 +291,55 @@ def test_frame_path_graph_in_fp16_equals_its_eager_frames(static_skip: bool) -> 
     for a, b in zip(got[:5], want[:5]):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
     assert graphed.half_field.builds == 2
+
+
+class ReplayChecker:
+    """Stands in for TimeGraph on a CPU: a new key 'captures' (runs the step once and keeps what it read of
+    the half field), the same key 'replays', which must find those very weight copies and that cache still
+    held, as a real replay reads their addresses whether or not they were freed."""
+
+    def __init__(self, half: HalfField) -> None:
+        self.half, self.key, self.captures, self.outputs, self.read = half, None, 0, None, None
+
+    def held(self):
+        weights, cache = self.half._weights, self.half._cache
+        return (weights[1] if weights else None, cache[1] if cache else None)
+
+    def __call__(self, key, fn, time, device, reuse=False):
+        if self.key != key:
+            self.key, self.captures = key, self.captures + 1
+            self.outputs = fn(torch.tensor(float(time)))
+            self.read = self.held()
+        else:
+            now = self.held()
+            assert now[0] is self.read[0] and now[1] is self.read[1], "replay on released half-field memory"
+        return self.outputs
+
+
+@torch.no_grad()
+@pytest.mark.parametrize("eager", ["fp32", "other static setting"])
+def test_a_graph_never_replays_on_half_field_memory_an_eager_frame_released(monkeypatch, eager: str) -> None:
+    """A graph captured in fp16 reads the half field's copies; an eager frame in fp32 releases them, one with
+    the other static setting rebuilds the cache: the next graph frame must capture again, and only then."""
+    import garo_ns.render.frame as frame_module
+
+    monkeypatch.setattr(frame_module, "graphs_available", lambda device: True)
+    field, canonical = _field(), _canonical()
+    static = torch.zeros(400, dtype=torch.bool)
+    static[::3] = True
+    offset = torch.zeros(400, 10)
+    frame = FramePath(HalfField(dtype=torch.float32, devices=ON_CPU))
+    graph = frame._graph = ReplayChecker(frame.half_field)
+    graphed = FrameSettings(render_precision="fp16", static_skip=True, cuda_graph=True)
+    frame.splats(field, canonical, static, offset, 0.4, graphed)
+    frame.splats(field, canonical, static, offset, 0.6, graphed)
+    assert graph.captures == 1  # a replay: nothing changed
+    if eager == "fp32":
+        other = FrameSettings(render_precision="fp32", static_skip=True)
+    else:
+        other = FrameSettings(render_precision="fp16", static_skip=False)
+    frame.splats(field, canonical, static, offset, 0.5, other)
+    frame.splats(field, canonical, static, offset, 0.4, graphed)
+    assert graph.captures == 2
+    frame.splats(field, canonical, static, offset, 0.7, graphed)
+    assert graph.captures == 2

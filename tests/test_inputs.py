@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -39,18 +40,22 @@ def edit(scene, fn):
 
 
 @pytest.mark.parametrize(
-    "breakage, message",
+    "breakage, message, names",
     [
-        ("missing_dir", "does not exist"),
-        ("not_json", "not valid JSON"),
-        ("no_time", "needs a timestamp"),
-        ("time_out_of_range", "time must be"),
-        ("missing_image", "image listed but missing"),
-        ("size_mismatch", "other frames are"),
-        ("bad_matrix", "transform_matrix"),
+        ("missing_dir", "does not exist", "{scene}/nope"),
+        ("not_json", "not valid JSON", "{train}"),
+        ("no_time", "needs a timestamp", "{train}, frame 1 "),
+        ("time_out_of_range", "time must be", "{train}, frame 0:"),
+        (
+            "missing_image",
+            "image listed but missing",
+            "{train}, frame 2: .*{scene}/train/r_002.png",
+        ),
+        ("size_mismatch", "other frames are", "{train}, frame 1: image {scene}/train/r_001.png"),
+        ("bad_matrix", "transform_matrix", "{train}, frame 2:"),
     ],
 )
-def test_bad_datasets_fail_with_one_clear_line(small_scene, breakage, message):
+def test_bad_datasets_fail_with_one_clear_line(small_scene, breakage, message, names):
     target = small_scene
     if breakage == "missing_dir":
         target = small_scene / "nope"
@@ -75,7 +80,10 @@ def test_bad_datasets_fail_with_one_clear_line(small_scene, breakage, message):
     with pytest.raises(GaroInputError, match=message) as err:
         parse(target)
     assert "\n" not in str(err.value)
-    assert str(target.name) in str(err.value) or "transforms_train.json" in str(err.value)
+    # The very file and frame (not merely the scene folder, which every path in it names).
+    scene = re.escape(str(small_scene))
+    expected = names.format(scene=scene, train=re.escape(str(small_scene / "transforms_train.json")))
+    assert re.search(expected, str(err.value)), str(err.value)
     assert {p: p.read_bytes() for p in small_scene.rglob("*") if p.is_file()} == before  # nothing touched
 
 

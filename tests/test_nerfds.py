@@ -139,6 +139,19 @@ BAD_INPUTS = {
 }
 
 
+# The file each bad input's line must name (the id, where there is one, is BAD_INPUTS' second entry).
+NAMED_FILE = {
+    "no dataset.json": "dataset.json",
+    "dataset.json not JSON": "dataset.json",
+    "no camera file": "camera/train_002.json",
+    "id without image": "rgb/2x/val_001.png",
+    "time out of range": "metadata.json",
+    "no time": "metadata.json",
+    "non-finite camera": "camera/train_005.json",
+    "not a rotation": "camera/val_000.json",
+}
+
+
 @pytest.mark.parametrize("case", sorted(BAD_INPUTS))
 def test_bad_captures_name_the_file_and_id(tmp_path, both_layouts, case):
     edit, expected = BAD_INPUTS[case]
@@ -146,7 +159,8 @@ def test_bad_captures_name_the_file_and_id(tmp_path, both_layouts, case):
     before = _snapshot(data)
     with pytest.raises(GaroInputError, match=expected) as err:
         _outputs(NerfDSDataParserConfig(data=data), "train")
-    assert str(data) in str(err.value) or expected in str(err.value)
+    # The very file at fault, by its full path (not merely the capture folder, which every path names).
+    assert str(data / NAMED_FILE[case]) in str(err.value), str(err.value)
     assert _snapshot(data) == before
 
 

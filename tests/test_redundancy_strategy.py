@@ -522,6 +522,40 @@ def test_filtered_info_keeps_every_per_gaussian_entry_of_the_kept_rows():
     assert restrict_info(info, keep)["means2d"].grad is None
 
 
+def packed_from(info: dict) -> dict:
+    """The packed form of an unpacked info: one row per (camera, Gaussian) pair with a positive radius."""
+    sel = info["radii"] > 0
+    camera_ids, gaussian_ids = torch.where(sel)
+    m2d = info["means2d"].detach()[sel].clone().requires_grad_(True)
+    m2d.grad = info["means2d"].grad[sel].clone()
+    packed = {k: v for k, v in info.items() if not isinstance(v, torch.Tensor) or k in ("means3d",)}
+    packed.update(means2d=m2d, radii=info["radii"][sel], depths=info["depths"][sel], conics=info["conics"][sel])
+    packed.update(camera_ids=camera_ids, gaussian_ids=gaussian_ids)
+    return packed
+
+
+def test_filtered_packed_info_gives_the_unpacked_bookkeeping():
+    """Packed info after GARO removed some Gaussians: the same gradient norms and counts per kept Gaussian
+    as the unpacked info of the same render, through gsplat's own update."""
+    g = torch.Generator().manual_seed(0)
+    c, n = 2, 7
+    keep = torch.tensor([True, False, True, True, False, True, True])
+    radii = torch.randint(0, 3, (c, n), generator=g, dtype=torch.int32)  # zeros: not seen by that camera
+    radii[:, 2] = 0  # a kept Gaussian no camera sees
+    info = {"means2d": torch.zeros(c, n, 2, requires_grad=True), "radii": radii, "width": W, "height": H}
+    info["means2d"].grad = torch.rand(c, n, 2, generator=g)
+    info.update(n_cameras=c, gaussian_ids=None, depths=torch.rand(c, n, generator=g), conics=torch.rand(c, n, 3))
+    info["means3d"] = torch.rand(n, 3, generator=g)
+    strategy = GaroStrategy()
+    params = {"means": torch.zeros(int(keep.sum()), 3)}
+    want = strategy.gradient_norms(params, restrict_info(info, keep), packed=False)
+    packed = restrict_info(packed_from(info), keep)  # packed: told by its gaussian_ids
+    got = strategy.gradient_norms(params, packed, packed=True)
+    torch.testing.assert_close(got, want)
+    assert int(packed["gaussian_ids"].max()) < int(keep.sum()) and len(packed["camera_ids"]) == len(packed["radii"])
+    assert torch.equal(packed["means3d"], info["means3d"][keep])
+
+
 def test_strategy_modes_oaa_and_gca_decide_as_their_names_say():
     # A sphere of inactive Gaussians: activity alone (oaa) prunes the least active; the paper's
     # full rule prunes none (not flat). A flat plane of active Gaussians: only gca prunes it.

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Tuple, Type
@@ -67,14 +68,48 @@ def read_json_object(path: Path, what: str = "transforms file") -> Dict[str, Any
 
 
 def image_size(path: Path) -> Tuple[int, int]:
-    """(height, width) of an image file; GaroInputError when it cannot be read."""
+    """(height, width) of an image file; GaroInputError when it cannot be read, is cut short or corrupt.
+
+    The whole file is checked (PIL's `verify`: every chunk and checksum, no pixels decoded), not only
+    its header: a truncated image would otherwise pass here and fail later inside nerfstudio's loader.
+    """
     from PIL import Image
 
     try:
         with Image.open(path) as im:
-            return im.size[1], im.size[0]
-    except Exception as err:  # unreadable or truncated image
+            size = im.size[1], im.size[0]
+            im.verify()
+        return size
+    except Exception as err:  # unreadable, truncated or corrupt image
         raise GaroInputError(f"cannot read image {path}: {err}") from None
+
+
+def number(value: Any) -> bool:
+    """Whether `value` is a finite JSON number (JSON's true and false are not numbers)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def matrix(value: Any, shape: Tuple[int, ...]) -> Optional[np.ndarray]:
+    """`value` as a float array of `shape` when it is one (nested lists of finite numbers), else None."""
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):  # ragged rows, strings, objects
+        return None
+    if arr.shape != shape or not np.isfinite(arr).all():
+        return None
+    if not all(number(x) for x in np.asarray(value, dtype=object).reshape(-1)):
+        return None  # strings numpy would parse ("1.0") and booleans are not numbers
+    return arr
+
+
+def inside(root: Path, rel: str) -> Optional[Path]:
+    """`root / rel` when `rel` is a relative path that stays inside `root`, else None: a dataset names only
+    its own files. Checked on the path's text (absolute, or `..` leading out), so folders inside the
+    dataset may still be symbolic links to elsewhere."""
+    norm = os.path.normpath(rel)
+    if os.path.isabs(norm) or norm in (".", "..") or norm.startswith(".." + os.sep):
+        return None
+    return root / norm
 
 
 def read_split(data: Path, split: str) -> Tuple[List[Path], np.ndarray, np.ndarray, float, Tuple[int, int]]:
@@ -88,7 +123,7 @@ def read_split(data: Path, split: str) -> Tuple[List[Path], np.ndarray, np.ndarr
     path = data / f"transforms_{split}.json"
     meta = read_json_object(path)
     angle = meta.get("camera_angle_x")
-    if not isinstance(angle, (int, float)) or not math.isfinite(angle) or not 0 < angle < math.pi:
+    if not number(angle) or not 0 < angle < math.pi:
         raise GaroInputError(f"{path}: camera_angle_x must be a finite angle in (0, pi), got {angle!r}")
     frames = meta.get("frames")
     if not isinstance(frames, list) or not frames:
@@ -104,15 +139,17 @@ def read_split(data: Path, split: str) -> Tuple[List[Path], np.ndarray, np.ndarr
                 f"{where} has no 'time': this method reconstructs dynamic scenes and needs a timestamp per frame"
             )
         t = frame["time"]
-        if not isinstance(t, (int, float)) or not math.isfinite(t) or not 0.0 <= t <= 1.0:
+        if not number(t) or not 0.0 <= t <= 1.0:
             raise GaroInputError(f"{where}: time must be a number in [0, 1], got {t!r}")
-        pose = np.asarray(frame.get("transform_matrix"), dtype=np.float64) if "transform_matrix" in frame else None
-        if pose is None or pose.shape != (4, 4) or not np.isfinite(pose).all():
-            raise GaroInputError(f"{where}: transform_matrix must be a finite 4x4 matrix")
+        pose = matrix(frame.get("transform_matrix"), (4, 4))
+        if pose is None:
+            raise GaroInputError(f"{where}: transform_matrix must be a 4x4 matrix of finite numbers")
         rel = frame.get("file_path")
         if not isinstance(rel, str) or not rel:
             raise GaroInputError(f"{where}: missing file_path")
-        image = data / rel.replace("./", "", 1)
+        image = inside(data, rel)
+        if image is None:
+            raise GaroInputError(f"{where}: file_path {rel!r} leads outside the data directory")
         if image.suffix.lower() != ".png":
             image = image.with_name(image.name + ".png")
         if not image.exists():

@@ -18,7 +18,6 @@ parameters, and nerfstudio's full-image datamanager undistorts the images when i
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Tuple, Type
@@ -29,7 +28,7 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserConfig, DataparserOutputs
 from nerfstudio.data.scene_box import SceneBox
 
-from garo_ns.data.dnerf import image_size, read_json_object
+from garo_ns.data.dnerf import image_size, matrix, number, read_json_object
 from garo_ns.errors import GaroInputError
 from garo_ns.render.view import camera_extent
 
@@ -66,12 +65,9 @@ class NerfDSDataParserConfig(DataParserConfig):
 
 
 def _finite(value: Any, shape: Tuple[int, ...], where: str, name: str) -> np.ndarray:
-    try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise GaroInputError(f"{where}: {name} must be numeric, got {value!r}") from None
-    if arr.shape != shape or not np.isfinite(arr).all():
-        raise GaroInputError(f"{where}: {name} must be finite with shape {shape}, got {value!r}")
+    arr = matrix(value, shape)
+    if arr is None:
+        raise GaroInputError(f"{where}: {name} must be finite numbers with shape {shape}, got {value!r}")
     return arr
 
 
@@ -99,13 +95,16 @@ def read_capture(data: Path, downscale: int = 2) -> Capture:
     if not data.is_dir():
         raise GaroInputError(f"data directory does not exist: {data}")
     if not isinstance(downscale, int) or downscale < 1:
-        raise GaroInputError(f"downscale factor must be an int >= 1, got {downscale!r}")
+        raise GaroInputError(f"nerfds-data --downscale-factor must be an int >= 1, got {downscale!r}")
     dataset = read_json_object(data / "dataset.json", "dataset file")
     splits: Dict[str, List[str]] = {}
     for key in ("train_ids", "val_ids"):
         ids = dataset.get(key, [] if key == "val_ids" else None)
         if not isinstance(ids, list) or not all(isinstance(i, str) for i in ids):
             raise GaroInputError(f"{data / 'dataset.json'}: {key} must be a list of id strings")
+        for i in ids:  # an id names files (camera/<id>.json, rgb/<s>x/<id>.png): never a path
+            if i in ("", ".", "..") or "/" in i or "\\" in i:
+                raise GaroInputError(f"{data / 'dataset.json'}: {key} holds {i!r}, which is not a file name")
         splits[key[: -len("_ids")]] = ids
     if not splits["train"]:
         raise GaroInputError(f"{data / 'dataset.json'}: no train_ids")
@@ -179,7 +178,7 @@ def _read_times(path: Path, ids: List[str]) -> Dict[str, float]:
         times = {}
         for cid, e in entries.items():
             t = e["time"]
-            if not isinstance(t, (int, float)) or not math.isfinite(t) or not 0.0 <= t <= 1.0:
+            if not number(t) or not 0.0 <= t <= 1.0:
                 raise GaroInputError(f"{path}: time of id {cid} must be a number in [0, 1], got {t!r}")
             times[cid] = float(t)
         return times
@@ -225,6 +224,8 @@ def read_points(data: Path, capture: Capture) -> Optional[np.ndarray]:
         raise GaroInputError(f"cannot read {path}: {err}") from None
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise GaroInputError(f"{path}: points must be an [N, 3] array, got shape {pts.shape}")
+    if pts.dtype.kind not in "fiu":
+        raise GaroInputError(f"{path}: points must be numbers, got dtype {pts.dtype}")
     pts = pts[np.isfinite(pts).all(-1)]
     return ((pts - capture.center) * capture.scale).astype(np.float32)
 

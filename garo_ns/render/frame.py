@@ -136,12 +136,14 @@ class FramePath:
         key = versions(list(canonical) + list(field.parameters()) + ([static_offset] if static is not None else []))
         device = canonical.means.device
         if settings.cuda_graph and graphs_available(device) and not torch.is_grad_enabled():
-            graph_key = (settings.render_precision, settings.static_skip, key)
 
             def step(t: Tensor) -> Splats:
                 return activate(canonical, self.deform(field, canonical, static, static_offset, t, settings, key, True))
 
-            out = self._graph(graph_key, step, time, device, reuse=settings.cache_deformation)
+            captures = self._graph.captures
+            out = self._graph(self.graph_key(settings, key), step, time, device, reuse=settings.cache_deformation)
+            if self._graph.captures != captures:  # the capture built the half field's copies it reads: key them
+                self._graph.key = self.graph_key(settings, key)
             return Splats(*out[:5], graph=self._graph.captures)
         cache_key = (float(time), settings.render_precision, settings.static_skip, key)
         if settings.cache_deformation and self._deformed is not None and self._deformed[0] == cache_key:
@@ -164,6 +166,13 @@ class FramePath:
                 built, self.table_info = None, {"error": f"{type(err).__name__}: {err}"[:300]}
             self._table = (key, built)
         return self._table[1]
+
+    def graph_key(self, settings: FrameSettings, key: Tuple[Any, ...]) -> Tuple[Any, ...]:
+        """What the deformation graph reads besides the time: the switches, the parameters (`key`) and, in
+        fp16, the half field's weight copies and position cache, which an eager frame in another precision
+        or static setting releases or rebuilds (`HalfField.generation`)."""
+        half = self.half_field.generation if settings.render_precision == "fp16" else None
+        return (settings.render_precision, settings.static_skip, key, half)
 
     def deform(
         self,

@@ -184,6 +184,9 @@ class HalfField:
         self._weights: Optional[Tuple[Any, FieldWeights]] = None
         self._cache: Optional[Tuple[Any, PositionCache]] = None
         self.builds = 0  # position caches built so far (for tests and profiles)
+        # Changes whenever the weight copies or the cache are rebuilt or released: a CUDA graph that read
+        # them must be captured again then (its replay would read freed memory).
+        self.generation = 0
 
     def runs_on(self, device: torch.device) -> bool:
         """Whether this path is used on `device` (otherwise the plain field is)."""
@@ -200,11 +203,13 @@ class HalfField:
         if self._weights is None or self._weights[0] != weights_key:
             self._weights = None  # free the old copies first
             self._weights = (weights_key, self.copy_weights(field))
+            self.generation += 1
         cache_key = (points_key, weights_key, tuple(xyz.shape))
         if self._cache is None or self._cache[0] != cache_key:
             self._cache = None  # free the old cache before building the new one
             self._cache = (cache_key, PositionCache.build(field, xyz, self.dtype))
             self.builds += 1
+            self.generation += 1
         out = self.forward(field, self._weights[1], self._cache[1], time, xyz.device)
         return tuple(o.to(xyz.dtype) for o in out)  # type: ignore[return-value]
 
@@ -230,4 +235,6 @@ class HalfField:
 
     def release(self) -> None:
         """Drop the weight copies and the cache (e.g. when rendering in another precision)."""
+        if self._weights is not None or self._cache is not None:
+            self.generation += 1
         self._weights, self._cache = None, None
