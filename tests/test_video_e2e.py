@@ -27,7 +27,7 @@ TRAIN_STEPS = 300
 MIN_POSED_SHARE = 0.9
 MAX_POSITION_RMS = 0.02  # of the true path's extent, after the best similarity
 MAX_ROTATION_DEG = 5.0
-HELD_OUT_PSNR_FLOOR = 20.0
+HELD_OUT_PSNR_FLOOR = 22.0  # dB; 300 steps gave 24.5 on the held-out frames (160x120, images_2/)
 
 pytestmark = [
     pytest.mark.slow,
@@ -94,7 +94,16 @@ def test_video_to_a_trained_dynamic_model(processed, tmp_path):
         "garo-deform-real",
         data,
         tmp_path / "runs",
-        schedule=QuickSchedule(steps=TRAIN_STEPS, num_random=2000, deform_width=64, deform_depth=4, deform_skip=2),
+        # The demo's densification threshold: at the recipe's, the textured room's Gaussians multiply
+        # (47k by step 100) and a CPU step takes seconds.
+        schedule=QuickSchedule(
+            steps=TRAIN_STEPS,
+            num_random=2000,
+            deform_width=64,
+            deform_depth=4,
+            deform_skip=2,
+            extra={"densify_grad_thresh": 0.002},
+        ),
         experiment_name="video",
     )
     start = time.perf_counter()

@@ -50,7 +50,8 @@ class NerfDSDataParserConfig(DataParserConfig):
     data: Path = Path("data/nerfds/as")
     """Directory of the capture."""
     downscale_factor: int = 2
-    """Read images from rgb/<factor>x/ (D-3DGS uses 2x for NeRF-DS); intrinsics are scaled to match."""
+    """Read images from rgb/<factor>x/ (D-3DGS uses 2x for NeRF-DS; a video: images_<factor>/, images/ at 1);
+    intrinsics are scaled to match."""
     eval_split: Literal["val", "train"] = "val"
     """Which ids the `val`/`test` roles read (captures have train and val ids only)."""
     use_points: bool = True
