@@ -96,8 +96,8 @@ deform_splatfacto = MethodSpecification(
 
 
 def real_trainer_config(method_name: str, garo_mode: str) -> TrainerConfig:
-    """The real-capture recipe (a NeRF-DS / HyperNeRF capture or an ns-process-data folder): D-3DGS's settings for real scenes and
-    GARO's 20k-step NeRF-DS schedule. Time is encoded with 10 frequencies, the MLP's time input is
+    """The real-capture recipe (a NeRF-DS / HyperNeRF capture or an ns-process-data folder): D-3DGS's settings
+    for real scenes and GARO's 20k-step NeRF-DS schedule. Time is encoded with 10 frequencies, the MLP's time input is
     perturbed early in training (D-3DGS's annealed time noise), and the Gaussians start from the
     capture's points.npy (random in the unit cube when it has none)."""
     config = trainer_config(method_name, garo_mode)
