@@ -513,6 +513,10 @@ def run(args: DemoArgs) -> Dict[str, Any]:
         print(f"{' ' * len(a['method'])}  {scorer} --load-config {a['config']} --split test --output-path eval.json")
     if viewer != "ns-viewer":
         print("(or `source .venv/bin/activate` first, then the bare command names work)")
+    print(
+        f"your own video: {shell_command('ns-process-data')} video --data my.mp4 --output-dir data/mine --no-gpu, "
+        f"then {shell_command('ns-train')} garo-deform-real --data data/mine (docs/data.md, 'Your own video')"
+    )
     return summary
 
 
