@@ -223,3 +223,16 @@ def test_ns_train_real_reads_a_processed_video_and_stops_cleanly_on_a_bad_one(tm
     assert last.startswith("error: ") and "COLMAP posed only 4 of the 10 frames" in last, text[-2000:]
     assert "Traceback" not in text and "Saving config" not in text
     assert not out.exists() or not any(out.rglob("*"))
+
+
+def test_pose_check_prints_the_counts_and_draws_the_path(tmp_path, capsys):
+    from garo_ns.tools.poses import main
+
+    root = make_folder(tmp_path / "v", n=12, posed=[k for k in range(1, 13) if k != 6], downscales=1)
+    assert main([str(root), str(tmp_path / "path.png")]) == 0
+    said = capsys.readouterr().out
+    assert "11 of 12 frames posed (1 left out); 10 train, 1 held out" in said
+    assert Image.open(tmp_path / "path.png").width > 300
+    (root / "transforms.json").unlink()
+    assert main([str(root), str(tmp_path / "bad.png")]) == 1
+    assert "COLMAP posed none of the 12 frames" in capsys.readouterr().err
