@@ -119,6 +119,24 @@ def methods_section(config_cls: type) -> List[str]:
     return lines
 
 
+def capture_section() -> List[str]:
+    """The real-capture dataparser's options: where a user training on their own video looks."""
+    from garo_ns.data.nerfds import NerfDSDataParserConfig
+
+    return [
+        "",
+        "## Real captures and your own video (`nerfds-data`, the `-real` methods' dataparser)",
+        "",
+        "Reads a NeRF-DS / HyperNeRF capture (`dataset.json`) or a folder that `ns-process-data video` or "
+        "`ns-process-data images` wrote (`transforms.json`), telling them apart itself: `ns-train garo-deform-real "
+        "--data data/mine` after `ns-process-data video --data my.mp4 --output-dir data/mine` "
+        "([data.md](data.md#your-own-video-ns-process-data-video-then-a--real-method)). Options go on the command line "
+        "as `--pipeline.datamanager.dataparser.<option>`.",
+        "",
+        *table([(n, d, m) for n, (o, d, m) in field_docs(NerfDSDataParserConfig).items() if n != "data"]),
+    ]
+
+
 def render_page() -> str:
     from garo_ns.garo_model import GaroModelConfig
 
@@ -134,6 +152,7 @@ def render_page() -> str:
         "`--pipeline.model.<option>`, e.g. `ns-train garo-deform --pipeline.model.rho-max 0.05 --data ...`.",
         "",
         *methods_section(GaroModelConfig),
+        *capture_section(),
     ]
     seen = set()
     for cls_name, heading, source in GROUPS:

@@ -123,18 +123,42 @@ def _patch_trainer_entry() -> bool:
     return True
 
 
+def _patch_finished_viewer() -> bool:
+    """`ns-viewer` on a finished run: show the step the model was saved at and no Pause/Resume Training buttons
+    (nerfstudio 1.1.5 shows "Step: 0" and "Pause Training" there, as for a training just started). Needs
+    nerfstudio's viewer module fully imported."""
+    module = sys.modules.get("nerfstudio.viewer.viewer")
+    if module is None or not hasattr(module, "Viewer"):
+        return False
+    viewer_cls = module.Viewer
+    original_update = viewer_cls.update_scene
+
+    def update_scene(self: Any, step: int, num_rays_per_batch: Optional[int] = None) -> None:
+        if getattr(self, "trainer", None) is None:  # ns-viewer: a saved model, nothing trains
+            self.pause_train.visible = False
+            self.resume_train.visible = False
+            self.stats_markdown.content = self.make_stats_markdown(step, None)
+        original_update(self, step, num_rays_per_batch)
+
+    viewer_cls.update_scene = update_scene
+    return True
+
+
 _entry_patched = False
+_viewer_patched = False
 
 
 def install() -> None:
     """Apply the fixes once per process; those on nerfstudio's trainer as soon as its module is imported
     (the plugin's entry points can load while nerfstudio is still importing it)."""
-    global _installed, _previous_hook, _entry_patched
+    global _installed, _previous_hook, _entry_patched, _viewer_patched
     from garo_ns import checkpoints
 
     checkpoints.install()
     if not _entry_patched:
         _entry_patched = _patch_trainer_entry()
+    if not _viewer_patched:
+        _viewer_patched = _patch_finished_viewer()
     if _installed:
         return
     _installed = True

@@ -1,5 +1,5 @@
 """Method specifications registered with nerfstudio: `garo-deform`, `deform-splatfacto` and `garo-compact`
-(each with a `-real` twin for NeRF-DS / HyperNeRF captures).
+(each with a `-real` twin for real captures: NeRF-DS / HyperNeRF, or your own video after `ns-process-data video`).
 
 Both train the same deformable model with D-3DGS's recipe (40k steps, learning rates of the
 official code, densification from 500 to 15k); `deform-splatfacto` turns GARO pruning off and is
@@ -96,8 +96,8 @@ deform_splatfacto = MethodSpecification(
 
 
 def real_trainer_config(method_name: str, garo_mode: str) -> TrainerConfig:
-    """The real-capture recipe (NeRF-DS / HyperNeRF layout): D-3DGS's settings for real scenes and
-    GARO's 20k-step NeRF-DS schedule. Time is encoded with 10 frequencies, the MLP's time input is
+    """The real-capture recipe (a NeRF-DS / HyperNeRF capture or an ns-process-data folder): D-3DGS's settings
+    for real scenes and GARO's 20k-step NeRF-DS schedule. Time is encoded with 10 frequencies, the MLP's time input is
     perturbed early in training (D-3DGS's annealed time noise), and the Gaussians start from the
     capture's points.npy (random in the unit cube when it has none)."""
     config = trainer_config(method_name, garo_mode)
@@ -117,12 +117,12 @@ def real_trainer_config(method_name: str, garo_mode: str) -> TrainerConfig:
 
 garo_deform_real = MethodSpecification(
     config=real_trainer_config("garo-deform-real", "full"),
-    description="GARO on real captures (NeRF-DS / HyperNeRF layout, nerfds-data): the real-scene recipe.",
+    description="GARO on real captures (your own video after ns-process-data, or NeRF-DS / HyperNeRF; nerfds-data).",
 )
 
 deform_splatfacto_real = MethodSpecification(
     config=real_trainer_config("deform-splatfacto-real", "off"),
-    description="D-3DGS baseline on real captures (NeRF-DS / HyperNeRF layout, nerfds-data).",
+    description="D-3DGS baseline on real captures (ns-process-data video, NeRF-DS / HyperNeRF; nerfds-data).",
 )
 
 
@@ -154,7 +154,7 @@ garo_compact = MethodSpecification(
 # 20k steps: rounds at 15k, 15.4k, ..., 18.6k at the latest, then 1.4k steps of training on what is left.
 garo_compact_real = MethodSpecification(
     config=with_compaction(real_trainer_config("garo-compact-real", "full"), every=400, max_rounds=10),
-    description="garo-compact on real captures (NeRF-DS / HyperNeRF layout, nerfds-data).",
+    description="garo-compact on real captures (ns-process-data video, NeRF-DS / HyperNeRF; nerfds-data).",
 )
 
 METHODS = {

@@ -1,5 +1,10 @@
-"""NeRF-DS / HyperNeRF-layout dataparser (`nerfds-data`): real monocular captures.
+"""The real-capture dataparser (`nerfds-data`): NeRF-DS / HyperNeRF captures and nerfstudio's processed videos.
 
+A folder with dataset.json is read as NeRF-DS / HyperNeRF (below); one with transforms.json (or the images/
+and colmap/ folders that `ns-process-data video|images` leaves) as a video, whose frames' order gives their
+times (garo_ns.data.video). Both become the same `Capture`, so the cameras and outputs are built alike.
+
+NeRF-DS / HyperNeRF layout:
 Layout (read only; nothing is ever written into the data folder):
   dataset.json      {"ids": [...], "train_ids": [...], "val_ids": [...]}
   metadata.json     {id: {"time": t in [0, 1]} or {"warp_id": k}}; warp ids are normalised by
@@ -44,11 +49,17 @@ class NerfDSDataParserConfig(DataParserConfig):
     data: Path = Path("data/nerfds/as")
     """Directory of the capture."""
     downscale_factor: int = 2
-    """Read images from rgb/<factor>x/ (D-3DGS uses 2x for NeRF-DS); intrinsics are scaled to match."""
+    """Read images from rgb/<factor>x/ (D-3DGS uses 2x for NeRF-DS; a video: images_<factor>/, images/ at 1);
+    intrinsics are scaled to match."""
     eval_split: Literal["val", "train"] = "val"
     """Which ids the `val`/`test` roles read (captures have train and val ids only)."""
     use_points: bool = True
-    """Seed the Gaussians with points.npy when the capture has it."""
+    """Seed the Gaussians with points.npy (a video: COLMAP's points, sparse_pc.ply) when the capture has it."""
+    eval_every: int = 8
+    """A video: hold out every n-th frame of the capture order for evaluation (interleaved in time); the rest
+    train."""
+    min_posed_fraction: float = 0.5
+    """A video: stop, rather than train, when COLMAP posed fewer than this share of its frames."""
 
     def check_data(self, data: Optional[Path] = None) -> None:
         """Validate the capture (files, cameras, times, image sizes, points) without loading pixels.
@@ -57,7 +68,7 @@ class NerfDSDataParserConfig(DataParserConfig):
         bad capture stops with one line and leaves no run folder. Raises GaroInputError.
         """
         root = Path(data if data is not None else self.data)
-        capture = read_capture(root, self.downscale_factor)
+        capture = load_capture(root, self)
         if not capture.splits[self.eval_split]:
             raise GaroInputError(f"{root / 'dataset.json'}: no {self.eval_split}_ids to evaluate on")
         if self.use_points:
@@ -87,6 +98,23 @@ class Capture:
     center: np.ndarray
     near: Optional[float]
     far: Optional[float]
+    points: Optional[np.ndarray] = None
+    """Seed points in the normalised frame, when the layout gives them with its cameras (a video's)."""
+    point_colors: Optional[np.ndarray] = None
+    """Colours [N, 3] (uint8) of `points`, when the layout has them."""
+    unposed: Tuple[str, ...] = ()
+    """Frames of a video that have no pose (COLMAP could not register them), left out."""
+
+
+def load_capture(data: Path, config: "NerfDSDataParserConfig") -> Capture:
+    """Read the capture in `data` in whichever layout it has (see the module docstring)."""
+    from garo_ns.data.video import is_nerfstudio_folder, read_video_capture
+
+    if is_nerfstudio_folder(data):
+        return read_video_capture(
+            data, config.downscale_factor, config.eval_every, config.min_posed_fraction, config.use_points
+        )
+    return read_capture(data, config.downscale_factor)
 
 
 def read_capture(data: Path, downscale: int = 2) -> Capture:
@@ -215,6 +243,8 @@ def capture_cameras(capture: Capture, ids: List[str]) -> Cameras:
 
 def read_points(data: Path, capture: Capture) -> Optional[np.ndarray]:
     """points.npy in the normalised frame [N, 3], or None when absent."""
+    if capture.points is not None:
+        return capture.points
     path = Path(data) / "points.npy"
     if not path.exists():
         return None
@@ -239,7 +269,14 @@ class NerfDSDataParser(DataParser):
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs: Any) -> DataparserOutputs:
         data = Path(self.config.data)
-        capture = read_capture(data, self.config.downscale_factor)
+        capture = load_capture(data, self.config)
+        if capture.unposed and split == "train":
+            total = len(capture.ids) + len(capture.unposed)
+            print(
+                f"{data}: COLMAP posed {len(capture.ids)} of {total} frames; the {len(capture.unposed)} it could not "
+                f"pose are left out ({', '.join(capture.unposed[:5])}{', ...' if len(capture.unposed) > 5 else ''}), "
+                "and the times of the others follow the original frame order"
+            )
         role = "train" if split == "train" else self.config.eval_split
         ids = capture.splits[role]
         if not ids:
@@ -254,7 +291,11 @@ class NerfDSDataParser(DataParser):
         points = read_points(data, capture) if self.config.use_points else None
         if points is not None and len(points) > 0:
             metadata["points3D_xyz"] = torch.from_numpy(points)
-            metadata["points3D_rgb"] = torch.zeros((0, 3), dtype=torch.uint8)  # no colours: random ones
+            colors = capture.point_colors
+            # Without colours (points.npy has none) the Gaussians start from random ones.
+            has_colors = colors is not None and len(colors) == len(points)
+            no_colors = torch.zeros((0, 3), dtype=torch.uint8)
+            metadata["points3D_rgb"] = torch.from_numpy(colors) if has_colors else no_colors
             lo, hi = points.min(0), points.max(0)
             aabb = torch.from_numpy(np.stack([lo, hi])).float()
         else:

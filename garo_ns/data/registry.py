@@ -15,5 +15,5 @@ garo_dnerf_data = DataParserSpecification(
 
 nerfds_data = DataParserSpecification(
     config=NerfDSDataParserConfig(),
-    description="NeRF-DS / HyperNeRF layout (real monocular captures); never writes into the data folder.",
+    description="Real monocular captures: NeRF-DS / HyperNeRF, or your own video processed by ns-process-data.",
 )

@@ -372,12 +372,20 @@ def main() -> None:
         n_val: int = 8,
         n_test: int = 8,
         seed: int = 0,
-        layout: Literal["dnerf", "nerfds"] = "dnerf",
+        layout: Literal["dnerf", "nerfds", "video"] = "dnerf",
         box_turns: float = SceneSpec.box_turns,
         box_slide: float = SceneSpec.box_slide,
         ball_turns: float = SceneSpec.ball_turns,
+        frames: int = 60,
     ):
-        """Write the built-in dynamic scene in the D-NeRF (default) or NeRF-DS / HyperNeRF layout."""
+        """Write the built-in dynamic scene in the D-NeRF (default) or NeRF-DS / HyperNeRF layout, or film it as a
+        hand-held video (`video`: OUT_DIR/video.mp4 of `frames` frames at 320x240, for `ns-process-data video`,
+        and OUT_DIR/video_true.json, the true camera path; the other options do not apply)."""
+        if layout == "video":
+            from garo_ns.tools.scene_video import VideoSpec, write_video
+
+            print(f"wrote {write_video(Path(out_dir) / 'video.mp4', VideoSpec(frames=frames))}")
+            return
         spec = SceneSpec(
             resolution, n_train, n_val, n_test, seed, box_turns=box_turns, box_slide=box_slide, ball_turns=ball_turns
         )
@@ -386,5 +394,5 @@ def main() -> None:
 
     try:
         tyro.cli(_cli)
-    except ValueError as err:
+    except (ValueError, RuntimeError) as err:  # bad settings; no ffmpeg for a video
         raise SystemExit(f"error: {err}") from None

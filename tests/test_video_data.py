@@ -1,0 +1,238 @@
+"""`nerfds-data` (the `-real` methods' dataparser) on folders that `ns-process-data video|images` writes.
+
+The folders here are built by hand, in nerfstudio's layout, so that every fact is known: which frames exist,
+which have a pose, the order COLMAP lists them in (none in particular). tests/test_video_e2e.py runs the real
+tools (ffmpeg, COLMAP) on a rendered video.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+from typing import Dict, List, Optional
+
+import numpy as np
+import pytest
+from PIL import Image
+
+import garo_ns.config  # noqa: F401  (registers the methods and installs the plugin's nerfstudio hooks)
+from garo_ns.data.nerfds import NerfDSDataParserConfig, load_capture
+from garo_ns.data.video import frame_number, read_ply_points
+from garo_ns.errors import GaroInputError
+from garo_ns.tools.scene_video import path_error
+
+W, H = 24, 16
+FOCAL = 20.0
+
+
+def _pose(k: int) -> np.ndarray:
+    """A camera on an arc, looking at the origin (OpenGL camera-to-world), in some arbitrary world frame."""
+    a = 0.2 * k
+    position = np.array([3 * math.cos(a), 3 * math.sin(a), 1.0 + 0.1 * k]) * 7.0 + [5.0, -2.0, 1.0]
+    forward = np.array([5.0, -2.0, 1.0]) - position
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, up, -forward, position
+    return c2w
+
+
+def make_folder(
+    root: Path,
+    n: int = 10,
+    posed: Optional[List[int]] = None,
+    names: Optional[Dict[int, str]] = None,
+    times: Optional[Dict[int, float]] = None,
+    downscales: int = 1,
+    seed: int = 0,
+) -> Path:
+    """An ns-process-data folder: frames 1..n in images/ (and images_2/ ...), poses for `posed` (default: all),
+    listed in a shuffled order as COLMAP's output is, with a point cloud."""
+    rng = np.random.default_rng(seed)
+    posed = list(range(1, n + 1)) if posed is None else posed
+    names = names or {}
+    for level in range(downscales + 1):
+        folder = root / ("images" if level == 0 else f"images_{2**level}")
+        folder.mkdir(parents=True, exist_ok=True)
+        for k in range(1, n + 1):
+            size = (W // 2**level, H // 2**level)
+            pixels = rng.integers(0, 255, (size[1], size[0], 3), dtype=np.uint8)
+            Image.fromarray(pixels).save(folder / names.get(k, f"frame_{k:05d}.png"))
+    frames = []
+    for k in rng.permutation(posed):
+        frame = {"file_path": f"images/{names.get(int(k), f'frame_{k:05d}.png')}", "colmap_im_id": int(k)}
+        frame["transform_matrix"] = _pose(int(k)).tolist()
+        if times is not None:
+            frame["time"] = times[int(k)]
+        frames.append(frame)
+    meta = {"w": W, "h": H, "fl_x": FOCAL, "fl_y": FOCAL, "cx": W / 2, "cy": H / 2, "k1": 0.01, "p2": 0.002}
+    meta.update({"camera_model": "OPENCV", "frames": frames, "ply_file_path": "sparse_pc.ply"})
+    (root / "transforms.json").write_text(json.dumps(meta))
+    # One point at the centre of frame 1's camera, one at the world origin of its frame.
+    points = [_pose(1)[:3, 3], np.array([5.0, -2.0, 1.0])]
+    lines = ["ply", "format ascii 1.0", "element vertex 2"]
+    lines += [f"property float {c}" for c in "xyz"] + [f"property uint8 {c}" for c in ("red", "green", "blue")]
+    lines += ["end_header"] + [f"{p[0]:f} {p[1]:f} {p[2]:f} 10 20 30" for p in points]
+    (root / "sparse_pc.ply").write_text("\n".join(lines) + "\n")
+    return root
+
+
+def _config(root: Path, **kw) -> NerfDSDataParserConfig:
+    return NerfDSDataParserConfig(data=root, **{"downscale_factor": 1, **kw})
+
+
+def test_times_follow_the_frame_numbers_and_unposed_frames_leave_gaps(tmp_path):
+    root = make_folder(tmp_path / "v", n=10, posed=[1, 2, 4, 5, 6, 8, 9, 10])
+    capture = load_capture(root, _config(root, eval_every=3))
+    # Time is the place in the video (frames 1..10), not the place among the posed frames or in the JSON list.
+    assert capture.ids == [f"frame_{k:05d}" for k in (1, 2, 4, 5, 6, 8, 9, 10)]
+    assert [capture.times[i] for i in capture.ids] == pytest.approx([(k - 1) / 9 for k in (1, 2, 4, 5, 6, 8, 9, 10)])
+    assert capture.unposed == ("frame_00003.png", "frame_00007.png")
+    # Every 3rd frame of the video held out (places 1, 4, 7: frames 2, 5, 8), interleaved in time.
+    assert capture.splits["val"] == ["frame_00002", "frame_00005", "frame_00008"]
+    assert capture.splits["train"] == [i for i in capture.ids if i not in capture.splits["val"]]
+
+
+def test_outputs_cameras_times_and_the_left_out_count(tmp_path, capsys):
+    root = make_folder(tmp_path / "v", n=12, posed=[k for k in range(1, 13) if k != 6])
+    parser = _config(root, eval_every=4).setup()
+    train, val = parser.get_dataparser_outputs("train"), parser.get_dataparser_outputs("val")
+    said = capsys.readouterr().out
+    assert "COLMAP posed 11 of 12 frames" in said and "frame_00006.png" in said
+    assert [p.name for p in val.image_filenames] == ["frame_00003.png", "frame_00007.png", "frame_00011.png"]
+    assert val.cameras.times[:, 0].tolist() == pytest.approx([2 / 11, 6 / 11, 10 / 11])
+    assert len(train.image_filenames) == 8 and bool((train.cameras.times[1:] > train.cameras.times[:-1]).all())
+    # The poses are the input ones up to a similarity: nothing reordered, mirrored or bent.
+    posed = [k for k in range(1, 13) if k != 6 and k not in (3, 7, 11)]
+    error = path_error(np.stack([_pose(k) for k in posed]), train.cameras.camera_to_worlds.double().numpy())
+    assert error["position_rms"] < 1e-5 and error["rotation_max_deg"] < 0.05, error  # float32 cameras
+    assert float(train.cameras.camera_to_worlds[:, :, 3].abs().max()) == pytest.approx(1.0, abs=1e-5)
+    assert float(train.cameras.fx[0]) == FOCAL and float(train.cameras.cx[0]) == W / 2
+    assert train.cameras.distortion_params[0].tolist() == pytest.approx([0.01, 0, 0, 0, 0, 0.002])
+
+
+def test_points_share_the_cameras_frame(tmp_path):
+    root = make_folder(tmp_path / "v", n=8)
+    out = _config(root).setup().get_dataparser_outputs("train")
+    points = out.metadata["points3D_xyz"].double()
+    camera_1 = out.cameras.camera_to_worlds[0, :, 3].double()  # frame 1 trains (eval_every 8 holds out frame 5)
+    assert float((points[0] - camera_1).abs().max()) < 1e-4
+    assert out.metadata["points3D_rgb"].tolist() == [[10, 20, 30]] * 2
+
+
+def test_downscaled_images_and_intrinsics(tmp_path):
+    root = make_folder(tmp_path / "v", n=8, downscales=1)
+    out = _config(root, downscale_factor=2).setup().get_dataparser_outputs("train")
+    assert out.image_filenames[0].parent.name == "images_2"
+    assert float(out.cameras.fx[0]) == FOCAL / 2 and int(out.cameras.width[0]) == W // 2
+    with pytest.raises(GaroInputError, match="downscale-factor 1"):
+        _config(root, downscale_factor=4).setup().get_dataparser_outputs("train")
+
+
+def test_a_time_per_frame_overrides_the_numbers(tmp_path):
+    # Seconds, not in [0, 1], and against the numbering: the times rule and are rescaled.
+    seconds = {k: 30.0 - 2.0 * k for k in range(1, 9)}
+    root = make_folder(tmp_path / "v", n=8, times=seconds)
+    capture = load_capture(root, _config(root))
+    assert capture.ids[0] == "frame_00008" and capture.ids[-1] == "frame_00001"
+    assert capture.times["frame_00008"] == 0.0 and capture.times["frame_00001"] == 1.0
+    assert capture.times["frame_00004"] == pytest.approx(4 / 7)
+
+
+@pytest.mark.parametrize(
+    "name",
+    ["frame_00012.png", "images/frame_00012.jpg", "IMG_2024_0012.JPG", "frame_train_00012.png"],
+)
+def test_frame_numbers(name):
+    assert frame_number(name) == 12
+
+
+def test_ply_reader_rejects_binary(tmp_path):
+    (tmp_path / "p.ply").write_text("ply\nformat binary_little_endian 1.0\nend_header\n")
+    with pytest.raises(GaroInputError, match="only ASCII PLY"):
+        read_ply_points(tmp_path / "p.ply")
+
+
+def _no_transforms(root: Path) -> None:
+    (root / "transforms.json").unlink()
+
+
+def _no_frames(root: Path) -> None:
+    meta = json.loads((root / "transforms.json").read_text())
+    (root / "transforms.json").write_text(json.dumps({**meta, "frames": []}))
+
+
+def _no_poses(root: Path) -> None:
+    meta = json.loads((root / "transforms.json").read_text())
+    for frame in meta["frames"]:
+        frame["transform_matrix"] = [[1, 0, 0]]
+    (root / "transforms.json").write_text(json.dumps(meta))
+
+
+BAD = {
+    "COLMAP posed nothing": (lambda r: make_folder(r, n=10), _no_transforms, "COLMAP posed none of the 10 frames"),
+    "COLMAP posed too few": (lambda r: make_folder(r, n=10, posed=[1, 2, 5, 9]), None, "posed only 4 of the 10"),
+    "no frames": (lambda r: make_folder(r, n=10), _no_frames, "no usable frames"),
+    "no usable poses": (lambda r: make_folder(r, n=10), _no_poses, "no usable frames"),
+    "unnumbered photos": (
+        lambda r: make_folder(r, n=8, names={k: f"photo_{chr(96 + k)}.png" for k in range(1, 9)}),
+        None,
+        "cannot order the frames in time",
+    ),
+    "some times": (lambda r: make_folder(r, n=8, times={k: k / 8 for k in range(1, 9)}), None, None),
+    "empty folder": (lambda r: r.mkdir(), lambda r: (r / "images").mkdir(), "neither transforms.json"),
+}
+
+
+def _partial_times(root: Path) -> None:
+    meta = json.loads((root / "transforms.json").read_text())
+    del meta["frames"][3]["time"]
+    (root / "transforms.json").write_text(json.dumps(meta))
+
+
+@pytest.mark.parametrize("case", sorted(BAD))
+def test_bad_folders_get_one_line(tmp_path, case):
+    build, breakage, message = BAD[case]
+    root = tmp_path / "v"
+    build(root)
+    if case == "some times":
+        breakage, message = _partial_times, "7 of 8 frames have a time"
+    if breakage is not None:
+        breakage(root)
+    with pytest.raises(GaroInputError, match=message) as err:
+        _config(root).check_data()
+    assert "\n" not in str(err.value)
+
+
+def test_ns_train_real_reads_a_processed_video_and_stops_cleanly_on_a_bad_one(tmp_path):
+    """The user's second command, as typed: the -real method finds the layout itself. A folder whose frames
+    COLMAP could not pose stops it with one line, before any run folder is made."""
+    root = make_folder(tmp_path / "v", n=10, posed=[1, 2, 5, 9], downscales=1)
+    out = tmp_path / "outputs"
+    cmd = [sys.executable, "-m", "nerfstudio.scripts.train", "garo-deform-real", "--data", str(root)]
+    cmd += ["--machine.device-type", "cpu", "--output-dir", str(out), "--vis", "tensorboard"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    text = proc.stdout + proc.stderr
+    assert proc.returncode != 0, text[-2000:]
+    last = [line for line in proc.stderr.splitlines() if line.strip()][-1]
+    assert last.startswith("error: ") and "COLMAP posed only 4 of the 10 frames" in last, text[-2000:]
+    assert "Traceback" not in text and "Saving config" not in text
+    assert not out.exists() or not any(out.rglob("*"))
+
+
+def test_pose_check_prints_the_counts_and_draws_the_path(tmp_path, capsys):
+    from garo_ns.tools.poses import main
+
+    root = make_folder(tmp_path / "v", n=12, posed=[k for k in range(1, 13) if k != 6], downscales=1)
+    assert main([str(root), str(tmp_path / "path.png")]) == 0
+    said = capsys.readouterr().out
+    assert "11 of 12 frames posed (1 left out); 10 train, 1 held out" in said
+    assert Image.open(tmp_path / "path.png").width > 300
+    (root / "transforms.json").unlink()
+    assert main([str(root), str(tmp_path / "bad.png")]) == 1
+    assert "COLMAP posed none of the 12 frames" in capsys.readouterr().err
