@@ -325,12 +325,12 @@ def demo_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     if data is None:
         return f"\nThe demo has not been timed yet (`benchmarks/results/{DEMO_FILE}`).\n"
     measured = data["measured"]
-    idle = measured["load_average_before"][0] <= measured["cpu_count"]  # the last minute before the start
+    load = _load_words(measured)
     largest_gb = max(a["peak_rss_mb"] for a in data["arms"]) / 1024
     lines = [
         "",
         f"Measured by `python benchmarks/demo_measure.py` ({_link(path, readme_dir)}) on "
-        f"{'an otherwise idle' if idle else 'a shared'} {measured['cpu_count']}-core CPU: "
+        f"a {measured['cpu_count']}-core CPU ({load}): "
         f"{measured['time_v_elapsed_s'] / 60:.1f} minutes ({measured['time_v_elapsed_s']:.0f} s) for "
         f"`bash scripts/demo.sh` once installed, peak memory {largest_gb:.1f} GB "
         f"in the largest process ({data['peak_rss_mb'] / 1024:.1f} GB summed over the processes), and:",
@@ -346,16 +346,24 @@ def demo_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     return "\n".join(lines + [""])
 
 
+def _load_words(measured: Dict[str, Any]) -> str:
+    """The machine's load before a timed run, as the file recorded it: the 1-minute load average at the start (the
+    run's own load is in the one after it, so only the one before tells whether other work shared the cores)."""
+    before = measured["load_average_before"][0]
+    shared = before > measured["cpu_count"]
+    return f"1-minute load average {before:.1f} at the start{', shared with other work' if shared else ''}"
+
+
 def tests_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     """How long the test command took, from benchmarks/test_time.py's result file."""
     path, data = _load(results, TESTS_FILE)
     if data is None:
         return f"\nThe test command has not been timed yet (`benchmarks/results/{TESTS_FILE}`).\n"
-    idle = data["load_average_before"][0] <= data["cpu_count"]
+    load = _load_words(data)
     counts = ", ".join(f"{n} {kind}" for kind, n in data["counts"].items())
     return (
         f"\n`bash scripts/test.sh` took {data['wall_seconds'] / 60:.0f} minutes on "
-        f"{'an otherwise idle' if idle else 'a shared'} {data['cpu_count']}-core CPU with `.venv` already installed "
+        f"a {data['cpu_count']}-core CPU ({load}) with `.venv` already installed "
         f"({counts}; commit {data['git_commit']}; the slowest tests are listed in {_link(path, readme_dir)}, "
         "written by `python benchmarks/test_time.py`).\n"
     )

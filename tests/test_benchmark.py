@@ -78,6 +78,7 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
         "render_precision": "fp32",
         "cuda_graph": True,
         "lean_raster": True,
+        "time_table": False,
         "static_threshold": default,
         "storage_fp16": True,
     }
@@ -86,6 +87,7 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
         "render_precision": "fp32",
         "cuda_graph": False,
         "lean_raster": False,
+        "time_table": False,
         "static_threshold": default,
         "storage_fp16": False,
     }

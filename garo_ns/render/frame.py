@@ -152,6 +152,11 @@ class FramePath:
         self._deformed = (cache_key, out) if settings.cache_deformation else None
         return out
 
+    @property
+    def table(self) -> Optional[TimeTable]:
+        """The time table built last (None before any, or when it could not be built)."""
+        return self._table[1] if self._table is not None else None
+
     def time_table(self, field: DeformationField, canonical: Canonical, spec: TableSpec) -> Optional[TimeTable]:
         """The table of `spec` for these parameters, built on first use (and again when they change); None
         when it cannot be built (out of memory, ...): the reason is in `table_info` and the network renders."""
