@@ -60,20 +60,15 @@ def main() -> None:
         gt = torch.stack(images).to(model.device)
         times = torch.unique(torch.as_tensor(read_split(args.scene, "train")[2], dtype=torch.float32))
 
+        @torch.no_grad()
         def renders() -> torch.Tensor:
-            with torch.no_grad():
-                return torch.stack(
-                    [
-                        model.get_outputs_for_camera(cameras[i : i + 1].to(model.device))["rgb"]
-                        for i in range(len(images))
-                    ]
-                )
+            views = [cameras[i : i + 1].to(model.device) for i in range(len(images))]
+            return torch.stack([model.get_outputs_for_camera(view)["rgb"] for view in views])
 
         plain = renders()
         rows = {"network": {"fps": measure_fps(model, cameras)["fps"]}}
         cfg.time_table = True
-        budget = args.budget_mb or cfg.time_table_budget_mb
-        cfg.time_table_budget_mb = budget
+        cfg.time_table_budget_mb = args.budget_mb or cfg.time_table_budget_mb
         for tol, precision, keys in [
             (t, p, k) for t in args.tolerances for p in args.precisions for k in args.keys_per_frame
         ]:
