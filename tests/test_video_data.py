@@ -22,6 +22,7 @@ import garo_ns.config  # noqa: F401  (registers the methods and installs the plu
 from garo_ns.data.nerfds import NerfDSDataParserConfig, load_capture
 from garo_ns.data.video import frame_number, read_ply_points
 from garo_ns.errors import GaroInputError
+from garo_ns.tools.scene import look_at_c2w
 from garo_ns.tools.scene_video import path_error
 
 W, H = 24, 16
@@ -32,14 +33,7 @@ def _pose(k: int) -> np.ndarray:
     """A camera on an arc, looking at the origin (OpenGL camera-to-world), in some arbitrary world frame."""
     a = 0.2 * k
     position = np.array([3 * math.cos(a), 3 * math.sin(a), 1.0 + 0.1 * k]) * 7.0 + [5.0, -2.0, 1.0]
-    forward = np.array([5.0, -2.0, 1.0]) - position
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    up = np.cross(right, forward)
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, up, -forward, position
-    return c2w
+    return look_at_c2w(position, target=(5.0, -2.0, 1.0))
 
 
 def make_folder(

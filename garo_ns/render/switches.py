@@ -349,18 +349,14 @@ class SwitchDecision:
         render: Callable[[int, Optional[FrameSettings]], Tensor],
         targets: Sequence[Tensor],
         step: int,
-        table: Optional[Dict[str, Any]] = None,
     ) -> str:
         """Measure on training views how much each approximate switch left to the plugin changes the
         plain render (`render` and `targets` as in `measure_on_views`), keep it as the record, and
-        return the line to tell the user. `table`: what the time table measured was (its spec and build
-        information), kept with the record."""
+        return the line to tell the user."""
         measure = measure_on_views(render, targets)
         requested, bound = config.requested_switches(), config.switch_bound_db
         tried = resolve(requested, False, config.renders_on_cuda(device), measure, bound_db=bound)[1]
         self.record = {"step": step, "views": len(targets), "tried": tried, "measure": MEASURE_VERSION}
-        if table is not None:
-            self.record[TABLE] = table
         losses = ", ".join(f"{k} {v:.4f} dB" for k, v in tried.items()) or "none left to the plugin"
         return f"Render switches on {len(targets)} training views (worst change against plain): {losses}"
 
@@ -411,7 +407,7 @@ class SwitchDecision:
                     ladder[str(candidate.intervals)] = probe(FrameSettings(time_table=True))
                     if ladder[str(candidate.intervals)] <= cfg.switch_bound_db:
                         break
-            line = self.measure(cfg, model.device, render, targets, step, None)
+            line = self.measure(cfg, model.device, render, targets, step)
             built = model.frame.table_info
             if self.record is not None and cfg.time_table is None:
                 entry = {"spec": built["spec"], "info": built} if spec and built else {"off": why}

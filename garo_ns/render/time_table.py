@@ -168,10 +168,10 @@ class TimeTable:
         moving: Tensor,
         network: Tensor,
         info: Dict[str, Any],
-        codec: Optional[Codec] = None,
+        codec: Codec,
     ) -> None:
         self.spec = spec
-        self.codec = codec if codec is not None else Codec(str(residual.dtype).split(".")[-1].replace("float", "fp"))
+        self.codec = codec
         self.base = base  # [N, 10] fp32: mean offsets (what a Gaussian that does not move keeps)
         self.residual = residual  # [K, M, 10]: keys less the mean, moving Gaussians only
         self.moving = moving  # [M] indices into the Gaussians
