@@ -237,6 +237,9 @@ def save_atomically(state: Dict[str, Any], folder: Path, step: int, keep_only_la
 def _trainer_save_checkpoint(self: Any, step: int) -> None:
     """Trainer.save_checkpoint with nerfstudio 1.1.5's content, written crash-safe."""
     pipeline = self.pipeline.module if hasattr(self.pipeline, "module") else self.pipeline
+    watch = getattr(pipeline.model, "loss_watch", None)
+    if watch is not None:  # a non-finite loss since the last check stops training before it can be saved
+        watch.check()
     state = {
         "step": step,
         "pipeline": pipeline.state_dict(),

@@ -17,6 +17,10 @@ views before it removes, within `--pipeline.model.compact-round-bound-db` per ro
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Iterable
+
+import torch
 from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanagerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
@@ -24,6 +28,7 @@ from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
+from torch.nn import Parameter
 
 from garo_ns import compat
 from garo_ns.data.dnerf import GaroDNeRFDataParserConfig
@@ -37,24 +42,35 @@ REAL_ITERATIONS = 20_000
 SPATIAL_LR_SCALE = 5.0  # D-3DGS's fixed `spatial_lr_scale` (gaussian_model.py, deform_model.py)
 
 
+@dataclass
+class AdamConfig(AdamOptimizerConfig):
+    """nerfstudio's Adam, fused (one kernel per parameter group) where its parameters are on CUDA: the same update
+    as the multi-tensor path that nerfstudio uses, with far less host time in each step's eight updates."""
+
+    def setup(self, params: Iterable[Parameter]) -> torch.optim.Optimizer:
+        params = list(params)
+        fused = bool(params) and all(p.is_cuda for p in params)
+        return torch.optim.Adam(params, lr=self.lr, eps=self.eps, weight_decay=self.weight_decay, fused=fused or None)
+
+
 def optimizers(max_steps: int = ITERATIONS, spatial: float = SPATIAL_LR_SCALE) -> dict:
     """D-3DGS's optimizers and schedules, as nerfstudio optimizer configs."""
     return {
         "means": {
-            "optimizer": AdamOptimizerConfig(lr=1.6e-4 * spatial, eps=1e-15),
+            "optimizer": AdamConfig(lr=1.6e-4 * spatial, eps=1e-15),
             "scheduler": ExponentialDecaySchedulerConfig(lr_final=1.6e-6 * spatial, max_steps=30_000),
         },
         "deformation": {
-            "optimizer": AdamOptimizerConfig(lr=1.6e-4 * spatial, eps=1e-15),
+            "optimizer": AdamConfig(lr=1.6e-4 * spatial, eps=1e-15),
             "scheduler": ExponentialDecaySchedulerConfig(lr_final=1.6e-6, max_steps=max_steps),
         },
-        "features_dc": {"optimizer": AdamOptimizerConfig(lr=0.0025, eps=1e-15), "scheduler": None},
-        "features_rest": {"optimizer": AdamOptimizerConfig(lr=0.0025 / 20, eps=1e-15), "scheduler": None},
-        "opacities": {"optimizer": AdamOptimizerConfig(lr=0.05, eps=1e-15), "scheduler": None},
-        "scales": {"optimizer": AdamOptimizerConfig(lr=0.001 * spatial, eps=1e-15), "scheduler": None},
-        "quats": {"optimizer": AdamOptimizerConfig(lr=0.001, eps=1e-15), "scheduler": None},
+        "features_dc": {"optimizer": AdamConfig(lr=0.0025, eps=1e-15), "scheduler": None},
+        "features_rest": {"optimizer": AdamConfig(lr=0.0025 / 20, eps=1e-15), "scheduler": None},
+        "opacities": {"optimizer": AdamConfig(lr=0.05, eps=1e-15), "scheduler": None},
+        "scales": {"optimizer": AdamConfig(lr=0.001 * spatial, eps=1e-15), "scheduler": None},
+        "quats": {"optimizer": AdamConfig(lr=0.001, eps=1e-15), "scheduler": None},
         "camera_opt": {
-            "optimizer": AdamOptimizerConfig(lr=1e-4, eps=1e-15),
+            "optimizer": AdamConfig(lr=1e-4, eps=1e-15),
             "scheduler": ExponentialDecaySchedulerConfig(lr_final=5e-7, max_steps=max_steps),
         },
     }

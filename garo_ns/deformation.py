@@ -86,7 +86,11 @@ class DeformationField(nn.Module):
     def encode(self, xyz: Tensor, time: Tensor | float) -> Tensor:
         """The MLP's input [N, F]: positional encodings of `xyz` [N, 3] and of `time` (a scalar, or one
         per point [N, 1]), the latter through the time network when there is one."""
-        t = torch.as_tensor(time, dtype=xyz.dtype, device=xyz.device)
+        # A number is filled in on the device: a tensor made from it on the host is a copy that waits for the GPU.
+        if isinstance(time, Tensor):
+            t = time.to(dtype=xyz.dtype, device=xyz.device)
+        else:
+            t = torch.full((1, 1), float(time), dtype=xyz.dtype, device=xyz.device)
         t_enc = positional_encoding(t.reshape(-1, 1), self.time_freqs, self.time_bands)
         if self.time_net is not None:
             t_enc = self.time_net(t_enc)
@@ -224,6 +228,9 @@ class DeformationSettings:
     """Step at which the time-input noise reaches 0."""
     default_time: float = 0.0
     """Time used for cameras that carry none (e.g. some viewer and render paths); warned once."""
+    deform_train_tf32: bool = True
+    """Training on CUDA: the matrix products (the deformation MLP's, forward and backward) take TF32 inputs
+    (10-bit mantissa, fp32 sums) on tensor cores; rendering, evaluation and the CPU stay exact fp32."""
 
     def make_deformation(self) -> DeformationField:
         """The deformation field these settings describe (untrained)."""

@@ -28,9 +28,9 @@ from garo_ns.compaction.guard import TrainingViewGuard
 from garo_ns.compaction.schedule import CompactionSettings, last_training_step
 from garo_ns.compaction.training import fixed_ratio_round, run_round
 from garo_ns.deformation import DeformationSettings, collapse_warning, health_check, health_due, time_noise
-from garo_ns.errors import GaroTrainingError
 from garo_ns.garo_strategy import GaroSettings, GaroStrategy, garo_scalars
 from garo_ns.initialisation import initial_gaussians
+from garo_ns.losses import NonFiniteWatch, psnr, step_losses
 from garo_ns.metrics import image_metrics, metric_modules
 from garo_ns.recipe import D3dgsRecipe
 from garo_ns.render.backend import Backend
@@ -82,6 +82,10 @@ class GaroModel(SplatfactoModel):
         self.deformation = cfg.make_deformation()
         self.camera_optimizer = cfg.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu")
         self.psnr, self.ssim, lpips = metric_modules()
+        self.loss_watch = NonFiniteWatch()
+        # Training cameras as the datamanager keeps them (on the host): a step reads its camera's numbers there.
+        self.step_cameras: Optional[Cameras] = None
+        self.step_camera_numbers: Dict[Tuple[int, float], Any] = {}
         self._lpips = [lpips]  # out of the module tree: LPIPS may be absent, checkpoints must not need it
         self.step = 0
         self.crop_box = None
@@ -147,6 +151,7 @@ class GaroModel(SplatfactoModel):
         """The strategy (densification, GARO, contribution pruning, compaction), then the static
         classification, then the deformation field's health check."""
         cfg = self.config
+        torch.backends.cuda.matmul.allow_tf32 = False  # the step's products are done (see get_outputs)
         self.strategy.step_post_backward(self.gauss_params, self.optimizers, self.strategy_state, step, self.info)
         for name, value in garo_scalars(self.strategy_state, step).items():
             writer.put_scalar(name=name, scalar=value, step=step)
@@ -235,7 +240,7 @@ class GaroModel(SplatfactoModel):
         """`camera` (one) as the rasterizer takes it, at this step's resolution and the camera's time
         (`default_time`, warned once, when it has none); `c2w` replaces its pose (the camera
         optimizer's correction during training)."""
-        numbers = camera_numbers(camera, self._get_downscale_factor())
+        numbers = self.training_camera_numbers(camera) or camera_numbers(camera, self._get_downscale_factor())
         time = numbers[3]
         if time is None:
             if not self._warned_no_time:
@@ -246,6 +251,17 @@ class GaroModel(SplatfactoModel):
             time = float(self.config.default_time)
         c2w = camera.camera_to_worlds if c2w is None else c2w
         return camera_view(camera, c2w, self._get_downscale_factor(), self.device, time, numbers)
+
+    def training_camera_numbers(self, camera: Cameras) -> Optional[Tuple[Any, ...]]:
+        """`camera_numbers` of a training step's camera read from the host copy it was made from (None for any
+        other camera): reading the device copy would make every step wait for the GPU."""
+        idx = (camera.metadata or {}).get("cam_idx") if self.training else None
+        if idx is None or self.step_cameras is None or not 0 <= int(idx) < self.step_cameras.shape[0]:
+            return None
+        key = (int(idx), float(self._get_downscale_factor()))
+        if key not in self.step_camera_numbers:
+            self.step_camera_numbers[key] = camera_numbers(self.step_cameras[key[0] : key[0] + 1], key[1])
+        return self.step_camera_numbers[key]
 
     def render(
         self,
@@ -269,6 +285,9 @@ class GaroModel(SplatfactoModel):
             raise TypeError(f"get_outputs needs a Cameras object, got {type(camera).__name__}")
         if camera.shape[0] != 1:
             raise ValueError(f"renders one camera at a time, got {camera.shape[0]}")
+        # cuBLAS reads this flag when each product runs, the backward's included: on from a training step's forward
+        # until its update is done (after_iteration), off for every other render.
+        torch.backends.cuda.matmul.allow_tf32 = self.training and self.config.deform_train_tf32
         c2w = self.camera_optimizer.apply_to_camera(camera) if self.training else camera.camera_to_worlds
         view = self.camera_view(camera, c2w)
         splats = self.gaussians_at(view.time)
@@ -289,12 +308,35 @@ class GaroModel(SplatfactoModel):
         return camera_outputs(render, alpha, background, render_mode == "RGB+ED", self.training)
 
     # ------------------------------------------------------------------ losses and metrics
+    def ground_truth(self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]) -> Tensor:
+        """The batch's image at the render's resolution, composited on the render's background [H, W, 3]."""
+        return self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
+
+    def get_metrics_dict(self, outputs, batch) -> Dict[str, Any]:
+        metrics: Dict[str, Any] = {"psnr": psnr(outputs["rgb"], self.ground_truth(outputs, batch))}
+        if self.training:
+            self.camera_optimizer.get_metrics_dict(metrics)
+        metrics["gaussian_count"] = self.num_points
+        return metrics
+
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, Tensor]:
-        losses = super().get_loss_dict(outputs, batch, metrics_dict)
-        if self.training and not bool(torch.isfinite(losses["main_loss"])):
-            raise GaroTrainingError(
-                f"non-finite loss at step {self.step}; training stopped, earlier checkpoints are kept"
-            )
+        """Splatfacto's losses (garo_ns.losses: the same terms, no wait for the GPU); a non-finite loss stops
+        training (`loss_watch`)."""
+        cfg = self.config
+        mask = self._downscale_if_required(batch["mask"]).to(self.device) if "mask" in batch else None
+        regularise = cfg.use_scale_regularization and self.step % 10 == 0
+        losses = step_losses(
+            self.ground_truth(outputs, batch),
+            outputs["rgb"],
+            self.ssim,
+            cfg.ssim_lambda,
+            mask,
+            self.scales if regularise else None,
+            cfg.max_gauss_ratio,
+        )
+        if self.training:
+            self.camera_optimizer.get_loss_dict(losses)
+            self.loss_watch.observe(losses["main_loss"], self.step)
         return losses
 
     def get_image_metrics_and_images(

@@ -137,13 +137,41 @@ class GaroStrategy(DefaultStrategy):
 
     def gradient_norms(self, params: Params, info: Dict[str, Any], packed: bool = False) -> Tuple[Tensor, Tensor]:
         """This iteration's NDC view-space gradient norm of each Gaussian, summed over the cameras
-        that see it, and how many saw it ([N] each): gsplat's own densification update, run on a
-        scratch state, so the normalisation is gsplat's and exists once."""
+        that see it, and how many saw it ([N] each): the densification update (`_update_state`) run
+        on a scratch state, so the normalisation exists once."""
         if getattr(info["means2d"], "absgrad" if self.absgrad else "grad", None) is None:
             raise ValueError("info['means2d'] has no gradient: call retain_grad() before backward")
         scratch: Dict[str, Any] = {"grad2d": None, "count": None, "radii": None}
-        super()._update_state(params, scratch, info, packed)
+        self._update_state(params, scratch, info, packed)
         return scratch["grad2d"], scratch["count"]
+
+    def _update_state(self, params: Params, state: Dict[str, Any], info: Dict[str, Any], packed: bool = False) -> None:
+        """gsplat's densification record (gradient-norm sums, visibility counts, largest screen radius) with the
+        same normalisation, computed densely over [C, N] for unpacked renders: gsplat selects the visible
+        Gaussians with boolean indexing, which waits for the GPU three times every training step."""
+        if packed:
+            super()._update_state(params, state, info, packed)
+            return
+        for key in ("width", "height", "n_cameras", "radii", self.key_for_gradient):
+            if key not in info:
+                raise KeyError(f"info['{key}'] is required by the densification record")
+        raw = getattr(info[self.key_for_gradient], "absgrad" if self.absgrad else "grad")
+        # To [-1, 1] screen units per camera, as gsplat does (a product per axis: no host-built tensor).
+        gx = raw[..., 0] * (info["width"] / 2.0 * info["n_cameras"])
+        gy = raw[..., 1] * (info["height"] / 2.0 * info["n_cameras"])
+        visible = info["radii"] > 0  # [C, N]
+        norms = torch.where(visible, torch.hypot(gx, gy), torch.zeros_like(gx))
+        n, dev = len(params["means"]), raw.device
+        for key in ("grad2d", "count"):
+            if state[key] is None:
+                state[key] = torch.zeros(n, device=dev)
+        state["grad2d"] += norms.sum(0)
+        state["count"] += visible.sum(0).to(state["count"].dtype)
+        if self.refine_scale2d_stop_iter > 0:
+            if state["radii"] is None:
+                state["radii"] = torch.zeros(n, device=dev)
+            screen = torch.where(visible, info["radii"] / float(max(info["width"], info["height"])), 0.0)
+            state["radii"] = torch.maximum(state["radii"], screen.amax(0))
 
     def update_activity(self, params: Params, state: Dict[str, Any], info: Dict[str, Any], packed: bool) -> None:
         """Add this iteration's gradient norms of the visible Gaussians to the activity record."""

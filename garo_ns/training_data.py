@@ -21,6 +21,10 @@ def adopt_training_data(model: Any, pipeline: Any) -> None:
     if outputs is None:
         return
     model.train_cameras = outputs.cameras
+    step_cameras = getattr(pipeline.datamanager, "train_cameras", None)  # each step's camera is a copy of one
+    if step_cameras is not None and step_cameras.camera_to_worlds.device.type == "cpu":
+        model.step_cameras = step_cameras
+        model.step_camera_numbers.clear()
     if outputs.cameras.times is not None:
         model.train_times = torch.unique(outputs.cameras.times.detach().reshape(-1).float().cpu())
     alpha = outputs.alpha_color

@@ -1,0 +1,87 @@
+"""The training loss and metric of one step, computed without waiting for the GPU.
+
+Splatfacto's loss (L1 and SSIM, optionally its scale regulariser) and its training PSNR, written so that a step
+on CUDA never copies to or from the host: splatfacto builds host tensors for the zero regulariser and torchmetrics
+counts pixels in a host-built tensor, and each of these waits for the GPU to finish its queue. A non-finite loss
+still stops training before a checkpoint can keep it (`NonFiniteWatch`).
+"""
+
+from __future__ import annotations
+
+from typing import Dict, Optional
+
+import torch
+from torch import Tensor
+
+from garo_ns.errors import GaroTrainingError
+from garo_ns.ssim import SSIM
+
+
+def image_loss(gt: Tensor, pred: Tensor, ssim: SSIM, ssim_lambda: float) -> Tensor:
+    """(1 - lambda) L1 + lambda (1 - SSIM) of two [H, W, 3] images, splatfacto's `main_loss`."""
+    l1 = torch.abs(gt - pred).mean()
+    similarity = ssim(gt.permute(2, 0, 1)[None], pred.permute(2, 0, 1)[None])
+    return (1 - ssim_lambda) * l1 + ssim_lambda * (1 - similarity)
+
+
+def scale_regularisation(log_scales: Tensor, max_ratio: float) -> Tensor:
+    """Splatfacto's scale regulariser: 0.1 x the mean excess of each Gaussian's largest-to-smallest scale ratio
+    over `max_ratio`."""
+    scales = torch.exp(log_scales)
+    return 0.1 * torch.clamp_min(scales.amax(dim=-1) / scales.amin(dim=-1) - max_ratio, 0.0).mean()
+
+
+def psnr(pred: Tensor, gt: Tensor) -> Tensor:
+    """PSNR in dB of `pred` against `gt` for values in [0, 1] (a tensor on their device)."""
+    return -10.0 * torch.log10(torch.mean((pred - gt) ** 2))
+
+
+class NonFiniteWatch:
+    """Stops training on a non-finite loss: on the CPU at the step itself; on CUDA the first such step is kept on the
+    device and read every `every` steps and before every checkpoint (`check`), so that no step waits for the GPU.
+    Steps after it train on NaN, but nothing of them is saved: the error names the step where it began."""
+
+    def __init__(self, every: int = 50) -> None:
+        self.every = max(int(every), 1)
+        self.first_bad: Optional[Tensor] = None
+
+    def observe(self, loss: Tensor, step: int) -> None:
+        bad = ~torch.isfinite(loss.detach())
+        if not loss.is_cuda:
+            if bool(bad):
+                raise self.error(step)
+            return
+        if self.first_bad is None:
+            self.first_bad = torch.full((), -1, dtype=torch.int64, device=loss.device)
+        self.first_bad = torch.where(bad & (self.first_bad < 0), step, self.first_bad)
+        if step % self.every == 0:
+            self.check()
+
+    def check(self) -> None:
+        """Raise if a step since the last check had a non-finite loss (one read of the device)."""
+        if self.first_bad is not None:
+            first = int(self.first_bad)
+            self.first_bad = None
+            if first >= 0:
+                raise self.error(first)
+
+    @staticmethod
+    def error(step: int) -> GaroTrainingError:
+        return GaroTrainingError(f"non-finite loss at step {step}; training stopped, earlier checkpoints are kept")
+
+
+def step_losses(
+    gt: Tensor,
+    pred: Tensor,
+    ssim: SSIM,
+    ssim_lambda: float,
+    mask: Optional[Tensor] = None,
+    log_scales: Optional[Tensor] = None,
+    max_ratio: float = 10.0,
+) -> Dict[str, Tensor]:
+    """`main_loss` and `scale_reg` of one view as splatfacto defines them; `mask` [H, W, 1] blacks out both images
+    where it is 0; `log_scales` given: the scale regulariser is added (else a zero on the images' device)."""
+    if mask is not None:
+        gt, pred = gt * mask, pred * mask
+    reg = torch.zeros((), device=pred.device) if log_scales is None else scale_regularisation(log_scales, max_ratio)
+    return {"main_loss": image_loss(gt, pred, ssim, ssim_lambda), "scale_reg": reg}
