@@ -41,13 +41,14 @@ class NonFiniteWatch:
     device and read every `every` steps and before every checkpoint (`check`), so that no step waits for the GPU.
     Steps after it train on NaN, but nothing of them is saved: the error names the step where it began."""
 
-    def __init__(self, every: int = 50) -> None:
+    def __init__(self, every: int = 50, defer: Optional[bool] = None) -> None:
         self.every = max(int(every), 1)
+        self.defer = defer  # None: on CUDA only (a read on the CPU waits for nothing)
         self.first_bad: Optional[Tensor] = None
 
     def observe(self, loss: Tensor, step: int) -> None:
         bad = ~torch.isfinite(loss.detach())
-        if not loss.is_cuda:
+        if not (loss.is_cuda if self.defer is None else self.defer):
             if bool(bad):
                 raise self.error(step)
             return

@@ -21,7 +21,9 @@ def adopt_training_data(model: Any, pipeline: Any) -> None:
     if outputs is None:
         return
     model.train_cameras = outputs.cameras
-    step_cameras = getattr(pipeline.datamanager, "train_cameras", None)  # each step's camera is a copy of one
+    # Each training step's camera is a device copy of one of the dataset's cameras, which stay on the host (the
+    # datamanager's own `train_cameras` may be on the device already).
+    step_cameras = getattr(getattr(pipeline.datamanager, "train_dataset", None), "cameras", None)
     if step_cameras is not None and step_cameras.camera_to_worlds.device.type == "cpu":
         model.step_cameras = step_cameras
         model.step_camera_numbers.clear()

@@ -31,7 +31,7 @@ cp -r garo_ns "$work/"
 find "$work/garo_ns" -name __pycache__ -prune -exec rm -rf {} +
 cp pyproject.toml "$work/"  # pytest's settings; it has no [tool.mutmut], so setup.cfg below is read
 tests=(tests/test_redundancy_stages.py tests/test_redundancy_strategy.py tests/test_garo_strategy.py
-  tests/test_compaction.py tests/test_model_settings.py)
+  tests/test_compaction.py tests/test_model_settings.py tests/test_training_step.py)
 cp tests/conftest.py "${tests[@]}" "$work/tests/"
 cp -r tests/data "$work/tests/"  # the settings snapshot and the old config.yml
 cat > "$work/setup.cfg" << EOF

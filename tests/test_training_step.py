@@ -1,0 +1,287 @@
+"""A training step without host waits keeps splatfacto's and gsplat's numbers: the SSIM in grouped convolutions, the
+loss and PSNR without host tensors, the densification record computed densely, the non-finite-loss watch read
+later, the step cameras read from the host copy, fused Adam where it can run, and TF32 products only inside a
+training step (emulated here: the CPU has no TF32)."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import pytest
+import torch
+from gsplat.strategy import DefaultStrategy
+from nerfstudio.models.splatfacto import SSIM as SplatfactoSSIM
+
+from garo_ns.errors import GaroTrainingError
+from garo_ns.garo_strategy import GaroStrategy
+from garo_ns.losses import NonFiniteWatch, psnr, scale_regularisation, step_losses
+from garo_ns.ssim import SSIM
+
+
+def _pair(shape, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(shape, generator=g)
+    return x, (x + 0.2 * torch.randn(shape, generator=g)).clamp(0, 1)
+
+
+@pytest.mark.parametrize("shape", [(1, 3, 64, 80), (2, 3, 33, 17), (1, 3, 9, 40), (1, 1, 12, 12)])
+def test_ssim_is_splatfactos_value_and_gradient(shape):
+    """Splatfacto's SSIM (pytorch_msssim) to float rounding: value within 1e-6, gradient within 1e-6 of its
+    largest entry; a height under the window (9 < 11) is blurred along the width only, as pytorch_msssim does."""
+    x, y = _pair(shape)
+    x.requires_grad_(True)
+    ref = SplatfactoSSIM(data_range=1.0, size_average=True, channel=shape[1])
+    with pytest.warns(UserWarning) if shape[2] < 11 else _no_warning():
+        want = ref(x, y)
+    got = SSIM(data_range=1.0)(x, y)
+    assert abs(float(got) - float(want)) < 1e-6
+    (g_want,) = torch.autograd.grad(want, x)
+    (g_got,) = torch.autograd.grad(got, x)
+    assert (g_got - g_want).abs().max() <= 1e-6 * g_want.abs().max() + 1e-12
+
+
+class _no_warning:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+def test_ssim_refuses_images_of_two_shapes():
+    with pytest.raises(ValueError, match="one shape"):
+        SSIM()(torch.rand(1, 3, 20, 20), torch.rand(1, 3, 20, 21))
+
+
+def test_step_losses_are_splatfactos_terms():
+    gt, pred = (t[0].permute(1, 2, 0) for t in _pair((1, 3, 40, 48), seed=1))
+    mask = (torch.rand(40, 48, 1, generator=torch.Generator().manual_seed(2)) > 0.3).float()
+    lam = 0.2
+    losses = step_losses(gt, pred, SSIM(), lam, mask)
+    gm, pm = gt * mask, pred * mask
+    ssim = SplatfactoSSIM(data_range=1.0, size_average=True, channel=3)(
+        gm.permute(2, 0, 1)[None], pm.permute(2, 0, 1)[None]
+    )
+    want = (1 - lam) * (gm - pm).abs().mean() + lam * (1 - ssim)
+    assert abs(float(losses["main_loss"]) - float(want)) < 1e-6
+    assert float(losses["scale_reg"]) == 0.0
+
+
+def test_scale_regularisation_is_splatfactos():
+    log_scales = torch.log(torch.tensor([[1.0, 1.0, 1.0], [1.0, 20.0, 1.0], [0.1, 0.1, 3.0]]))
+    # splatfacto: 0.1 * mean(max(ratio, r) - r) with ratio = largest / smallest scale
+    ratio = torch.tensor([1.0, 20.0, 30.0])
+    want = 0.1 * (torch.maximum(ratio, torch.tensor(10.0)) - 10.0).mean()
+    assert torch.allclose(scale_regularisation(log_scales, 10.0), want, rtol=1e-5)
+
+
+def test_psnr_is_torchmetrics():
+    from torchmetrics.image import PeakSignalNoiseRatio
+
+    pred, gt = _pair((24, 30, 3), seed=3)
+    assert abs(float(psnr(pred, gt)) - float(PeakSignalNoiseRatio(data_range=1.0)(pred, gt))) < 1e-4
+
+
+def test_the_watch_stops_at_the_step_itself_on_the_cpu():
+    watch = NonFiniteWatch(every=50)
+    watch.observe(torch.tensor(0.5), 24)
+    with pytest.raises(GaroTrainingError, match="non-finite loss at step 25"):
+        watch.observe(torch.tensor(math.nan), 25)
+
+
+def test_the_deferred_watch_names_the_first_bad_step_when_it_reads():
+    watch = NonFiniteWatch(every=10, defer=True)
+    for step in range(1, 7):
+        watch.observe(torch.tensor(1.0), step)
+    watch.observe(torch.tensor(math.inf), 7)  # not read yet: no step waits for the device
+    watch.observe(torch.tensor(math.nan), 8)
+    watch.observe(torch.tensor(1.0), 9)
+    with pytest.raises(GaroTrainingError, match="non-finite loss at step 7;"):
+        watch.observe(torch.tensor(1.0), 10)
+    watch.observe(torch.tensor(1.0), 11)
+    watch.check()  # a fresh window: nothing since
+
+
+def test_a_checkpoint_is_not_written_after_an_unread_non_finite_loss(tmp_path):
+    from garo_ns.checkpoints import _trainer_save_checkpoint
+
+    watch = NonFiniteWatch(every=1000, defer=True)
+    watch.observe(torch.tensor(math.nan), 3)
+    model = torch.nn.Linear(2, 2)
+    model.loss_watch = watch
+    trainer = SimpleNamespace(
+        pipeline=SimpleNamespace(model=model, state_dict=model.state_dict),
+        optimizers=SimpleNamespace(optimizers={}, schedulers={}),
+        grad_scaler=torch.amp.GradScaler("cpu", enabled=False),
+        checkpoint_dir=tmp_path,
+        config=SimpleNamespace(save_only_latest_checkpoint=True),
+    )
+    with pytest.raises(GaroTrainingError, match="step 3"):
+        _trainer_save_checkpoint(trainer, 4)
+    assert list(tmp_path.iterdir()) == []
+    _trainer_save_checkpoint(trainer, 5)  # read and cleared: the next checkpoint is written
+    assert len(list(tmp_path.iterdir())) == 1
+
+
+def _info(c, n, seed=0, packed=False):
+    g = torch.Generator().manual_seed(seed)
+    means2d = torch.zeros(c, n, 2, requires_grad=True)
+    means2d.grad = torch.randn(c, n, 2, generator=g) * 1e-3
+    radii = (torch.rand(c, n, generator=g) * 30).int() * (torch.rand(c, n, generator=g) > 0.4)
+    means2d.grad[radii == 0] = torch.nan  # an invisible Gaussian's gradient must not count
+    return {"width": 64, "height": 48, "n_cameras": c, "radii": radii, "means2d": means2d, "gaussian_ids": None}
+
+
+@pytest.mark.parametrize("cameras", [1, 3])
+@pytest.mark.parametrize("scale2d", [0, 100])
+def test_the_dense_densification_record_is_gsplats(cameras, scale2d):
+    """Sums, counts and the largest screen radius (over cameras) as gsplat's boolean-indexed update gives them,
+    accumulated over two steps; NaN gradients of unseen Gaussians stay out."""
+    n = 50
+    params = {"means": torch.zeros(n, 3)}
+    ours = GaroStrategy(refine_scale2d_stop_iter=scale2d)
+    theirs = DefaultStrategy(refine_scale2d_stop_iter=scale2d)
+    s_ours = {"grad2d": None, "count": None, "radii": None}
+    s_theirs = {"grad2d": None, "count": None, "radii": None}
+    for seed in (0, 1):
+        info = _info(cameras, n, seed)
+        ours._update_state(params, s_ours, info)
+        theirs._update_state(params, s_theirs, info)
+    assert torch.isfinite(s_ours["grad2d"]).all()
+    assert torch.allclose(s_ours["grad2d"], s_theirs["grad2d"], rtol=1e-6, atol=0)
+    assert torch.equal(s_ours["count"], s_theirs["count"])
+    if scale2d:
+        # gsplat writes the last camera's radius where several cameras see a Gaussian; the record is the largest
+        want = torch.zeros(n)
+        for seed in (0, 1):
+            info = _info(cameras, n, seed)
+            want = torch.maximum(want, (info["radii"].float() / 64).amax(0))
+        assert torch.equal(s_ours["radii"], want)
+        if cameras == 1:
+            assert torch.equal(s_ours["radii"], s_theirs["radii"])
+    else:
+        assert s_ours["radii"] is None
+
+
+def test_the_record_reads_absgrad_when_asked_and_names_a_missing_key():
+    n = 20
+    info = _info(1, n)
+    info["means2d"].absgrad = info["means2d"].grad.abs() * 2
+    state = {"grad2d": None, "count": None, "radii": None}
+    GaroStrategy(absgrad=True)._update_state({"means": torch.zeros(n, 3)}, state, info)
+    want = {"grad2d": None, "count": None, "radii": None}
+    DefaultStrategy(absgrad=True)._update_state({"means": torch.zeros(n, 3)}, want, info)
+    assert torch.allclose(state["grad2d"], want["grad2d"], rtol=1e-6)
+    del info["radii"]
+    with pytest.raises(KeyError, match="radii"):
+        GaroStrategy()._update_state({"means": torch.zeros(n, 3)}, state, info)
+
+
+def test_adam_is_fused_only_on_cuda_and_updates_as_torchs():
+    from garo_ns.config import AdamConfig
+
+    p = torch.nn.Parameter(torch.randn(30, 3))
+    q = torch.nn.Parameter(p.detach().clone())
+    ours = AdamConfig(lr=1e-2, eps=1e-15).setup([p])
+    ref = torch.optim.Adam([q], lr=1e-2, eps=1e-15)
+    assert not ours.defaults["fused"]
+    for _ in range(3):
+        for param, opt in ((p, ours), (q, ref)):
+            opt.zero_grad()
+            (param**2).sum().backward()
+            opt.step()
+    assert torch.equal(p, q)
+
+
+def _model(**settings):
+    from nerfstudio.data.scene_box import SceneBox
+
+    from garo_ns.garo_model import GaroModelConfig
+
+    cfg = GaroModelConfig(
+        num_random=200, deform_width=16, deform_depth=2, deform_skip=0, deform_warmup=0, sh_degree=0,
+        rasterizer="reference", **settings,
+    )  # fmt: skip
+    return cfg.setup(scene_box=SceneBox(torch.tensor([[-1.5] * 3, [1.5] * 3])), num_train_data=3, metadata={})
+
+
+def _cameras(fx):
+    from nerfstudio.cameras.cameras import Cameras
+
+    c2w = torch.eye(4)[:3].expand(len(fx), 3, 4).clone()
+    c2w[:, 2, 3] = 4.0
+    return Cameras(
+        camera_to_worlds=c2w, fx=torch.tensor(fx)[:, None], fy=torch.tensor(fx)[:, None], cx=16.0, cy=12.0,
+        width=32, height=24, times=torch.tensor([[0.1], [0.5], [0.9]]),
+    )  # fmt: skip
+
+
+def test_a_training_step_reads_its_camera_from_the_host_copy():
+    model = _model()
+    model.step_cameras = _cameras([30.0, 40.0, 50.0])
+    cam = _cameras([99.0, 99.0, 99.0])[1:2]
+    cam.metadata = {"cam_idx": 2}
+    model.train()
+    assert model.camera_view(cam).K[0, 0, 0] == 50.0  # the host copy's camera 2
+    model.eval()
+    assert model.camera_view(cam).K[0, 0, 0] == 99.0  # outside training: the camera given
+    model.train()
+    cam.metadata = {}
+    assert model.camera_view(cam).K[0, 0, 0] == 99.0  # no index: the camera given
+
+
+@pytest.mark.parametrize("tf32", [True, False])
+def test_tf32_products_only_inside_a_training_step(tf32):
+    model = _model(deform_train_tf32=tf32)
+    model.step_cb(SimpleNamespace(optimizers={}), 1)
+    cam = _cameras([30.0, 30.0, 30.0])[0:1]
+    model.eval()
+    model.get_outputs(cam)
+    assert torch.backends.cuda.matmul.allow_tf32 is False
+    model.train()
+    out = model.get_outputs(cam)
+    assert torch.backends.cuda.matmul.allow_tf32 is tf32  # the forward and the backward that follows
+    out["rgb"].mean().backward()
+    torch.backends.cuda.matmul.allow_tf32 = True
+    model.after_iteration(1)  # the step's update is done: exact products for whatever comes next
+    assert torch.backends.cuda.matmul.allow_tf32 is False
+
+
+def _tf32(x: torch.Tensor) -> torch.Tensor:
+    """x rounded to TF32 (10 explicit mantissa bits, round to nearest even), as tensor cores read fp32 inputs."""
+    bits = x.contiguous().view(torch.int32)
+    rounded = (bits + 0x0FFF + ((bits >> 13) & 1)) & ~0x1FFF
+    return rounded.view(torch.float32)
+
+
+def test_the_fields_offsets_under_tf32_inputs_move_by_under_1e4_scene_units():
+    """What TF32 does to the field's numbers (inputs of every product rounded to 10 mantissa bits, fp32 sums), on
+    the D-3DGS-sized field: the offsets move by under 1e-4 scene units, far below what a training step resolves
+    (the model is scored and rendered in fp32)."""
+    from garo_ns.deformation import DeformationField
+
+    torch.manual_seed(0)
+    field = DeformationField(time_net=30)
+    xyz = torch.rand(2000, 3) * 2 - 1
+
+    def rounded(module, args):
+        return (_tf32(args[0]),)
+
+    want = torch.cat(field(xyz, 0.37), dim=-1)
+    saved = {}
+    hooks = []
+    for m in field.modules():
+        if isinstance(m, torch.nn.Linear):
+            saved[m] = m.weight.detach().clone()
+            m.weight.data = _tf32(m.weight.data)
+            hooks.append(m.register_forward_pre_hook(rounded))
+    got = torch.cat(field(xyz, 0.37), dim=-1)
+    for h in hooks:
+        h.remove()
+    for m, w in saved.items():
+        m.weight.data = w
+    err = (got - want).abs().amax(0)  # per channel, the largest over 2,000 Gaussians
+    assert 0 < float(err.max()) < 1e-4  # scene units: a 200,000th of the D-NeRF extent (about 5), 0.01 px at 800 px
+    assert (err / want.pow(2).mean(0).sqrt()).max() < 5e-3  # and within 0.5% of each channel's RMS offset
+    assert float(_tf32(torch.tensor([1.0 + 2**-11]))) == 1.0 and float(_tf32(torch.tensor([1.0 + 2**-10]))) > 1.0
