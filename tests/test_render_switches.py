@@ -251,8 +251,13 @@ def test_the_table_is_chosen_within_the_bound_and_replayed_from_the_record():
 def _record(step, table_mb=10.0):
     spec = {"t_lo": 0.0, "t_hi": 1.0, "intervals": 8}
     info = {"keys": 12, "mb": table_mb, "network": 3, "gaussians": 100, "spec": dict(spec, order="linear")}
-    return {"step": step, "views": 32, "tried": {"static_skip": 0.5, TABLE: 0.004}, "measure": MEASURE_VERSION,
-            TABLE: {"spec": spec, "info": info}}
+    return {
+        "step": step,
+        "views": 32,
+        "tried": {"static_skip": 0.5, TABLE: 0.004},
+        "measure": MEASURE_VERSION,
+        TABLE: {"spec": spec, "info": info},
+    }
 
 
 def test_a_record_of_another_step_is_not_trusted():
