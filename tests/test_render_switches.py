@@ -249,7 +249,7 @@ def test_the_table_is_chosen_within_the_bound_and_replayed_from_the_record():
 
 
 def _record(step, table_mb=10.0):
-    spec = {"t_lo": 0.0, "t_hi": 1.0, "intervals": 8}
+    spec = {"t_lo": 0.0, "t_hi": 1.0, "intervals": 8, "anchor_every": 16}
     info = {"keys": 12, "mb": table_mb, "network": 3, "gaussians": 100, "spec": dict(spec, order="linear")}
     return {
         "step": step,
@@ -281,3 +281,12 @@ def test_a_recorded_table_over_the_memory_budget_is_not_used_and_says_why():
     assert not decision.settings(config, False, cpu).time_table
     assert "3000 MB exceed time_table_budget_mb 2048" in decision.line(config, False, cpu)
     assert decision.settings(RenderSettings(time_table_budget_mb=4096), False, cpu).time_table
+
+
+def test_a_recorded_table_from_before_the_anchors_is_not_used_and_says_why():
+    decision = SwitchDecision(lambda: 99)
+    decision.record = _record(99)
+    del decision.record[TABLE]["spec"]["anchor_every"]  # measured with whole int16 residuals: another table
+    config, cpu = RenderSettings(), torch.device("cpu")
+    assert not decision.settings(config, False, cpu).time_table
+    assert "table layout before anchors" in decision.line(config, False, cpu)

@@ -153,3 +153,38 @@ def test_int16_keys_resolve_each_gaussians_motion_evenly():
     assert bool((worst16 <= 0.5 * step * 1.01 + 1e-5).all())
     # fp16's step grows with the residual: on the far Gaussian it errs many times more.
     assert worst16[0].max() < 0.25 * worst_half[0].max()
+
+
+def test_int16_error_follows_the_bends_not_the_size_of_the_motion():
+    """Fine residuals from the anchor lines are what int16 stores: on dense keys its error is at most half a step
+    of each Gaussian's fine-residual range, and on a Gaussian that moves 80x more than the others that step is
+    hundreds of times finer than a step over its whole motion (what whole residuals from the base gave)."""
+    field = _field(amp=0.5)
+    field.amp[0] = 40.0
+    xyz = _xyz()
+    spec = dict(intervals=320, anchor_every=4)
+    full = TimeTable.build(_spec(**spec), field, xyz)
+    q16 = TimeTable.build(_spec(precision="int16", **spec), field, xyz)
+    assert q16.residual.dtype == torch.int16 and q16.anchors.dtype == torch.float32
+    assert len(q16.anchors) == len(spec_anchor_keys := _spec(**spec).anchor_keys()) and spec_anchor_keys[-1] == 323
+    worst = torch.zeros(64, 10)
+    for t in torch.linspace(0, 1, 97).tolist():
+        worst = torch.maximum(worst, (q16.offsets_at(t) - full.offsets_at(t)).abs())
+    fine_step = q16.codec.scale  # [M, 10]: each Gaussian's largest fine residual / 32767
+    assert bool((worst <= 0.5 * fine_step * 1.01 + 2e-6).all())
+    whole_step = 2 * 40.0 / 32767
+    assert float(fine_step[0].max()) < whole_step / 300
+
+
+def test_anchors_are_exact_and_the_table_stays_exact_at_every_key():
+    field = _field()
+    xyz = _xyz()
+    table = TimeTable.build(_spec(30, precision="int16", anchor_every=7), field, xyz)
+    keys = table.spec.key_times()
+    for k in table.spec.anchor_keys():
+        assert torch.allclose(table.anchors[table.spec.anchor_keys().index(k)] + table.base,
+                              torch.cat(field(xyz, float(keys[k])), dim=-1), atol=1e-6)  # fmt: skip
+    for k in range(PAD, len(keys) - PAD):
+        exact = torch.cat(field(xyz, float(keys[k])), dim=-1)
+        # int16: a key is exact to half its fine step
+        assert ((table.offsets_at(float(keys[k])) - exact).abs() <= 0.5 * table.codec.scale * 1.01 + 1e-6).all()

@@ -266,7 +266,10 @@ class SwitchDecision:
 
     def _table_refusal(self, config: RenderSettings) -> Optional[str]:
         """Why a recorded table is not used on load although it met the bound, or None."""
-        info = ((self.trusted_record() or {}).get(TABLE) or {}).get("info") or {}
+        table = (self.trusted_record() or {}).get(TABLE) or {}
+        info = table.get("info") or {}
+        if table.get("spec") and "anchor_every" not in table["spec"]:
+            return "it was measured with the table layout before anchors (whole int16 residuals); re-measure it"
         if info.get("mb", 0.0) > config.time_table_budget_mb:
             return f"its {info['mb']:.0f} MB exceed time_table_budget_mb {config.time_table_budget_mb:g}"
         return None
