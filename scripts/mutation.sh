@@ -2,8 +2,8 @@
 # Mutation testing of GARO's stages and strategy with mutmut: activity, normals, curvature, knn, select
 # (the joint selection) and garo_strategy (GaroStrategy's own logic, its compaction rounds and its
 # settings). Each mutant is run against the fast unit tests only (tests/test_redundancy_*.py,
-# tests/test_garo_strategy.py, tests/test_training_step.py, and the tests of test_compaction.py and
-# test_model_settings.py not marked slow: seconds, no training through nerfstudio).
+# tests/test_garo_strategy.py, and the tests of test_compaction.py and test_model_settings.py not marked
+# slow: seconds, no training through nerfstudio).
 #
 #   bash scripts/mutation.sh                                  # both halves, about 1.5 hours on 2 CPU cores
 #   MUTATION_NAMES="garo_ns.redundancy.activity.* garo_ns.redundancy.normals.* garo_ns.redundancy.curvature.* garo_ns.redundancy.select.* garo_ns.garo_strategy.*" \
@@ -31,7 +31,7 @@ cp -r garo_ns "$work/"
 find "$work/garo_ns" -name __pycache__ -prune -exec rm -rf {} +
 cp pyproject.toml "$work/"  # pytest's settings; it has no [tool.mutmut], so setup.cfg below is read
 tests=(tests/test_redundancy_stages.py tests/test_redundancy_strategy.py tests/test_garo_strategy.py
-  tests/test_compaction.py tests/test_model_settings.py tests/test_training_step.py)
+  tests/test_compaction.py tests/test_model_settings.py)
 cp tests/conftest.py "${tests[@]}" "$work/tests/"
 cp -r tests/data "$work/tests/"  # the settings snapshot and the old config.yml
 cat > "$work/setup.cfg" << EOF

@@ -9,6 +9,7 @@ import math
 
 import pytest
 import torch
+from gsplat.strategy import DefaultStrategy
 from gsplat.strategy.ops import duplicate, remove, split
 
 from garo_ns.garo_strategy import GaroSettings, GaroStrategy, garo_scalars
@@ -402,3 +403,60 @@ def test_garo_settings_at_their_limits_are_accepted():
 
     GaroModelConfig(rho_max=0.0, tau_activity=0.0, tau_curvature=1.0, n_max=0, k_neighbors=1, garo_every=1)
     GaroModelConfig(rho_max=1.0, garo_start=0, garo_stop=0, prune_contribution_ratio=0.5)
+
+
+# --- the densification record, dense over [C, N] (gsplat's boolean indexing waits for the GPU) -------------
+
+
+def _info(c, n, seed=0, packed=False):
+    g = torch.Generator().manual_seed(seed)
+    means2d = torch.zeros(c, n, 2, requires_grad=True)
+    means2d.grad = torch.randn(c, n, 2, generator=g) * 1e-3
+    radii = (torch.rand(c, n, generator=g) * 30).int() * (torch.rand(c, n, generator=g) > 0.4)
+    means2d.grad[radii == 0] = torch.nan  # an invisible Gaussian's gradient must not count
+    return {"width": 64, "height": 48, "n_cameras": c, "radii": radii, "means2d": means2d, "gaussian_ids": None}
+
+
+@pytest.mark.parametrize("cameras", [1, 3])
+@pytest.mark.parametrize("scale2d", [0, 100])
+def test_the_dense_densification_record_is_gsplats(cameras, scale2d):
+    """Sums, counts and the largest screen radius (over cameras) as gsplat's boolean-indexed update gives them,
+    accumulated over two steps; NaN gradients of unseen Gaussians stay out."""
+    n = 50
+    params = {"means": torch.zeros(n, 3)}
+    ours = GaroStrategy(refine_scale2d_stop_iter=scale2d)
+    theirs = DefaultStrategy(refine_scale2d_stop_iter=scale2d)
+    s_ours = {"grad2d": None, "count": None, "radii": None}
+    s_theirs = {"grad2d": None, "count": None, "radii": None}
+    for seed in (0, 1):
+        info = _info(cameras, n, seed)
+        ours._update_state(params, s_ours, info)
+        theirs._update_state(params, s_theirs, info)
+    assert torch.isfinite(s_ours["grad2d"]).all()
+    assert torch.allclose(s_ours["grad2d"], s_theirs["grad2d"], rtol=1e-6, atol=0)
+    assert torch.equal(s_ours["count"], s_theirs["count"])
+    if scale2d:
+        # gsplat writes the last camera's radius where several cameras see a Gaussian; the record is the largest
+        want = torch.zeros(n)
+        for seed in (0, 1):
+            info = _info(cameras, n, seed)
+            want = torch.maximum(want, (info["radii"].float() / 64).amax(0))
+        assert torch.equal(s_ours["radii"], want)
+        if cameras == 1:
+            assert torch.equal(s_ours["radii"], s_theirs["radii"])
+    else:
+        assert s_ours["radii"] is None
+
+
+def test_the_record_reads_absgrad_when_asked_and_names_a_missing_key():
+    n = 20
+    info = _info(1, n)
+    info["means2d"].absgrad = info["means2d"].grad.abs() * 2
+    state = {"grad2d": None, "count": None, "radii": None}
+    GaroStrategy(absgrad=True)._update_state({"means": torch.zeros(n, 3)}, state, info)
+    want = {"grad2d": None, "count": None, "radii": None}
+    DefaultStrategy(absgrad=True)._update_state({"means": torch.zeros(n, 3)}, want, info)
+    assert torch.allclose(state["grad2d"], want["grad2d"], rtol=1e-6)
+    del info["radii"]
+    with pytest.raises(KeyError, match="radii"):
+        GaroStrategy()._update_state({"means": torch.zeros(n, 3)}, state, info)

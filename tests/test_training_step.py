@@ -1,7 +1,7 @@
-"""A training step without host waits keeps splatfacto's and gsplat's numbers: the SSIM in grouped convolutions, the
-loss and PSNR without host tensors, the densification record computed densely, the non-finite-loss watch read
-later, the step cameras read from the host copy, fused Adam where it can run, and TF32 products only inside a
-training step (emulated here: the CPU has no TF32)."""
+"""A training step without host waits keeps splatfacto's and torch's numbers: the SSIM in grouped convolutions, the
+loss and PSNR without host tensors, the non-finite-loss watch read later, the step cameras read from the host copy,
+fused Adam where it can run, and TF32 products only inside a training step (emulated here: the CPU has no TF32).
+The densification record's dense update is tested with the strategy (tests/test_garo_strategy.py)."""
 
 from __future__ import annotations
 
@@ -10,11 +10,9 @@ from types import SimpleNamespace
 
 import pytest
 import torch
-from gsplat.strategy import DefaultStrategy
 from nerfstudio.models.splatfacto import SSIM as SplatfactoSSIM
 
 from garo_ns.errors import GaroTrainingError
-from garo_ns.garo_strategy import GaroStrategy
 from garo_ns.losses import NonFiniteWatch, psnr, scale_regularisation, step_losses
 from garo_ns.ssim import SSIM
 
@@ -122,60 +120,6 @@ def test_a_checkpoint_is_not_written_after_an_unread_non_finite_loss(tmp_path):
     assert list(tmp_path.iterdir()) == []
     _trainer_save_checkpoint(trainer, 5)  # read and cleared: the next checkpoint is written
     assert len(list(tmp_path.iterdir())) == 1
-
-
-def _info(c, n, seed=0, packed=False):
-    g = torch.Generator().manual_seed(seed)
-    means2d = torch.zeros(c, n, 2, requires_grad=True)
-    means2d.grad = torch.randn(c, n, 2, generator=g) * 1e-3
-    radii = (torch.rand(c, n, generator=g) * 30).int() * (torch.rand(c, n, generator=g) > 0.4)
-    means2d.grad[radii == 0] = torch.nan  # an invisible Gaussian's gradient must not count
-    return {"width": 64, "height": 48, "n_cameras": c, "radii": radii, "means2d": means2d, "gaussian_ids": None}
-
-
-@pytest.mark.parametrize("cameras", [1, 3])
-@pytest.mark.parametrize("scale2d", [0, 100])
-def test_the_dense_densification_record_is_gsplats(cameras, scale2d):
-    """Sums, counts and the largest screen radius (over cameras) as gsplat's boolean-indexed update gives them,
-    accumulated over two steps; NaN gradients of unseen Gaussians stay out."""
-    n = 50
-    params = {"means": torch.zeros(n, 3)}
-    ours = GaroStrategy(refine_scale2d_stop_iter=scale2d)
-    theirs = DefaultStrategy(refine_scale2d_stop_iter=scale2d)
-    s_ours = {"grad2d": None, "count": None, "radii": None}
-    s_theirs = {"grad2d": None, "count": None, "radii": None}
-    for seed in (0, 1):
-        info = _info(cameras, n, seed)
-        ours._update_state(params, s_ours, info)
-        theirs._update_state(params, s_theirs, info)
-    assert torch.isfinite(s_ours["grad2d"]).all()
-    assert torch.allclose(s_ours["grad2d"], s_theirs["grad2d"], rtol=1e-6, atol=0)
-    assert torch.equal(s_ours["count"], s_theirs["count"])
-    if scale2d:
-        # gsplat writes the last camera's radius where several cameras see a Gaussian; the record is the largest
-        want = torch.zeros(n)
-        for seed in (0, 1):
-            info = _info(cameras, n, seed)
-            want = torch.maximum(want, (info["radii"].float() / 64).amax(0))
-        assert torch.equal(s_ours["radii"], want)
-        if cameras == 1:
-            assert torch.equal(s_ours["radii"], s_theirs["radii"])
-    else:
-        assert s_ours["radii"] is None
-
-
-def test_the_record_reads_absgrad_when_asked_and_names_a_missing_key():
-    n = 20
-    info = _info(1, n)
-    info["means2d"].absgrad = info["means2d"].grad.abs() * 2
-    state = {"grad2d": None, "count": None, "radii": None}
-    GaroStrategy(absgrad=True)._update_state({"means": torch.zeros(n, 3)}, state, info)
-    want = {"grad2d": None, "count": None, "radii": None}
-    DefaultStrategy(absgrad=True)._update_state({"means": torch.zeros(n, 3)}, want, info)
-    assert torch.allclose(state["grad2d"], want["grad2d"], rtol=1e-6)
-    del info["radii"]
-    with pytest.raises(KeyError, match="radii"):
-        GaroStrategy()._update_state({"means": torch.zeros(n, 3)}, state, info)
 
 
 def test_adam_is_fused_only_on_cuda_and_updates_as_torchs():
