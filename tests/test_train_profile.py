@@ -92,3 +92,53 @@ def test_the_docs_profile_block_is_written_from_the_committed_files(tmp_path):
     files = sorted((root / "benchmarks" / "results").glob("train_profile_*.json"))
     files = [f for f in files if f.name in block]  # the block names each file it shows
     assert files and block.strip() == docs_block(files).strip()
+
+
+def _profile(path, seconds, steps=40_000, psnr=37.0):
+    import json
+
+    path.write_text(
+        json.dumps(
+            {
+                "environment": {"gpu": "GPU X", "git_commit": "abc"},
+                "steps": steps,
+                "train_seconds": seconds,
+                "steps_per_second": steps / seconds,
+                "score": {"psnr": psnr, "lpips": 0.01},
+                "gaussians_final": 10,
+            }
+        )
+    )
+    return path
+
+
+def test_train_speed_compares_the_mean_of_each_side(tmp_path):
+    from garo_ns.bench.train_speed import main
+
+    old = _profile(tmp_path / "old.json", 600.0, psnr=37.0)
+    new1 = _profile(tmp_path / "new1.json", 300.0, psnr=37.2)
+    new2 = _profile(tmp_path / "new2.json", 200.0, steps=20_000, psnr=37.4)  # a half-length run: 400 s per 40k
+    out = tmp_path / "speed.json"
+    result, table = main(["--before", f"m={old}", "--after", f"m={new1}", f"m={new2}", "--output", str(out)])
+    m = result["methods"]["m"]
+    assert m["before"]["minutes_per_40k"] == 10.0 and abs(m["after"]["minutes_per_40k"] - 350.0 / 60) < 1e-9
+    assert abs(m["speedup"] - 600 / 350) < 1e-9 and abs(m["psnr_change_db"] - 0.3) < 1e-9
+    assert "1.71x faster, PSNR +0.30 dB" in table and out.with_suffix(".md").read_text() == table
+    with pytest.raises(SystemExit, match="METHOD=FILE"):
+        main(["--after", str(new1), "--output", str(out)])
+
+
+def test_the_committed_train_speed_is_its_files_summary():
+    import json
+    from pathlib import Path
+
+    from garo_ns.bench.train_speed import summary
+
+    results = Path(__file__).resolve().parents[1] / "benchmarks" / "results"
+    for committed in results.glob("train_speed_*.json"):
+        data = json.loads(committed.read_text())
+        sides = {
+            side: {m: [results / r["file"] for r in e[side]["runs"]] for m, e in data["methods"].items() if side in e}
+            for side in ("before", "after")
+        }
+        assert summary(sides["before"], sides["after"]) == {k: data[k] for k in ("gpus", "methods")}
