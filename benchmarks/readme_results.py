@@ -366,6 +366,25 @@ def tests_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
         f"a {data['cpu_count']}-core CPU ({load}) with `.venv` already installed "
         f"({counts}; commit {data['git_commit']}; the slowest tests are listed in {_link(path, readme_dir)}, "
         "written by `python benchmarks/test_time.py`).\n"
+    ) + gpu_tests_sentence(results, readme_dir)
+
+
+def gpu_tests_sentence(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
+    """The newest CUDA-only test run, from the log `device_run.sh gputests` writes (first line: commit, date, GPU;
+    last line: pytest's counts)."""
+    logs = []
+    for path in results.glob("gputests_*.log"):
+        lines = [x for x in path.read_text().splitlines() if x.strip()]
+        head = lines[0].split() if lines else []
+        if len(head) >= 4 and head[0] == "commit" and re.search(r"\d+ passed", lines[-1]):
+            counts = ", ".join(x for x in lines[-1].split(" in ")[0].split(", ") if "warning" not in x)
+            logs.append((head[2], path, head[1], " ".join(head[3:]), counts))
+    if not logs:
+        return ""
+    date, path, commit, gpu, counts = max(logs)
+    return (
+        f"\nThe CUDA-only tests (`bash benchmarks/device_run.sh gputests 0`): {counts} on an {gpu}, "
+        f"{date}, commit {commit[:7]} ({_link(path, readme_dir)}).\n"
     )
 
 

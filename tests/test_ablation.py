@@ -214,3 +214,22 @@ def test_a_re_timed_speed_up_from_some_of_a_variants_runs_says_how_many():
     assert paired_text(v, 2) == "1.80x (1 of 2 runs)"
     assert paired_text(v, 1) == "1.80x"
     assert paired_text({"fps_ratio_paired": None}, 2) == "-"
+
+
+def test_the_readme_names_the_newest_gpu_test_run(tmp_path):
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    try:
+        import readme_results
+    finally:
+        sys.path.pop(0)
+    assert readme_results.gpu_tests_sentence(tmp_path, tmp_path) == ""
+    (tmp_path / "gputests_H100.log").write_text("commit aaaaaaaaaa 2026-11-20 NVIDIA H100\n\n57 passed in 3s\n")
+    (tmp_path / "gputests_H200.log").write_text(
+        "commit bbbbbbbbbb 2026-11-26 NVIDIA H200\n....\n\n69 passed, 1 skipped, 4 warnings in 20.21s\n"
+    )
+    (tmp_path / "gputests_X.log").write_text("a log of a run that broke off\n")
+    got = readme_results.gpu_tests_sentence(tmp_path, tmp_path)
+    assert "69 passed, 1 skipped on an NVIDIA H200, 2026-11-26, commit bbbbbbb" in got and "warning" not in got
