@@ -362,7 +362,19 @@ class GaroModel(SplatfactoModel):
         checkpoints.resize_gaussians(self.gauss_params, state_dict["gauss_params.means"].shape[0])
         self.deformation = checkpoints.field_for(state_dict, self.deformation, self.config)
         checkpoints.check_fit(self.state_dict(), state_dict)
-        return torch.nn.Module.load_state_dict(self, state_dict, strict=strict)
+        result = torch.nn.Module.load_state_dict(self, state_dict, strict=strict)
+        if not self.training:
+            self.build_time_table()
+        return result
+
+    @torch.no_grad()
+    def build_time_table(self) -> None:
+        """Build the time table now if this model renders with one: a loaded model builds it at load, not in its first
+        frame, where the viewer interrupts a render whenever the camera or the time moves (a build cut short there
+        starts over, and meanwhile no frame arrives)."""
+        spec = self.switches.table_spec()
+        if spec is not None and self.deformation_active() and self.render_settings().time_table:
+            self.frame.time_table(self.deformation, self.canonical(), spec)
 
     def get_extra_state(self) -> Dict[str, Any]:
         """The densification strategy's running state (the compaction's summary too) travels with the checkpoint."""

@@ -174,9 +174,11 @@ def test_viewer_draws_the_scene_and_the_time_slider_moves_it(garo_run, tmp_path)
 @pytest.mark.slow
 @pytest.mark.skipif(CHROMIUM is None, reason="needs Debian's chromium (scripts/test.sh installs it)")
 def test_with_the_time_table_moving_the_time_slider_does_not_run_the_network(garo_run, tmp_path):
-    """The run's config with `time_table: true` (what a model whose table met the bound renders with): the first
-    frame builds the table (the MLP runs on every Gaussian at each key); after it, a change of time renders from
-    the table, and the MLP runs on none of the tabled Gaussians (at most on those the table leaves to it)."""
+    """The run's config with `time_table: true` (what a model whose table met the bound renders with): loading
+    builds the table (the MLP runs on every Gaussian at each key); after the first frame, a change of time renders
+    from the table, and the MLP runs on none of the tabled Gaussians (at most on those the table leaves to it).
+    The viewer interrupts a render whenever the camera or the time moves: a table built in the first frame was cut
+    short and started over, and the MLP ran on every Gaussian after each time change."""
     pytest.importorskip("playwright")
     text = garo_run["config_path"].read_text()
     assert "time_table: null" in text
@@ -186,7 +188,7 @@ def test_with_the_time_table_moving_the_time_slider_does_not_run_the_network(gar
     calls.write_text("")
     mark = {}
 
-    def on_drawn():  # the table is built: what the MLP ran on from here on is what the time change costs
+    def on_drawn():  # what the MLP runs on from here on is what the time change costs
         mark["lines"] = len(calls.read_text().split())
 
     wrapper = tmp_path / "counting_viewer.py"
