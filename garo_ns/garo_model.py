@@ -30,7 +30,7 @@ from garo_ns.compaction.training import fixed_ratio_round, run_round
 from garo_ns.deformation import DeformationSettings, collapse_warning, health_check, health_due, time_noise
 from garo_ns.garo_strategy import GaroSettings, GaroStrategy, garo_scalars
 from garo_ns.initialisation import initial_gaussians
-from garo_ns.losses import NonFiniteWatch, psnr, step_losses
+from garo_ns.losses import ImageLoss, NonFiniteWatch, psnr, step_losses
 from garo_ns.metrics import image_metrics, metric_modules
 from garo_ns.recipe import D3dgsRecipe
 from garo_ns.render.backend import Backend
@@ -83,6 +83,7 @@ class GaroModel(SplatfactoModel):
         self.camera_optimizer = cfg.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu")
         self.psnr, self.ssim, lpips = metric_modules()
         self.loss_watch = NonFiniteWatch()
+        self.image_loss = ImageLoss(self.ssim, cfg.ssim_lambda, cfg.loss_cuda_graph)
         # Training cameras as the datamanager keeps them (on the host): a step reads its camera's numbers there.
         self.step_cameras: Optional[Cameras] = None
         self.step_camera_numbers: Dict[Tuple[int, float], Any] = {}
@@ -328,8 +329,7 @@ class GaroModel(SplatfactoModel):
         losses = step_losses(
             self.ground_truth(outputs, batch),
             outputs["rgb"],
-            self.ssim,
-            cfg.ssim_lambda,
+            self.image_loss,
             mask,
             self.scales if regularise else None,
             cfg.max_gauss_ratio,

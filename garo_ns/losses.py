@@ -8,7 +8,7 @@ still stops training before a checkpoint can keep it (`NonFiniteWatch`).
 
 from __future__ import annotations
 
-from typing import Dict, Optional
+from typing import Any, Callable, Dict, Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -34,6 +34,28 @@ def scale_regularisation(log_scales: Tensor, max_ratio: float) -> Tensor:
 def psnr(pred: Tensor, gt: Tensor) -> Tensor:
     """PSNR in dB of `pred` against `gt` for values in [0, 1] (a tensor on their device)."""
     return -10.0 * torch.log10(torch.mean((pred - gt) ** 2))
+
+
+class ImageLoss:
+    """`image_loss` of a training step. With `graphed`, on CUDA and with gradients, it replays a CUDA graph of its
+    forward and backward captured for each image shape (torch.cuda.make_graphed_callables): the same kernels, one
+    launch. Anywhere else it runs eagerly."""
+
+    def __init__(self, ssim: SSIM, ssim_lambda: float, graphed: bool = False) -> None:
+        self.ssim, self.ssim_lambda, self.graphed = ssim, float(ssim_lambda), bool(graphed)
+        self.graphs: Dict[Tuple[Any, ...], Callable[..., Tensor]] = {}
+
+    def eager(self, gt: Tensor, pred: Tensor) -> Tensor:
+        return image_loss(gt, pred, self.ssim, self.ssim_lambda)
+
+    def __call__(self, gt: Tensor, pred: Tensor) -> Tensor:
+        if not (self.graphed and pred.is_cuda and pred.requires_grad and torch.is_grad_enabled()):
+            return self.eager(gt, pred)
+        key = (tuple(pred.shape), pred.dtype, pred.device, tuple(gt.shape), gt.dtype)
+        if key not in self.graphs:
+            samples = (gt.detach().clone(), pred.detach().clone().requires_grad_(True))
+            self.graphs[key] = torch.cuda.make_graphed_callables(self.eager, samples)
+        return self.graphs[key](gt.detach(), pred)
 
 
 class NonFiniteWatch:
@@ -74,15 +96,15 @@ class NonFiniteWatch:
 def step_losses(
     gt: Tensor,
     pred: Tensor,
-    ssim: SSIM,
-    ssim_lambda: float,
+    loss: Callable[[Tensor, Tensor], Tensor],
     mask: Optional[Tensor] = None,
     log_scales: Optional[Tensor] = None,
     max_ratio: float = 10.0,
 ) -> Dict[str, Tensor]:
-    """`main_loss` and `scale_reg` of one view as splatfacto defines them; `mask` [H, W, 1] blacks out both images
-    where it is 0; `log_scales` given: the scale regulariser is added (else a zero on the images' device)."""
+    """`main_loss` (`loss(gt, pred)`, e.g. an `ImageLoss`) and `scale_reg` of one view as splatfacto defines them;
+    `mask` [H, W, 1] blacks out both images where it is 0; `log_scales` given: the scale regulariser is added (else
+    a zero on the images' device)."""
     if mask is not None:
         gt, pred = gt * mask, pred * mask
     reg = torch.zeros((), device=pred.device) if log_scales is None else scale_regularisation(log_scales, max_ratio)
-    return {"main_loss": image_loss(gt, pred, ssim, ssim_lambda), "scale_reg": reg}
+    return {"main_loss": loss(gt, pred), "scale_reg": reg}

@@ -13,7 +13,7 @@ import torch
 from nerfstudio.models.splatfacto import SSIM as SplatfactoSSIM
 
 from garo_ns.errors import GaroTrainingError
-from garo_ns.losses import NonFiniteWatch, psnr, scale_regularisation, step_losses
+from garo_ns.losses import ImageLoss, NonFiniteWatch, psnr, scale_regularisation, step_losses
 from garo_ns.ssim import SSIM
 
 
@@ -56,7 +56,7 @@ def test_step_losses_are_splatfactos_terms():
     gt, pred = (t[0].permute(1, 2, 0) for t in _pair((1, 3, 40, 48), seed=1))
     mask = (torch.rand(40, 48, 1, generator=torch.Generator().manual_seed(2)) > 0.3).float()
     lam = 0.2
-    losses = step_losses(gt, pred, SSIM(), lam, mask)
+    losses = step_losses(gt, pred, ImageLoss(SSIM(), lam, graphed=True), mask)  # graphed: on CUDA only
     gm, pm = gt * mask, pred * mask
     ssim = SplatfactoSSIM(data_range=1.0, size_average=True, channel=3)(
         gm.permute(2, 0, 1)[None], pm.permute(2, 0, 1)[None]
