@@ -460,3 +460,32 @@ def test_the_record_reads_absgrad_when_asked_and_names_a_missing_key():
     del info["radii"]
     with pytest.raises(KeyError, match="radii"):
         GaroStrategy()._update_state({"means": torch.zeros(n, 3)}, state, info)
+
+
+# --- GARO's settings: each range's edges, named by flag ---------------------------------------------------------
+
+GARO_EDGES = [  # (setting, accepted at the edge, refused just past it, the range in words)
+    ("rho_max", [0.0, 1.0], [-1e-9, 1.0 + 1e-9, float("nan")], "in [0, 1]"),
+    ("tau_activity", [0.0], [-1e-12, float("nan"), float("inf")], "a number >= 0"),
+    ("tau_curvature", [0.0], [-1e-12, float("nan")], "a number >= 0"),
+    ("n_max", [0], [-1], ">= 0"),
+    ("k_neighbors", [1], [0], ">= 1"),
+    ("garo_start", [0, None], [-1], "a step >= 0 or None"),
+    ("garo_stop", [0, None], [-1], "a step >= 0 or None"),
+    ("garo_every", [1, None], [0], ">= 1 or None"),
+    ("prune_contribution_ratio", [0.0, 0.999], [1.0, -1e-9, float("nan")], "in [0, 1)"),
+]
+
+
+@pytest.mark.parametrize("name,ok,bad,words", GARO_EDGES)
+def test_garo_settings_accept_their_edges_and_refuse_past_them_naming_the_flag(name, ok, bad, words):
+    import re
+
+    from garo_ns.errors import GaroConfigError
+
+    for value in ok:
+        GaroSettings(**{name: value}).validate_garo()
+    flag = "--pipeline.model." + name.replace("_", "-")
+    for value in bad:
+        with pytest.raises(GaroConfigError, match=f"^{re.escape(flag)} must be {re.escape(words)}, got {value!r}$"):
+            GaroSettings(**{name: value}).validate_garo()
