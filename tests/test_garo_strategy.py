@@ -418,7 +418,7 @@ def _info(c, n, seed=0, packed=False):
 
 
 @pytest.mark.parametrize("cameras", [1, 3])
-@pytest.mark.parametrize("scale2d", [0, 100])
+@pytest.mark.parametrize("scale2d", [0, 1, 100])
 def test_the_dense_densification_record_is_gsplats(cameras, scale2d):
     """Sums, counts and the largest screen radius (over cameras) as gsplat's boolean-indexed update gives them,
     accumulated over two steps; NaN gradients of unseen Gaussians stay out."""
@@ -489,3 +489,41 @@ def test_garo_settings_accept_their_edges_and_refuse_past_them_naming_the_flag(n
     for value in bad:
         with pytest.raises(GaroConfigError, match=f"^{re.escape(flag)} must be {re.escape(words)}, got {value!r}$"):
             GaroSettings(**{name: value}).validate_garo()
+
+
+def test_the_records_live_on_the_gaussians_device():
+    """Every record starts on the device of the Gaussians (the meta device here: on a CPU-only machine, the only
+    one that tells a tensor made without a device from one made on the Gaussians')."""
+    meta, n = torch.device("meta"), 20
+    params = {"means": torch.zeros(n, 3, device=meta)}
+    info = _info(2, n)
+    means2d = torch.zeros(2, n, 2, device=meta, requires_grad=True)
+    means2d.grad = torch.zeros(2, n, 2, device=meta)
+    info.update(means2d=means2d, radii=info["radii"].to(meta))
+    strategy = GaroStrategy(refine_scale2d_stop_iter=100)
+    state = {"grad2d": None, "count": None, "radii": None, "garo_grad": None, "garo_count": None}
+    strategy._update_state(params, state, info)
+    strategy.update_activity(params, state, info, False)
+    assert {k: state[k].device.type for k in state} == {k: "meta" for k in state}
+
+
+def _packed_info(n=20, seed=0):
+    """A packed render's info for one camera: one row per visible Gaussian."""
+    g = torch.Generator().manual_seed(seed)
+    ids = torch.sort(torch.randperm(n, generator=g)[:12]).values
+    means2d = torch.zeros(12, 2, requires_grad=True)
+    means2d.grad = torch.randn(12, 2, generator=g) * 1e-3
+    radii = (torch.rand(12, generator=g) * 30).int() + 1
+    return {"width": 64, "height": 48, "n_cameras": 1, "radii": radii, "means2d": means2d, "gaussian_ids": ids,
+            "camera_ids": torch.zeros(12, dtype=torch.long)}  # fmt: skip
+
+
+def test_a_packed_render_keeps_gsplats_packed_record_through_the_step():
+    n = 20
+    params = {"means": torch.zeros(n, 3)}
+    ours = GaroStrategy(refine_scale2d_stop_iter=0)
+    state = ours.initialize_state()
+    ours.step_post_backward(params, {}, state, 0, _packed_info(n), packed=True)
+    want = {"grad2d": None, "count": None, "radii": None}
+    DefaultStrategy(refine_scale2d_stop_iter=0)._update_state(params, want, _packed_info(n), packed=True)
+    assert torch.equal(state["grad2d"], want["grad2d"]) and torch.equal(state["count"], want["count"])
