@@ -218,19 +218,19 @@ class TimeTable:
         anchors = torch.stack([field_offsets(field, xyz, [times[k]])[0] - base for k in anchor_keys])
         line = anchor_lines(anchors, anchor_keys)
 
-        def fine(k: int) -> Tensor:
-            return field_offsets(field, xyz, [times[k]])[0] - base - line(k)
+        def from_base(k: int) -> Tensor:
+            return field_offsets(field, xyz, [times[k]])[0] - base
 
-        spread = torch.zeros(xyz.shape[0], CHANNELS, device=xyz.device)
-        motion = anchors.abs().amax(0)
+        spread = torch.zeros(xyz.shape[0], CHANNELS, device=xyz.device)  # largest fine residual
+        motion = torch.zeros_like(spread)  # largest offset from the base
         for k in range(len(times)):
-            r = fine(k).abs()
-            spread = torch.maximum(spread, r)
-            motion = torch.maximum(motion, r)
+            r = from_base(k)
+            spread = torch.maximum(spread, (r - line(k)).abs())
+            motion = torch.maximum(motion, r.abs())
         codec = Codec(spec.precision, spread)
         residual = torch.empty(len(times), xyz.shape[0], CHANNELS, dtype=codec.dtype, device=xyz.device)
         for k in range(len(times)):
-            residual[k] = codec.encode(fine(k))
+            residual[k] = codec.encode(from_base(k) - line(k))
         whole = cls(spec, base, anchors, residual, torch.arange(xyz.shape[0], device=xyz.device), None, {}, codec)
         err = midpoint_errors(spec, field, xyz, base, whole.interpolate_moving, midpoint_samples)
         off = {o: int((err[o] > spec.tolerance).sum()) for o in ORDERS}
