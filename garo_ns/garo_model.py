@@ -40,6 +40,7 @@ from garo_ns.render.outputs import camera_outputs
 from garo_ns.render.switches import RenderSettings, SwitchDecision
 from garo_ns.render.view import RenderView, camera_numbers, camera_view
 from garo_ns.static import StaticSettings, classification_due, classify, sample_times, static_fraction
+from garo_ns.train_graphs import GraphedField
 from garo_ns.training_data import adopt_training_data
 
 
@@ -84,6 +85,7 @@ class GaroModel(SplatfactoModel):
         self.psnr, self.ssim, lpips = metric_modules()
         self.loss_watch = NonFiniteWatch()
         self.image_loss = ImageLoss(self.ssim, cfg.ssim_lambda, cfg.loss_cuda_graph)
+        self.train_field = GraphedField(lambda: self.deformation, cfg.deform_cuda_graph)
         # Training cameras as the datamanager keeps them (on the host): a step reads its camera's numbers there.
         self.step_cameras: Optional[Cameras] = None
         self.step_camera_numbers: Dict[Tuple[int, float], Any] = {}
@@ -200,7 +202,8 @@ class GaroModel(SplatfactoModel):
         if self.training or exact:
             frames = len(self.train_times) if self.train_times is not None else 1
             time = time + time_noise(cfg.time_noise, cfg.time_noise_steps, self.step, frames, self.training)
-            return activate(canonical, compose(self.deformation, canonical, time))
+            field = self.train_field if self.training else self.deformation
+            return activate(canonical, compose(field, canonical, time))
         state = self.strategy_state
         settings = self.render_settings() if settings is None else settings
         static, offset, table = state["static"], state["static_offset"], self.switches.table_spec()

@@ -1,0 +1,94 @@
+"""CUDA only: the training loss and the deformation field replayed from CUDA graphs give the eager values and
+gradients, call after call with new inputs, and capture anew for a new size (benchmarks/device_run.sh gputests runs
+them)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from garo_ns.losses import ImageLoss
+from garo_ns.ssim import SSIM
+
+pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a GPU")
+
+
+def _images(shape, seed):
+    g = torch.Generator(device="cuda").manual_seed(seed)
+    gt = torch.rand(shape, generator=g, device="cuda")
+    pred = (gt + 0.1 * torch.randn(shape, generator=g, device="cuda")).clamp(0, 1).requires_grad_(True)
+    return gt, pred
+
+
+@pytest.mark.parametrize("shape", [(64, 80, 3), (800, 800, 3)])
+def test_the_graphed_loss_is_the_eager_loss(shape):
+    graphed = ImageLoss(SSIM().cuda(), 0.2, graphed=True)
+    for seed in range(4):
+        gt, pred = _images(shape, seed)
+        loss = graphed(gt, pred)
+        (grad,) = torch.autograd.grad(loss, pred)
+        gt2, pred2 = _images(shape, seed)
+        want = graphed.eager(gt2, pred2)
+        (want_grad,) = torch.autograd.grad(want, pred2)
+        assert torch.allclose(loss, want, rtol=1e-6, atol=1e-7)
+        assert torch.allclose(grad, want_grad, rtol=1e-5, atol=1e-9)
+    assert len(graphed.graphs) == 1  # captured once for this size
+
+
+def test_a_second_size_gets_its_own_graph_and_evaluation_stays_eager():
+    graphed = ImageLoss(SSIM().cuda(), 0.2, graphed=True)
+    for shape in ((32, 48, 3), (48, 32, 3)):
+        gt, pred = _images(shape, 0)
+        graphed(gt, pred).backward()
+        assert pred.grad is not None and pred.grad.abs().sum() > 0
+    with torch.no_grad():
+        gt, pred = _images((16, 16, 3), 1)
+        graphed(gt, pred)
+    assert len(graphed.graphs) == 2
+
+
+def _field_inputs(n, seed):
+    g = torch.Generator(device="cuda").manual_seed(seed)
+    return torch.rand(n, 3, generator=g, device="cuda") * 2 - 1, float(torch.rand(1, generator=g, device="cuda"))
+
+
+@pytest.mark.parametrize("tf32", [False, True])
+def test_the_graphed_field_is_the_field_forward_and_backward(tf32):
+    """Offsets and parameter gradients as the eager field gives them, call after call with new positions and times
+    (TF32 on: both in TF32, so within its rounding); a new count of Gaussians captures a new graph."""
+    from garo_ns.deformation import DeformationField
+    from garo_ns.train_graphs import GraphedField
+
+    torch.manual_seed(0)
+    field = DeformationField(time_net=30).cuda().train()
+    graphed = GraphedField(lambda: field, enabled=True)
+    torch.backends.cuda.matmul.allow_tf32 = tf32
+    try:
+        for n, seed in ((5000, 0), (5000, 1), (5000, 2), (7000, 3)):
+            xyz, t = _field_inputs(n, seed)
+            field.zero_grad()
+            out = graphed(xyz, t)
+            sum(o.square().sum() for o in out).backward()
+            got = [p.grad.clone() for p in field.parameters()]
+            field.zero_grad()
+            want = field(xyz, t)
+            sum(o.square().sum() for o in want).backward()
+            tol = dict(rtol=1e-2, atol=1e-4) if tf32 else dict(rtol=1e-5, atol=1e-6)
+            assert all(torch.allclose(a, b, **tol) for a, b in zip(out, want))
+            assert all(torch.allclose(a, p.grad, **tol) for a, p in zip(got, field.parameters()))
+        assert graphed.captures == 2  # 5000 Gaussians, then 7000
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = False
+
+
+def test_the_graphed_field_runs_eagerly_without_gradients_or_when_off():
+    from garo_ns.deformation import DeformationField
+    from garo_ns.train_graphs import GraphedField
+
+    field = DeformationField(time_net=30).cuda().train()
+    xyz, t = _field_inputs(1000, 0)
+    with torch.no_grad():
+        GraphedField(lambda: field, enabled=True)(xyz, t)
+    off = GraphedField(lambda: field, enabled=False)
+    off(xyz, t)
+    assert off.captures == 0
