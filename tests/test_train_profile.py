@@ -66,6 +66,7 @@ def test_profile_of_a_short_cpu_training(tmp_path):
     out = tmp_path / "profile.json"
     args = ["--scene", str(scene), "--quick", "--steps", "24", "--windows", "2", "14", "40", "--device", "cpu"]
     args += ["--plain-steps", "2", "--phase-steps", "3", "--score", "--split", "val"]
+    args += ["--set", "deform_cuda_graph=True", "loss_cuda_graph=True"]  # on the CPU: the eager path
     main(args + ["--work-dir", str(tmp_path / "runs"), "--output", str(out)])
     result = json.loads(out.read_text())
     assert [w["step"] for w in result["windows"]] == [2, 14]  # 40 is past the end
@@ -79,6 +80,20 @@ def test_profile_of_a_short_cpu_training(tmp_path):
     assert late["plain_ms_per_step"] > 0 and result["steps_per_second"] > 0
     assert "| rasterization_backward |" in out.with_suffix(".md").read_text()
     assert result["score"]["psnr"] > 10  # the scored model renders the scene, not noise
+    assert result["model_settings"] == {"deform_cuda_graph": True, "loss_cuda_graph": True}
+
+
+def test_model_overrides_are_literals_of_known_settings():
+    from garo_ns.bench.train_profile import model_overrides
+
+    assert model_overrides(["rho_max=0.05", "time_table=None", "rasterizer=reference"]) == {
+        "rho_max": 0.05,
+        "time_table": None,
+        "rasterizer": "reference",
+    }
+    for bad in (["no_such_setting=1"], ["rho_max"]):
+        with pytest.raises(SystemExit, match="NAME=VALUE"):
+            model_overrides(bad)
 
 
 def test_the_docs_profile_block_is_written_from_the_committed_files(tmp_path):

@@ -424,6 +424,27 @@ def write_docs(doc: Path, results: Sequence[Path]) -> bool:
     return new != text
 
 
+def model_overrides(pairs: Sequence[str]) -> Dict[str, Any]:
+    """`NAME=VALUE` pairs as model settings (VALUE read as a Python literal, else kept as a string); an unknown
+    NAME is refused before anything trains."""
+    import ast
+    import dataclasses
+
+    from garo_ns.garo_model import GaroModelConfig
+
+    known = {f.name for f in dataclasses.fields(GaroModelConfig)}
+    out: Dict[str, Any] = {}
+    for pair in pairs:
+        name, sep, text = pair.partition("=")
+        if not sep or name not in known:
+            raise SystemExit(f"--set expects NAME=VALUE with NAME a model setting, got {pair!r}")
+        try:
+            out[name] = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            out[name] = text
+    return out
+
+
 def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
     from garo_ns.bench import transfer
     from garo_ns.bench.benchmark import environment
@@ -444,7 +465,11 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
     parser.add_argument("--score", action="store_true", help="score the trained model on --split at the end")
     parser.add_argument("--export-dir", type=Path, default=None, help="also export the trained model here")
     parser.add_argument("--output", type=Path, required=True)
+    parser.add_argument(
+        "--set", nargs="+", default=[], metavar="NAME=VALUE", help="model settings, e.g. deform_cuda_graph=True"
+    )
     args = parser.parse_args(argv)
+    overrides = model_overrides(args.set)
 
     config = make_config(
         args.method,
@@ -456,6 +481,8 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         experiment_name=args.method,
     )
     config.timestamp = "profile"
+    for name, value in overrides.items():
+        setattr(config.pipeline.model, name, value)
     if args.steps:
         config.max_num_iterations = args.steps
     config.steps_per_save = config.max_num_iterations
@@ -480,6 +507,7 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         "steps_per_second": steps / seconds,
         "windows": profiler.windows,
         "settings": {k: getattr(settings, k) for k in ("plain_steps", "phase_steps", "profiler_steps")},
+        "model_settings": overrides,
         "gaussians_final": int(trainer.pipeline.model.num_points),
     }
     args.output.parent.mkdir(parents=True, exist_ok=True)
