@@ -38,7 +38,7 @@ from garo_ns.render.contribution import summed_contribution
 from garo_ns.render.frame import Canonical, FramePath, FrameSettings, Splats, activate, compose, render_splats
 from garo_ns.render.outputs import camera_outputs
 from garo_ns.render.switches import RenderSettings, SwitchDecision
-from garo_ns.render.view import RenderView, camera_numbers, camera_view
+from garo_ns.render.view import HostCameras, RenderView, camera_numbers, camera_view
 from garo_ns.static import StaticSettings, classification_due, classify, sample_times, static_fraction
 from garo_ns.train_graphs import GraphedField
 from garo_ns.training_data import adopt_training_data
@@ -86,9 +86,8 @@ class GaroModel(SplatfactoModel):
         self.loss_watch = NonFiniteWatch()
         self.image_loss = ImageLoss(self.ssim, cfg.ssim_lambda, cfg.loss_cuda_graph)
         self.train_field = GraphedField(lambda: self.deformation, cfg.deform_cuda_graph)
-        # Training cameras as the datamanager keeps them (on the host): a step reads its camera's numbers there.
-        self.step_cameras: Optional[Cameras] = None
-        self.step_camera_numbers: Dict[Tuple[int, float], Any] = {}
+        # The dataset's cameras on the host: a training step reads its camera's numbers there (garo_ns.training_data).
+        self.step_cameras: Optional[HostCameras] = None
         self._lpips = [lpips]  # out of the module tree: LPIPS may be absent, checkpoints must not need it
         self.step = 0
         self.crop_box = None
@@ -244,7 +243,9 @@ class GaroModel(SplatfactoModel):
         """`camera` (one) as the rasterizer takes it, at this step's resolution and the camera's time
         (`default_time`, warned once, when it has none); `c2w` replaces its pose (the camera
         optimizer's correction during training)."""
-        numbers = self.training_camera_numbers(camera) or camera_numbers(camera, self._get_downscale_factor())
+        idx = (camera.metadata or {}).get("cam_idx") if self.training and self.step_cameras is not None else None
+        numbers = self.step_cameras.numbers(int(idx), self._get_downscale_factor()) if idx is not None else None
+        numbers = numbers or camera_numbers(camera, self._get_downscale_factor())
         time = numbers[3]
         if time is None:
             if not self._warned_no_time:
@@ -255,17 +256,6 @@ class GaroModel(SplatfactoModel):
             time = float(self.config.default_time)
         c2w = camera.camera_to_worlds if c2w is None else c2w
         return camera_view(camera, c2w, self._get_downscale_factor(), self.device, time, numbers)
-
-    def training_camera_numbers(self, camera: Cameras) -> Optional[Tuple[Any, ...]]:
-        """`camera_numbers` of a training step's camera read from the host copy it was made from (None for any
-        other camera): reading the device copy would make every step wait for the GPU."""
-        idx = (camera.metadata or {}).get("cam_idx") if self.training else None
-        if idx is None or self.step_cameras is None or not 0 <= int(idx) < self.step_cameras.shape[0]:
-            return None
-        key = (int(idx), float(self._get_downscale_factor()))
-        if key not in self.step_camera_numbers:
-            self.step_camera_numbers[key] = camera_numbers(self.step_cameras[key[0] : key[0] + 1], key[1])
-        return self.step_camera_numbers[key]
 
     def render(
         self,

@@ -10,7 +10,7 @@ import torch
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from garo_ns.compaction.guard import TrainingViewGuard
-from garo_ns.render.view import camera_extent
+from garo_ns.render.view import HostCameras, camera_extent
 
 
 def adopt_training_data(model: Any, pipeline: Any) -> None:
@@ -25,8 +25,7 @@ def adopt_training_data(model: Any, pipeline: Any) -> None:
     # datamanager's own `train_cameras` may be on the device already).
     step_cameras = getattr(getattr(pipeline.datamanager, "train_dataset", None), "cameras", None)
     if step_cameras is not None and step_cameras.camera_to_worlds.device.type == "cpu":
-        model.step_cameras = step_cameras
-        model.step_camera_numbers.clear()
+        model.step_cameras = HostCameras(step_cameras)
     if outputs.cameras.times is not None:
         model.train_times = torch.unique(outputs.cameras.times.detach().reshape(-1).float().cpu())
     alpha = outputs.alpha_color

@@ -87,8 +87,14 @@ def test_the_graphed_field_runs_eagerly_without_gradients_or_when_off():
 
     field = DeformationField(time_net=30).cuda().train()
     xyz, t = _field_inputs(1000, 0)
+    on = GraphedField(lambda: field, enabled=True)
     with torch.no_grad():
-        GraphedField(lambda: field, enabled=True)(xyz, t)
+        on(xyz, t)
+    field.eval()
+    on(xyz, t)  # an evaluation: no graph either
+    field.train()
     off = GraphedField(lambda: field, enabled=False)
     off(xyz, t)
-    assert off.captures == 0
+    assert on.captures == 0 and off.captures == 0
+    on(xyz, t)
+    assert on.captures == 1

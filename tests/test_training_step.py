@@ -163,7 +163,9 @@ def _cameras(fx):
 
 def test_a_training_step_reads_its_camera_from_the_host_copy():
     model = _model()
-    model.step_cameras = _cameras([30.0, 40.0, 50.0])
+    from garo_ns.render.view import HostCameras
+
+    model.step_cameras = HostCameras(_cameras([30.0, 40.0, 50.0]))
     cam = _cameras([99.0, 99.0, 99.0])[1:2]
     cam.metadata = {"cam_idx": 2}
     model.train()
@@ -173,6 +175,8 @@ def test_a_training_step_reads_its_camera_from_the_host_copy():
     model.train()
     cam.metadata = {}
     assert model.camera_view(cam).K[0, 0, 0] == 99.0  # no index: the camera given
+    cam.metadata = {"cam_idx": 7}
+    assert model.camera_view(cam).K[0, 0, 0] == 99.0  # no such host camera: the camera given
 
 
 @pytest.mark.parametrize("tf32", [True, False])

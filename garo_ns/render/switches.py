@@ -187,8 +187,8 @@ class RenderSettings:
     frames take 4.4 GB at 34k Gaussians). At the end of training a model that would need more gets fewer
     keyframes; a loaded model whose recorded table exceeds it renders through the network (and says so)."""
     time_table_precision: Literal["int16", "fp16", "fp32"] = "int16"
-    """Storage of the table's keys (each key's offsets less the offsets at the middle of the time range); int16
-    with a scale per Gaussian and channel resolves each Gaussian's motion evenly at fp16's size."""
+    """Storage of the table's fine residuals (each key less the mid-range offsets and less the line between its two
+    fp32 anchors); int16 with a scale per Gaussian and channel resolves each Gaussian's bends evenly at fp16's size."""
     time_table_tolerance: float = 0.03
     """Largest interpolation error at keyframe midpoints (positions in scene extents; rotation and log-scale
     offsets absolute) for a Gaussian to be tabled; those over it stay on the network."""

@@ -3,7 +3,7 @@ camera), and the scene extent that a set of cameras implies."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple, Optional, Tuple, Union
+from typing import TYPE_CHECKING, Dict, NamedTuple, Optional, Tuple, Union
 
 import numpy as np
 import torch
@@ -53,6 +53,27 @@ def camera_numbers(
     width, height = int(torch.floor(scaled[4])), int(torch.floor(scaled[5]))
     time = float(host[6].to(torch.float32)) if camera.times is not None else None
     return (fx, fy, cx, cy), width, height, time
+
+
+CameraNumbers = Tuple[Tuple[float, float, float, float], int, int, Optional[float]]
+
+
+class HostCameras:
+    """Cameras kept on the host (a dataset's) and their `camera_numbers`, read once per camera and downscale: a
+    training step's camera is a device copy of one of them, whose numbers read there would wait for the GPU."""
+
+    def __init__(self, cameras: "Cameras") -> None:
+        self.cameras = cameras
+        self._numbers: Dict[Tuple[int, float], CameraNumbers] = {}
+
+    def numbers(self, index: int, downscale: float) -> Optional[CameraNumbers]:
+        """`camera_numbers` of camera `index` (None when there is no such camera)."""
+        if not 0 <= index < self.cameras.shape[0]:
+            return None
+        key = (index, float(downscale))
+        if key not in self._numbers:
+            self._numbers[key] = camera_numbers(self.cameras[index : index + 1], key[1])
+        return self._numbers[key]
 
 
 def camera_view(
