@@ -3,11 +3,11 @@
     python benchmarks/readme_results.py            # rewrite the blocks between the markers in README.md
     python benchmarks/readme_results.py --check    # exit 1 if a block of README.md differs from what it would write
 
-Five blocks, each between `<!-- NAME:begin -->` and `<!-- NAME:end -->`: `results` (below), `ablation` (from
+Six blocks, each between `<!-- NAME:begin -->` and `<!-- NAME:end -->`: `results` (below), `ablation` (from
 `paper_table3_<GPU>.json` and `paper_fig5_<GPU>.json`, written by `python -m garo_ns.bench.ablation`),
 `compaction` (from `compact_<GPU>.json`, written by `python -m garo_ns.bench.summary --target compaction`), `demo`
-(from `demo_cpu.json`, written by benchmarks/demo_measure.py) and `tests` (from `test_time_cpu.json`, written by
-benchmarks/test_time.py).
+(from `demo_cpu.json`, written by benchmarks/demo_measure.py), `tests` (from `test_time_cpu.json`, written by
+benchmarks/test_time.py) and `training` (from the newest `train_speed_<GPU>.json`, python -m garo_ns.bench.train_speed).
 
 Reads every `benchmarks/results/table1_<scene>_<GPU>.json` (written by `python -m garo_ns.bench.benchmark`;
 see docs/benchmarks.md) and makes one row per run: the baseline (`deform-splatfacto`) against GARO
@@ -388,6 +388,33 @@ def gpu_tests_sentence(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     )
 
 
+def training_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
+    """Minutes per 40k steps of each method, now and before, one line per `train_speed_<GPU>.json`
+    (garo_ns.bench.train_speed: whole runs, each alone on one GPU)."""
+    files = sorted(results.glob("train_speed_*.json"))
+    if not files:
+        return "\nTraining has not been timed yet (`python -m garo_ns.bench.train_speed`).\n"
+    return "".join(_training_line(path, readme_dir) for path in files)
+
+
+def _training_line(path: Path, readme_dir: Path) -> str:
+    data = json.loads(path.read_text())
+    parts = []
+    for method, e in data["methods"].items():
+        if "after" not in e:
+            continue
+        a, b = e["after"], e.get("before")
+        runs = f" over {len(a['runs'])} runs" if len(a["runs"]) > 1 else ""
+        was = f" ({b['minutes_per_40k']:.1f} before)" if b else ""
+        psnr = f", {a['psnr']:.2f} dB" if a.get("psnr") is not None else ""
+        parts.append(f"`{method}` {a['minutes_per_40k']:.1f} min{was}{runs}{psnr}")
+    scenes = sorted({r["file"].split("_")[-2] for e in data["methods"].values() for r in e["after"]["runs"]})
+    return (
+        f"\nTraining, 40k steps of {', '.join(scenes)} alone on one {', '.join(data['gpus'])} "
+        f"({_link(path, readme_dir)}; test PSNR): {'; '.join(parts)}.\n"
+    )
+
+
 COMPACT_FILE = re.compile(r"compact_(?P<gpu>[^_]+)\.json")
 CHOICE_FILE = "compaction_choice18k_H100.json"
 
@@ -467,6 +494,7 @@ BLOCKS = {
     "compaction": compaction_block,
     "demo": demo_block,
     "tests": tests_block,
+    "training": training_block,
 }
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -38,7 +39,10 @@ def main() -> None:
     parser.add_argument("--exports", type=Path, nargs="+", required=True)
     parser.add_argument("--split", default="test")
     parser.add_argument("--tolerances", type=float, nargs="+", default=[1e-2, 3e-3, 1e-3, 3e-4, 1e-4])
-    parser.add_argument("--precisions", nargs="+", default=["fp16"], choices=["fp16", "fp32"])
+    parser.add_argument("--precisions", nargs="+", default=["int16"], choices=["int16", "fp16", "fp32"])
+    parser.add_argument(
+        "--orders", nargs="+", default=["linear"], choices=["linear", "cubic"], help="the order preferred on a tie"
+    )
     parser.add_argument("--keys-per-frame", type=int, nargs="+", default=[2])
     parser.add_argument(
         "--budget-mb", type=float, default=None, help="the table's memory budget (default: the model's)"
@@ -69,13 +73,18 @@ def main() -> None:
         rows = {"network": {"fps": measure_fps(model, cameras)["fps"]}}
         cfg.time_table = True
         cfg.time_table_budget_mb = args.budget_mb or cfg.time_table_budget_mb
-        for tol, precision, keys in [
-            (t, p, k) for t in args.tolerances for p in args.precisions for k in args.keys_per_frame
+        for tol, precision, keys, order in [
+            (t, p, k, o)
+            for t in args.tolerances
+            for p in args.precisions
+            for k in args.keys_per_frame
+            for o in args.orders
         ]:
-            name = f"tol={tol:g},{precision},keys={keys}"
+            name = f"tol={tol:g},{precision},keys={keys}" + (f",{order}" if len(args.orders) > 1 else "")
             spec, why = spec_for(
                 times, keys, model.num_points, cfg.time_table_budget_mb, precision, tol, model.scene_extent
             )
+            spec = replace(spec, order=order) if spec is not None else None
             model.switches.table_override = spec
             if spec is None:
                 rows[name] = {"off": why}
@@ -86,6 +95,7 @@ def main() -> None:
                 "tolerance": tol,
                 "precision": precision,
                 "keys_per_frame": keys,
+                "order": model.frame.table_info.get("spec", {}).get("order"),
                 "worst_view_change_db": float(change.max()),
                 "mean_view_change_db": float(change.mean()),
                 "view_change_db": [round(float(c), 5) for c in change],

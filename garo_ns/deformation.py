@@ -228,9 +228,10 @@ class DeformationSettings:
     """Step at which the time-input noise reaches 0."""
     default_time: float = 0.0
     """Time used for cameras that carry none (e.g. some viewer and render paths); warned once."""
-    deform_cuda_graph: bool = False
+    deform_cuda_graph: bool = True
     """Training on CUDA: the field's forward and backward replay a CUDA graph captured for the current count of
-    Gaussians (captured anew when it changes; garo_ns.train_graphs). Off until measured on the GPU."""
+    Gaussians (captured anew when it changes; garo_ns.train_graphs). See `loss_cuda_graph` for what the two
+    graphs save."""
     deform_train_tf32: bool = True
     """Training on CUDA: the matrix products (the deformation MLP's, forward and backward) take TF32 inputs
     (10-bit mantissa, fp32 sums) on tensor cores; rendering, evaluation and the CPU stay exact fp32."""

@@ -86,7 +86,7 @@ def test_benchmarks_holds_only_scripts_the_docs_name_and_none_that_history_retir
     assert retired and not set(retired) & set(scripts), "a retired script is back in benchmarks/"
 
 
-@pytest.mark.parametrize("block", ["ablation", "compaction", "demo", "tests"])
+@pytest.mark.parametrize("block", ["ablation", "compaction", "demo", "tests", "training"])
 def test_readme_demo_and_test_figures_come_from_their_result_files(tmp_path, block):
     """The demo's and the tests' figures are rewritten from their files; a typed change is caught."""
     readme = tmp_path / "README.md"
@@ -232,3 +232,20 @@ def test_compaction_block_comes_from_the_target_summary(tmp_path):
     )
     assert "| average | 40.00 / 39.80 |" in block and "40,000 steps, NVIDIA H200" in block
     assert "Every criterion is met on 2 scene(s)." in block and "[`compact_H200.md`](compact_H200.md)" in block
+
+
+def test_training_line_reads_minutes_and_psnr_from_the_train_speed_file(tmp_path):
+    import json
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from readme_results import training_block
+
+    def side(minutes, psnr):
+        run = {"file": f"train_profile_garo-deform_lego_GPU{minutes}.json", "minutes_per_40k": minutes, "psnr": psnr}
+        return {"runs": [run], "minutes_per_40k": minutes, "psnr": psnr}
+
+    data = {"gpus": ["GPU X"], "methods": {"garo-deform": {"before": side(9.31, 30.0), "after": side(4.5, 30.1)}}}
+    (tmp_path / "train_speed_X.json").write_text(json.dumps(data))
+    line = training_block(tmp_path, tmp_path)
+    assert "40k steps of lego alone on one GPU X" in line
+    assert "`garo-deform` 4.5 min (9.3 before), 30.10 dB" in line

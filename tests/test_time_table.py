@@ -7,8 +7,8 @@ import math
 import pytest
 import torch
 
-from garo_ns.render.frame import Canonical, compose
-from garo_ns.render.time_table import PAD, TableSpec, TimeTable, plan_intervals, spec_for
+from garo_ns.render.frame import Canonical, activate, compose, table_rows
+from garo_ns.render.time_table import PAD, TableSpec, TimeTable, plan_intervals, spec_for, weights
 
 W = 2 * math.pi  # one period over the time range
 
@@ -171,7 +171,8 @@ def test_int16_error_follows_the_bends_not_the_size_of_the_motion():
     for t in torch.linspace(0, 1, 97).tolist():
         worst = torch.maximum(worst, (q16.offsets_at(t) - full.offsets_at(t)).abs())
     fine_step = q16.codec.scale  # [M, 10]: each Gaussian's largest fine residual / 32767
-    assert bool((worst <= 0.5 * fine_step * 1.01 + 2e-6).all())
+    rounding = 4 * torch.finfo(torch.float32).eps * field.amp[:, None]  # fp32 sums at the offsets' own size
+    assert bool((worst <= 0.5 * fine_step * 1.01 + rounding + 2e-6).all())
     whole_step = 2 * 40.0 / 32767
     assert float(fine_step[0].max()) < whole_step / 300
 
@@ -188,3 +189,70 @@ def test_anchors_are_exact_and_the_table_stays_exact_at_every_key():
         exact = torch.cat(field(xyz, float(keys[k])), dim=-1)
         # int16: a key is exact to half its fine step
         assert ((table.offsets_at(float(keys[k])) - exact).abs() <= 0.5 * table.codec.scale * 1.01 + 1e-6).all()
+
+
+@pytest.mark.parametrize(
+    "order, intervals, tolerance, anchor_every, precision",
+    [
+        ("linear", 61, 1e-2, 4, "int16"),  # anchors every 4 keys: many segments end on an anchor
+        ("linear", 61, 1e-2, 16, "fp16"),
+        ("cubic", 16, 2e-3, 5, "int16"),
+        ("cubic", 8, 1e-3, 3, "fp32"),  # a strict tolerance: some Gaussians on the network
+    ],
+)
+def test_a_frame_reads_the_table_as_the_reference_does(order, intervals, tolerance, anchor_every, precision):
+    """The frame's path (cached canonical rows, linear keys in four kernels) against `deformed` + `activate`."""
+    field = _field(amp=0.05)
+    field.amp[:4] = 3.0  # fast: cubic wins at coarse spacings, and the strictest build sends some to the network
+    field.amp[48:] = 0.0  # still: not in the moving set
+    xyz = _xyz()
+    spec = _spec(intervals, tolerance=tolerance, anchor_every=anchor_every, precision=precision)
+    table = TimeTable.build(spec, field, xyz)
+    assert table.spec.order == order and table.moving.numel() == 48
+    g = torch.Generator().manual_seed(1)
+    canonical = Canonical(
+        xyz,
+        torch.randn(64, 4, generator=g),
+        0.3 * torch.randn(64, 3, generator=g),
+        torch.randn(64, 1, generator=g),
+        torch.randn(64, 3, generator=g),
+        torch.randn(64, 15, 3, generator=g),
+    )
+    rows, network_rows, opacities, colors = table_rows(canonical, table)
+    keys = table.spec.key_times()
+    times = torch.cat([torch.linspace(-0.05, 1.05, 89), keys[[table._anchor_keys[1], table._anchor_keys[-2]]]])
+    for t in times.tolist():
+        ref = activate(canonical, table.deformed(field, canonical, t))
+        d = table.frame_rows(rows, network_rows, field, xyz, t)
+        for got, want in zip((d[:, :3], d[:, 3:7], torch.exp(d[:, 7:]), opacities, colors), ref[:5]):
+            assert torch.allclose(got, want, rtol=1e-5, atol=1e-6), t
+    if tolerance == 1e-3:
+        assert table.network.numel() > 0
+    # Every Gaussian moving: the frame adds to the rows without a scatter.
+    field.amp[48:] = 0.01
+    whole = TimeTable.build(spec, field, xyz)
+    rows, network_rows, _, _ = table_rows(canonical, whole)
+    for t in (0.013, 0.5, 0.871):
+        ref = whole.deformed(field, canonical, t)
+        d = whole.frame_rows(rows, network_rows, field, xyz, t)
+        assert torch.allclose(d[:, :3], ref[0], atol=1e-6) and torch.allclose(d[:, 7:], ref[2], atol=1e-6)
+
+
+@pytest.mark.parametrize("anchor_every", [3, 4, 16])
+@pytest.mark.parametrize("precision", ["int16", "fp32"])
+def test_the_fast_orders_are_the_stored_keys_interpolated(anchor_every, precision):
+    """Linear and cubic frames take shortcuts through the anchor lines; both equal the definition: the stored fine
+    residuals interpolated plus the same interpolation of the lines, in every segment (across anchors too)."""
+    field = _field(amp=0.3)
+    table = TimeTable.build(_spec(29, anchor_every=anchor_every, precision=precision), field, _xyz())
+    line = table._line
+    for order in ("linear", "cubic"):
+        first = PAD - 1 if order == "linear" else PAD  # a cubic segment needs the key before it
+        for i in range(first, table.spec.intervals + PAD):
+            for f in (0.0, 0.3, 0.5, 0.9):
+                offsets, w = weights(order, f)
+                want = table.codec.interpolate(table.residual, order, i, f)
+                for o, wk in zip(offsets, w):
+                    want = want + wk * line(i + o)
+                got = table.interpolate_moving(order, i, f)
+                assert torch.allclose(got, want, rtol=1e-5, atol=1e-6), (order, i, f)

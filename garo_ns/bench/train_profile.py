@@ -405,8 +405,12 @@ def docs_block(results: Sequence[Path]) -> str:
         gpu = r["environment"].get("gpu") or "a CPU"
         score = r.get("score") or {}
         scored = f", test PSNR {score['psnr']:.2f} dB" if "psnr" in score else ""
+        settings = r.get("model_settings") or {}
+        named = " with " + ", ".join(f"`{k}={v}`" for k, v in sorted(settings.items())) if settings else ""
+        commit = (r["environment"].get("git_commit") or "")[:7]
+        at = f" at {commit}" if commit else ""
         parts.append(
-            f"`{r['method']}` on {r['scene']}, {gpu}, alone on its GPU: {r['steps']:,} steps in "
+            f"`{r['method']}`{at}{named} on {r['scene']}, {gpu}, alone on its GPU: {r['steps']:,} steps in "
             f"{r['train_seconds']:.0f} s ({r['steps_per_second']:.1f} steps/s){scored} "
             f"([`{Path(path).name}`](../benchmarks/results/{Path(path).name})). Device ms per step (host ms):\n\n"
             + markdown_table(r)

@@ -94,6 +94,19 @@ def activate(canonical: Canonical, deformed: Deformed) -> Splats:
     return Splats(means, quats, torch.exp(log_scales), torch.sigmoid(canonical.opacities).squeeze(-1), colors)
 
 
+@torch.no_grad()
+def table_rows(canonical: Canonical, table: TimeTable) -> Optional[Tuple[Tensor, Optional[Tensor], Tensor, Tensor]]:
+    """What `TimeTable.frame_rows` and a tabled frame read besides the table (None where the parameters are not
+    fp32: those frames take the reference path): the canonical means, normalised quaternions and log-scales plus
+    the table's base [N, 10], the network Gaussians' canonical rows, the opacities and the colours."""
+    if canonical.means.dtype != torch.float32:
+        return None
+    rows = torch.cat([canonical.means, F.normalize(canonical.quats, dim=-1), canonical.log_scales], dim=-1).detach()
+    network_rows = rows[table.network].clone() if table.network.numel() else None
+    splats = activate(canonical, (canonical.means, canonical.quats, canonical.log_scales))
+    return rows.add_(table.base), network_rows, splats.opacities.detach(), splats.colors.detach()
+
+
 class FramePath:
     """Caches and CUDA graphs of the render-time frame (one per model)."""
 
@@ -105,6 +118,9 @@ class FramePath:
         self._graph = TimeGraph()
         self._camera_graph = InputGraph()
         self._table: Optional[Tuple[Any, Optional[TimeTable]]] = None
+        # What a tabled frame reads besides the table, made with it: the canonical rows plus the table's base,
+        # the network Gaussians' canonical rows, opacities and colours (the same every frame).
+        self._table_rows: Optional[Tuple[Tensor, Optional[Tensor], Tensor, Tensor]] = None
         self.table_info: Optional[Dict[str, Any]] = None  # the last table built (or why it failed)
         # Set while the render switches are measured: the table's frames put each time halfway between keys.
         self.halfway = False
@@ -130,7 +146,12 @@ class FramePath:
                 cache_key = ("table", float(time), self.halfway, table, versions(list(canonical)))
                 if settings.cache_deformation and self._deformed is not None and self._deformed[0] == cache_key:
                     return self._deformed[1]
-                out = activate(canonical, tabled.deformed(field, canonical, float(time), self.halfway))
+                if self.halfway or self._table_rows is None:  # the switch measurement's probe: the reference path
+                    out = activate(canonical, tabled.deformed(field, canonical, float(time), self.halfway))
+                else:
+                    rows, network_rows, opacities, colors = self._table_rows
+                    d = tabled.frame_rows(rows, network_rows, field, canonical.means.detach(), float(time))
+                    out = Splats(d[:, :3].contiguous(), d[:, 3:7].contiguous(), torch.exp(d[:, 7:]), opacities, colors)
                 self._deformed = (cache_key, out) if settings.cache_deformation else None
                 return out
         key = versions(list(canonical) + list(field.parameters()) + ([static_offset] if static is not None else []))
@@ -162,11 +183,12 @@ class FramePath:
         when it cannot be built (out of memory, ...): the reason is in `table_info` and the network renders."""
         key = (spec, versions(list(canonical) + list(field.parameters())))
         if self._table is None or self._table[0] != key:
-            self._table = None  # the old table's memory first
+            self._table, self._table_rows = None, None  # the old table's memory first
             start = perf_counter()
             try:
                 built: Optional[TimeTable] = TimeTable.build(spec, field, canonical.means.detach())
                 self.table_info = {**built.info, "build_s": perf_counter() - start}  # type: ignore[union-attr]
+                self._table_rows = table_rows(canonical, built)  # type: ignore[arg-type]
             except (RuntimeError, MemoryError) as err:  # torch's out-of-memory is a RuntimeError
                 built, self.table_info = None, {"error": f"{type(err).__name__}: {err}"[:300]}
             self._table = (key, built)

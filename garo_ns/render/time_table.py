@@ -202,7 +202,8 @@ class TimeTable:
         self.moving = moving  # [M] indices into the Gaussians
         self.network = network  # [R] indices of the Gaussians rendered through the MLP
         self.info = info
-        self._line = anchor_lines(anchors, spec.anchor_keys())
+        self._anchor_keys = spec.anchor_keys()
+        self._line = anchor_lines(anchors, self._anchor_keys)
 
     @classmethod
     @torch.no_grad()
@@ -272,10 +273,64 @@ class TimeTable:
     def interpolate_moving(self, order: Order, i: int, f: float) -> Tensor:
         """The moving Gaussians' residuals from the base [M, 10] at fraction f of segment i: the stored fine
         residuals interpolated, plus the same interpolation of their anchor lines."""
+        if order == "linear":
+            return self._linear_moving(i, f)
+        fast = self._cubic_moving(i, f)
+        if fast is not None:
+            return fast
         out = self.codec.interpolate(self.residual, order, i, f)
         offsets, w = weights(order, f)
         for o, wk in zip(offsets, w):
             out.add_(self._line(i + o), alpha=wk)
+        return out
+
+    def _linear_moving(self, i: int, f: float) -> Tensor:
+        """`interpolate_moving` of the linear order in four kernels, as a frame needs it (a frame's cost is kernel
+        launches, not bytes): keys i and i + 1 lie on one anchor line, so the lines' share is one lerp of two
+        anchors, and the fine residuals' one lerp of the two keys, scaled back by int16's scales."""
+        keys = self._anchor_keys
+        j = min(max(bisect.bisect_right(keys, i) - 1, 0), len(keys) - 2)
+        u = (i + f - keys[j]) / (keys[j + 1] - keys[j])
+        line = torch.lerp(self.anchors[j], self.anchors[j + 1], u)
+        pair = self.residual[i : i + 2].float()
+        fine = torch.lerp(pair[0], pair[1], f)
+        if self.codec.scale is None:
+            return line.add_(fine)
+        return torch.addcmul(line, fine, self.codec.scale)
+
+    def _cubic_moving(self, i: int, f: float) -> Optional[Tensor]:
+        """`interpolate_moving` of the cubic order where its four keys i - 1 .. i + 2 lie on one anchor line (None
+        elsewhere): Catmull-Rom's weights sum to one, so the lines' share is the line at the weighted key."""
+        keys = self._anchor_keys
+        j = min(max(bisect.bisect_right(keys, i - 1) - 1, 0), len(keys) - 2)
+        if i - 1 < keys[j] or i + 2 > keys[j + 1]:
+            return None
+        offsets, w = weights("cubic", f)
+        u = (sum(wk * (i + o) for o, wk in zip(offsets, w)) - keys[j]) / (keys[j + 1] - keys[j])
+        out = torch.lerp(self.anchors[j], self.anchors[j + 1], u)
+        quad = self.residual[i - 1 : i + 3].float()
+        fine = quad[0] * w[0]
+        for k in range(1, 4):
+            fine.add_(quad[k], alpha=w[k])
+        if self.codec.scale is None:
+            return out.add_(fine)
+        return out.addcmul_(fine, self.codec.scale)
+
+    def frame_rows(self, rows: Tensor, network_rows: Optional[Tensor], field: Any, xyz: Tensor, time: float) -> Tensor:
+        """Every Gaussian's means, quaternions and log-scales [N, 10] at `time` for a frame: `rows` are the
+        canonical values plus the base ([N, 10]: means, normalised quaternions, log-scales; made once per table),
+        `network_rows` the canonical values of the network's Gaussians. The same numbers as `deformed`, in
+        a handful of kernels."""
+        i, f = self.spec.segment(time)
+        if self.moving.numel() == rows.shape[0]:  # every Gaussian moves (the usual case): no scatter
+            out = self.interpolate_moving(self.spec.order, i, f).add_(rows)
+        else:
+            out = rows.clone()
+            if self.moving.numel():
+                out.index_add_(0, self.moving, self.interpolate_moving(self.spec.order, i, f))
+        if self.network.numel():
+            exact = torch.cat(field(xyz[self.network], float(time)), dim=-1).float()
+            out.index_copy_(0, self.network, exact.add_(network_rows))
         return out
 
     def offsets_at(self, time: float) -> Tensor:
