@@ -256,3 +256,63 @@ def test_the_fast_orders_are_the_stored_keys_interpolated(anchor_every, precisio
                     want = want + wk * line(i + o)
                 got = table.interpolate_moving(order, i, f)
                 assert torch.allclose(got, want, rtol=1e-5, atol=1e-6), (order, i, f)
+
+
+@pytest.mark.parametrize("still", [0, 16])
+def test_the_device_time_frame_is_the_host_time_frame(still):
+    """`rows_at` (segment and keys found on the device, what the frame's CUDA graph replays) against `frame_rows`."""
+    field = _field(amp=0.05)
+    field.amp[64 - still :] = 0.0
+    xyz = _xyz()
+    table = TimeTable.build(_spec(61, tolerance=1e-2, anchor_every=4, precision="int16"), field, xyz)
+    assert table.graphable and table.moving.numel() == 64 - still
+    rows = torch.randn(64, 10, generator=torch.Generator().manual_seed(2))
+    keys = table.spec.key_times()
+    for t in torch.cat([torch.linspace(-0.05, 1.05, 67), keys[table._anchor_keys[1:-1]]]).tolist():
+        want = table.frame_rows(rows, None, field, xyz, t)
+        got = table.rows_at(rows, torch.tensor(t))
+        assert torch.allclose(got, want, rtol=1e-5, atol=1e-6), t
+
+
+def test_tables_with_cubic_keys_or_network_gaussians_take_the_host_time_frame():
+    field = _field(amp=0.05)
+    field.amp[:4] = 3.0
+    assert not TimeTable.build(_spec(16, tolerance=2e-3), field, _xyz()).graphable  # cubic
+    linear = TimeTable.build(_spec(61, tolerance=1e-2), field, _xyz())
+    assert linear.spec.order == "linear" and linear.graphable
+    linear.network = torch.tensor([0])  # a Gaussian on the network: its MLP rows are not in the graph
+    assert not linear.graphable
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a GPU")
+def test_a_tabled_frame_replayed_as_a_cuda_graph_is_the_eager_frame():
+    from garo_ns.deformation import DeformationField
+    from garo_ns.render.frame import FramePath, FrameSettings
+
+    device = torch.device("cuda")
+    g = torch.Generator().manual_seed(3)
+    n = 4096
+    field = DeformationField(pos_freqs=4, time_freqs=3, depth=3, width=64, skip=1).to(device).eval()
+    canonical = Canonical(
+        *(
+            x.to(device)
+            for x in (
+                torch.rand(n, 3, generator=g),
+                torch.randn(n, 4, generator=g),
+                0.1 * torch.randn(n, 3, generator=g) - 3,
+                torch.randn(n, 1, generator=g),
+                torch.randn(n, 3, generator=g),
+                torch.randn(n, 15, 3, generator=g),
+            )
+        )
+    )
+    spec = _spec(40, tolerance=1.0)  # every Gaussian tabled, linear
+    eager, graphed = FramePath(), FramePath()
+    with torch.no_grad():
+        for t in (0.05, 0.5, 0.5, 0.93):
+            a = eager.splats(field, canonical, None, None, t, FrameSettings(time_table=True), spec)
+            b = graphed.splats(field, canonical, None, None, t, FrameSettings(time_table=True, cuda_graph=True), spec)
+            assert b.graph is not None and a.graph is None
+            for x, y in zip(a[:5], b[:5]):
+                assert torch.allclose(x, y, rtol=1e-5, atol=1e-6), t
+    assert graphed._graph.captures == 1  # one capture, replayed at every time

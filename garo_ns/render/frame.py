@@ -94,6 +94,12 @@ def activate(canonical: Canonical, deformed: Deformed) -> Splats:
     return Splats(means, quats, torch.exp(log_scales), torch.sigmoid(canonical.opacities).squeeze(-1), colors)
 
 
+def rows_splats(rows: Tensor, opacities: Tensor, colors: Tensor) -> Splats:
+    """The rasterizer's inputs from a tabled frame's rows [N, 10] (means, quaternions, log-scales) and the
+    opacities and colours made with its table."""
+    return Splats(rows[:, :3].contiguous(), rows[:, 3:7].contiguous(), torch.exp(rows[:, 7:]), opacities, colors)
+
+
 @torch.no_grad()
 def table_rows(canonical: Canonical, table: TimeTable) -> Optional[Tuple[Tensor, Optional[Tensor], Tensor, Tensor]]:
     """What `TimeTable.frame_rows` and a tabled frame read besides the table (None where the parameters are not
@@ -146,12 +152,24 @@ class FramePath:
                 cache_key = ("table", float(time), self.halfway, table, versions(list(canonical)))
                 if settings.cache_deformation and self._deformed is not None and self._deformed[0] == cache_key:
                     return self._deformed[1]
+                device = canonical.means.device
                 if self.halfway or self._table_rows is None:  # the switch measurement's probe: the reference path
                     out = activate(canonical, tabled.deformed(field, canonical, float(time), self.halfway))
+                elif settings.cuda_graph and tabled.graphable and graphs_available(device):
+                    rows, _, opacities, colors = self._table_rows
+
+                    def step(t: Tensor) -> Splats:
+                        return rows_splats(tabled.rows_at(rows, t), opacities, colors)
+
+                    # The network's graph and this one share a TimeGraph: one capture counter names the buffers
+                    # the camera's projection graph reads (Splats.graph). The table's key changes with its tensors.
+                    key = ("table", self._table[0] if self._table is not None else None)
+                    out = self._graph(key, step, time, device, reuse=settings.cache_deformation)
+                    return Splats(*out[:5], graph=self._graph.captures)
                 else:
                     rows, network_rows, opacities, colors = self._table_rows
                     d = tabled.frame_rows(rows, network_rows, field, canonical.means.detach(), float(time))
-                    out = Splats(d[:, :3].contiguous(), d[:, 3:7].contiguous(), torch.exp(d[:, 7:]), opacities, colors)
+                    out = rows_splats(d, opacities, colors)
                 self._deformed = (cache_key, out) if settings.cache_deformation else None
                 return out
         key = versions(list(canonical) + list(field.parameters()) + ([static_offset] if static is not None else []))

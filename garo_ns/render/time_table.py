@@ -203,6 +203,8 @@ class TimeTable:
         self.network = network  # [R] indices of the Gaussians rendered through the MLP
         self.info = info
         self._anchor_keys = spec.anchor_keys()
+        self._key_anchor: Optional[Tensor] = None  # made on the first `rows_at`
+        self._anchor_at: Optional[Tensor] = None
         self._line = anchor_lines(anchors, self._anchor_keys)
 
     @classmethod
@@ -315,6 +317,37 @@ class TimeTable:
         if self.codec.scale is None:
             return out.add_(fine)
         return out.addcmul_(fine, self.codec.scale)
+
+    @property
+    def graphable(self) -> bool:
+        """Whether `rows_at` serves this table: linear keys and no Gaussian on the network (the frame's
+        CUDA graph; other tables take `frame_rows`)."""
+        return self.spec.order == "linear" and self.network.numel() == 0
+
+    def rows_at(self, rows: Tensor, time: Tensor) -> Tensor:
+        """`frame_rows` of a `graphable` table with the time a device scalar: the segment, its keys and anchors
+        found on the device (gathers, no host reads), so that a CUDA graph can replay the whole frame."""
+        spec = self.spec
+        if self._key_anchor is None:  # per key, the anchor line it lies on; the anchors' key indices
+            keys = torch.tensor(self._anchor_keys, device=rows.device)
+            k = torch.arange(spec.intervals + 2 * PAD, device=rows.device)
+            self._key_anchor = (torch.searchsorted(keys, k, right=True) - 1).clamp(0, len(keys) - 2)
+            self._anchor_at = keys.to(rows.dtype)
+        u = (time.clamp(spec.t_lo, spec.t_hi) - spec.t_lo) / spec.spacing + (PAD - 0.5)
+        i = u.floor().clamp(PAD - 1, spec.intervals + PAD - 1)
+        f = u - i
+        pair = torch.stack([i, i + 1]).long()
+        j = self._key_anchor.index_select(0, pair[:1])
+        ends = torch.cat([j, j + 1])
+        at = self._anchor_at.index_select(0, ends)
+        line = self.anchors.index_select(0, ends)
+        out = torch.lerp(line[0], line[1], (i + f - at[0]) / (at[1] - at[0]))
+        keys2 = self.residual.index_select(0, pair).float()
+        fine = torch.lerp(keys2[0], keys2[1], f)
+        out = out.add_(fine) if self.codec.scale is None else out.addcmul_(fine, self.codec.scale)
+        if self.moving.numel() == rows.shape[0]:
+            return out.add_(rows)
+        return rows.clone().index_add_(0, self.moving, out)
 
     def frame_rows(self, rows: Tensor, network_rows: Optional[Tensor], field: Any, xyz: Tensor, time: float) -> Tensor:
         """Every Gaussian's means, quaternions and log-scales [N, 10] at `time` for a frame: `rows` are the
