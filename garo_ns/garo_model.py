@@ -108,6 +108,7 @@ class GaroModel(SplatfactoModel):
         self.train_cameras: Optional[Cameras] = None
         self._last_step: Optional[int] = None
         self.frame = FramePath()
+        self.frame.scale_offset = cfg.deform_scale_offset
         self.health_log: List[Dict[str, Any]] = []
 
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
@@ -202,7 +203,7 @@ class GaroModel(SplatfactoModel):
             frames = len(self.train_times) if self.train_times is not None else 1
             time = time + time_noise(cfg.time_noise, cfg.time_noise_steps, self.step, frames, self.training)
             field = self.train_field if self.training else self.deformation
-            return activate(canonical, compose(field, canonical, time))
+            return activate(canonical, compose(field, canonical, time, cfg.deform_scale_offset))
         state = self.strategy_state
         settings = self.render_settings() if settings is None else settings
         static, offset, table = state["static"], state["static_offset"], self.switches.table_spec()
@@ -228,7 +229,8 @@ class GaroModel(SplatfactoModel):
         (default: up to `static_times` of the training times, evenly spread)."""
         times = sample_times(self.train_times, self.config.static_times) if times is None else times
         threshold = self.config.static_threshold * self.scene_extent
-        static, offset = classify(self.deformation, self.means, self.scales, times, threshold)
+        scale_offset = self.config.deform_scale_offset
+        static, offset = classify(self.deformation, self.means, self.scales, times, threshold, scale_offset)
         self.strategy_state.update({"static": static, "static_offset": offset, "static_step": int(self.step)})
 
     def contribution(self, cameras: Cameras) -> Tensor:

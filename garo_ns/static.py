@@ -16,13 +16,22 @@ from typing import Callable, Optional, Tuple
 import torch
 from torch import Tensor
 
+from garo_ns.deformation import ScaleOffset, log_scale_offset
+
 OFFSET_DIM = 10  # xyz 3, quaternion 4, log-scale 3
 
 OffsetFn = Callable[[Tensor, float], Tuple[Tensor, Tensor, Tensor]]
 
 
 @torch.no_grad()
-def motion_statistics(offsets: OffsetFn, means: Tensor, times: Tensor, chunk: int = 65_536) -> Tuple[Tensor, Tensor]:
+def motion_statistics(
+    offsets: OffsetFn,
+    means: Tensor,
+    times: Tensor,
+    chunk: int = 65_536,
+    log_scales: Optional[Tensor] = None,
+    scale_offset: ScaleOffset = "log",
+) -> Tuple[Tensor, Tensor]:
     """How far each Gaussian's offsets stray from their time average, and that average.
 
     Args:
@@ -30,6 +39,8 @@ def motion_statistics(offsets: OffsetFn, means: Tensor, times: Tensor, chunk: in
         means: canonical positions [N, 3].
         times: the times to sample [T] (the training times).
         chunk: Gaussians per MLP call, to bound memory (T x chunk x 10 floats at once).
+        log_scales, scale_offset: where the field's scale offsets are not log-scale offsets (`linear`), the
+            Gaussians' log-scales [N, 3] to make them so (garo_ns.deformation.log_scale_offset).
 
     Returns:
         deviation [N, 3]: per Gaussian, the largest norm over times of offset minus mean offset,
@@ -44,6 +55,10 @@ def motion_statistics(offsets: OffsetFn, means: Tensor, times: Tensor, chunk: in
     for start in range(0, n, chunk):
         xyz = means[start : start + chunk]
         d = torch.stack([torch.cat(offsets(xyz, t), dim=-1).float() for t in times.tolist()])  # [T, n, 10]
+        if scale_offset != "log":
+            if log_scales is None:
+                raise ValueError(f"a {scale_offset!r} scale offset needs the Gaussians' log-scales")
+            d[..., 7:] = log_scale_offset(log_scales[start : start + chunk].detach().float(), d[..., 7:], scale_offset)
         avg = d.mean(dim=0)
         dev = d - avg
         norms = torch.stack([dev[..., :3].norm(dim=-1), dev[..., 3:7].norm(dim=-1), dev[..., 7:].norm(dim=-1)], -1)
@@ -78,11 +93,18 @@ def sample_times(times: Optional[Tensor], n: int) -> Tensor:
 
 @torch.no_grad()
 def classify(
-    offsets: OffsetFn, means: Tensor, log_scales: Tensor, times: Tensor, threshold: float
+    offsets: OffsetFn,
+    means: Tensor,
+    log_scales: Tensor,
+    times: Tensor,
+    threshold: float,
+    scale_offset: ScaleOffset = "log",
 ) -> Tuple[Tensor, Tensor]:
-    """Which Gaussians are static [N] (bool) and their time-averaged offsets [N, 10], from the field
-    `offsets` sampled at `times`; `threshold` in scene units (see `classify_static`)."""
-    deviation, mean = motion_statistics(offsets, means.detach(), times.reshape(-1))
+    """Which Gaussians are static [N] (bool) and their time-averaged offsets [N, 10] (scale offsets of the
+    log-scales), from the field `offsets` sampled at `times`; `threshold` in scene units (see `classify_static`)."""
+    deviation, mean = motion_statistics(
+        offsets, means.detach(), times.reshape(-1), log_scales=log_scales, scale_offset=scale_offset
+    )
     size = torch.exp(log_scales.detach() + mean[:, 7:]).amax(dim=-1)
     return classify_static(deviation, size, threshold), mean
 

@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from garo_ns.deformation import DeformationField
+from garo_ns.deformation import DeformationField, ScaleOffset, log_scale_offset
 from garo_ns.render.backend import Backend, lean_front, rasterize
 from garo_ns.render.graphs import InputGraph, TimeGraph, graphs_available, versions
 from garo_ns.render.half_field import HalfField
@@ -79,12 +79,15 @@ Deformed = Tuple[Tensor, Tensor, Tensor]  # means, quaternions (unnormalised), l
 OffsetField = Callable[[Tensor, Union[float, Tensor]], Tuple[Tensor, Tensor, Tensor]]
 
 
-def compose(field: OffsetField, canonical: Canonical, time: Union[float, Tensor]) -> Deformed:
+def compose(
+    field: OffsetField, canonical: Canonical, time: Union[float, Tensor], scale_offset: ScaleOffset = "log"
+) -> Deformed:
     """Every Gaussian moved by the field at `time`, as D-3DGS composes it: the MLP reads detached
-    canonical positions; offsets are added to the positions, to the normalised quaternions and (in
-    log space, which keeps scales positive) to the log-scales."""
+    canonical positions; offsets are added to the positions, to the normalised quaternions and to the
+    scales as `scale_offset` says (garo_ns.deformation.log_scale_offset)."""
     d_xyz, d_rot, d_scale = field(canonical.means.detach(), time)
-    return canonical.means + d_xyz, F.normalize(canonical.quats, dim=-1) + d_rot, canonical.log_scales + d_scale
+    log_scales = canonical.log_scales + log_scale_offset(canonical.log_scales, d_scale, scale_offset)
+    return canonical.means + d_xyz, F.normalize(canonical.quats, dim=-1) + d_rot, log_scales
 
 
 def activate(canonical: Canonical, deformed: Deformed) -> Splats:
@@ -130,6 +133,7 @@ class FramePath:
         self.table_info: Optional[Dict[str, Any]] = None  # the last table built (or why it failed)
         # Set while the render switches are measured: the table's frames put each time halfway between keys.
         self.halfway = False
+        self.scale_offset: ScaleOffset = "log"  # the model's deform_scale_offset
 
     def splats(
         self,
@@ -149,7 +153,7 @@ class FramePath:
         if settings.time_table and table is not None and not torch.is_grad_enabled():
             tabled = self.time_table(field, canonical, table)
             if tabled is not None:
-                cache_key = ("table", float(time), self.halfway, table, versions(list(canonical)))
+                cache_key = ("table", float(time), self.halfway, table, versions(list(canonical)), self.scale_offset)
                 if settings.cache_deformation and self._deformed is not None and self._deformed[0] == cache_key:
                     return self._deformed[1]
                 device = canonical.means.device
@@ -184,7 +188,7 @@ class FramePath:
             if self._graph.captures != captures:  # the capture built the half field's copies it reads: key them
                 self._graph.key = self.graph_key(settings, key)
             return Splats(*out[:5], graph=self._graph.captures)
-        cache_key = (float(time), settings.render_precision, settings.static_skip, key)
+        cache_key = (float(time), settings.render_precision, settings.static_skip, key, self.scale_offset)
         if settings.cache_deformation and self._deformed is not None and self._deformed[0] == cache_key:
             return self._deformed[1]
         out = activate(canonical, self.deform(field, canonical, static, static_offset, time, settings, key))
@@ -199,12 +203,14 @@ class FramePath:
     def time_table(self, field: DeformationField, canonical: Canonical, spec: TableSpec) -> Optional[TimeTable]:
         """The table of `spec` for these parameters, built on first use (and again when they change); None
         when it cannot be built (out of memory, ...): the reason is in `table_info` and the network renders."""
-        key = (spec, versions(list(canonical) + list(field.parameters())))
+        key = (spec, versions(list(canonical) + list(field.parameters())), self.scale_offset)
         if self._table is None or self._table[0] != key:
             self._table, self._table_rows = None, None  # the old table's memory first
             start = perf_counter()
             try:
-                built: Optional[TimeTable] = TimeTable.build(spec, field, canonical.means.detach())
+                built: Optional[TimeTable] = TimeTable.build(
+                    spec, field, canonical.means.detach(), scales=(canonical.log_scales.detach(), self.scale_offset)
+                )
                 self.table_info = {**built.info, "build_s": perf_counter() - start}  # type: ignore[union-attr]
                 self._table_rows = table_rows(canonical, built)  # type: ignore[arg-type]
             except (RuntimeError, MemoryError) as err:  # torch's out-of-memory is a RuntimeError
@@ -217,7 +223,7 @@ class FramePath:
         fp16, the half field's weight copies and position cache, which an eager frame in another precision
         or static setting releases or rebuilds (`HalfField.generation`)."""
         half = self.half_field.generation if settings.render_precision == "fp16" else None
-        return (settings.render_precision, settings.static_skip, key, half)
+        return (settings.render_precision, settings.static_skip, key, half, self.scale_offset)
 
     def deform(
         self,
@@ -237,10 +243,11 @@ class FramePath:
         dynamic_only = settings.static_skip and static is not None
         offsets = self._offset_field(field, settings.render_precision, key, dynamic_only, device)
         if not settings.static_skip or static is None:
-            return compose(offsets, canonical, time)
+            return compose(offsets, canonical, time, self.scale_offset)
         dynamic, frozen, moving = self._static_split(canonical, static, static_offset, key)
         d_xyz, d_rot, d_scale = offsets(moving[0], time)
-        moved = (moving[0] + d_xyz, moving[1] + d_rot, moving[2] + d_scale)
+        d_log_scale = log_scale_offset(moving[2], d_scale, self.scale_offset)
+        moved = (moving[0] + d_xyz, moving[1] + d_rot, moving[2] + d_log_scale)
         if in_place:
             return tuple(f.index_copy_(0, dynamic, m) for f, m in zip(frozen, moved))  # type: ignore[return-value]
         return tuple(f.index_copy(0, dynamic, m) for f, m in zip(frozen, moved))  # type: ignore[return-value]

@@ -38,6 +38,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from garo_ns.deformation import log_scale_offset
+
 Order = Literal["linear", "cubic"]
 ORDERS: Tuple[Order, ...] = ("linear", "cubic")
 CHANNELS = 10  # d_xyz 3, d_rot 4, d_log_scale 3
@@ -137,19 +139,35 @@ class Codec:
             self.scale = self.scale[rows].contiguous()
 
 
-def field_offsets(field: Any, xyz: Tensor, times: Sequence[float], chunk: int = 1 << 18) -> Tensor:
-    """The field's offsets [T, N, 10] at each time, for canonical positions `xyz` [N, 3] (no gradients)."""
+Scales = Optional[Tuple[Tensor, str]]
+"""The Gaussians' log-scales [N, 3] and the model's scale offset (garo_ns.deformation.log_scale_offset), where
+the field's scale offsets are not log-scale offsets already (None: they are)."""
+
+
+def field_offsets(
+    field: Any, xyz: Tensor, times: Sequence[float], chunk: int = 1 << 18, scales: Scales = None
+) -> Tensor:
+    """The field's offsets [T, N, 10] at each time, for canonical positions `xyz` [N, 3] (no gradients), the scale
+    offsets as offsets of the log-scales (`scales`: the Gaussians' log-scales and the composition)."""
     out = torch.empty(len(times), xyz.shape[0], CHANNELS, device=xyz.device)
     with torch.no_grad():
         for k, t in enumerate(times):
             for s in range(0, xyz.shape[0], chunk):
-                d = field(xyz[s : s + chunk], float(t))
-                out[k, s : s + chunk] = torch.cat(d, dim=-1).float()
+                d = torch.cat(field(xyz[s : s + chunk], float(t)), dim=-1).float()
+                if scales is not None and scales[1] != "log":
+                    d[:, 7:] = log_scale_offset(scales[0][s : s + chunk], d[:, 7:], scales[1])  # type: ignore[arg-type]
+                out[k, s : s + chunk] = d
     return out
 
 
 def midpoint_errors(
-    spec: TableSpec, field: Any, xyz: Tensor, base: Tensor, interp: Callable[[Order, int, float], Tensor], samples: int
+    spec: TableSpec,
+    field: Any,
+    xyz: Tensor,
+    base: Tensor,
+    interp: Callable[[Order, int, float], Tensor],
+    samples: int,
+    scales: Scales = None,
 ) -> Dict[str, Tensor]:
     """Per Gaussian, the largest error of each order's interpolation of the stored keys (`base` plus
     `interp(order, i, f)`, the stored residuals of every Gaussian interpolated) against the field at up to
@@ -161,7 +179,7 @@ def midpoint_errors(
     err = {o: torch.zeros(xyz.shape[0], device=xyz.device) for o in ORDERS}
     for p in picks:
         i = PAD - 1 + p
-        truth = field_offsets(field, xyz, [float(key_t[i]) + 0.5 * spec.spacing])[0] - base
+        truth = field_offsets(field, xyz, [float(key_t[i]) + 0.5 * spec.spacing], scales=scales)[0] - base
         for o in ORDERS:
             d = (interp(o, i, 0.5) - truth).abs()
             err[o] = torch.maximum(err[o], torch.maximum(d[:, :3].amax(-1) / spec.extent, d[:, 3:].amax(-1)))
@@ -203,26 +221,30 @@ class TimeTable:
         self.network = network  # [R] indices of the Gaussians rendered through the MLP
         self.info = info
         self._anchor_keys = spec.anchor_keys()
+        self.scales: Scales = None  # how the field's scale offsets became the table's (`build`)
         self._key_anchor: Optional[Tensor] = None  # made on the first `rows_at`
         self._anchor_at: Optional[Tensor] = None
         self._line = anchor_lines(anchors, self._anchor_keys)
 
     @classmethod
     @torch.no_grad()
-    def build(cls, spec: TableSpec, field: Any, xyz: Tensor, midpoint_samples: int = 64) -> "TimeTable":
+    def build(
+        cls, spec: TableSpec, field: Any, xyz: Tensor, midpoint_samples: int = 64, scales: Scales = None
+    ) -> "TimeTable":
         """Sample `field` at the spec's keyframes for canonical positions `xyz`; choose the order by the
-        midpoint check (the spec's order is the preference on a tie) and which Gaussians stay on the network."""
+        midpoint check (the spec's order is the preference on a tie) and which Gaussians stay on the network.
+        The table holds log-scale offsets: `scales` converts the field's where they are not."""
         times = spec.key_times().tolist()
         # Offsets from those at the middle of the range, anchors first; then one key at a time, so building takes
         # the table's memory and one key's, not every key in fp32. int16 keys need each Gaussian's largest fine
         # residual first (a pass of its own).
-        base = field_offsets(field, xyz, [0.5 * (spec.t_lo + spec.t_hi)])[0]
+        base = field_offsets(field, xyz, [0.5 * (spec.t_lo + spec.t_hi)], scales=scales)[0]
         anchor_keys = spec.anchor_keys()
-        anchors = torch.stack([field_offsets(field, xyz, [times[k]])[0] - base for k in anchor_keys])
+        anchors = torch.stack([field_offsets(field, xyz, [times[k]], scales=scales)[0] - base for k in anchor_keys])
         line = anchor_lines(anchors, anchor_keys)
 
         def from_base(k: int) -> Tensor:
-            return field_offsets(field, xyz, [times[k]])[0] - base
+            return field_offsets(field, xyz, [times[k]], scales=scales)[0] - base
 
         spread = torch.zeros(xyz.shape[0], CHANNELS, device=xyz.device)  # largest fine residual
         motion = torch.zeros_like(spread)  # largest offset from the base
@@ -235,7 +257,7 @@ class TimeTable:
         for k in range(len(times)):
             residual[k] = codec.encode(from_base(k) - line(k))
         whole = cls(spec, base, anchors, residual, torch.arange(xyz.shape[0], device=xyz.device), None, {}, codec)
-        err = midpoint_errors(spec, field, xyz, base, whole.interpolate_moving, midpoint_samples)
+        err = midpoint_errors(spec, field, xyz, base, whole.interpolate_moving, midpoint_samples, scales)
         off = {o: int((err[o] > spec.tolerance).sum()) for o in ORDERS}
         order: Order = min(ORDERS, key=lambda o: (off[o], o != spec.order))
         spec = TableSpec(**{**spec.to_dict(), "order": order})
@@ -263,6 +285,7 @@ class TimeTable:
             },
         }
         table = cls(spec, base, anchors, residual, moving, network, info, codec)
+        table.scales = scales
         table.info["mb"] = table.nbytes() / 2**20
         return table
 
@@ -362,9 +385,15 @@ class TimeTable:
             if self.moving.numel():
                 out.index_add_(0, self.moving, self.interpolate_moving(self.spec.order, i, f))
         if self.network.numel():
-            exact = torch.cat(field(xyz[self.network], float(time)), dim=-1).float()
-            out.index_copy_(0, self.network, exact.add_(network_rows))
+            out.index_copy_(0, self.network, self.network_offsets(field, xyz, time).add_(network_rows))
         return out
+
+    def network_offsets(self, field: Any, xyz: Tensor, time: float) -> Tensor:
+        """The MLP's own offsets [R, 10] of the Gaussians on the network (scale offsets as the table's)."""
+        d = torch.cat(field(xyz[self.network], float(time)), dim=-1).float()
+        if self.scales is not None and self.scales[1] != "log":
+            d[:, 7:] = log_scale_offset(self.scales[0][self.network], d[:, 7:], self.scales[1])  # type: ignore[arg-type]
+        return d
 
     def offsets_at(self, time: float) -> Tensor:
         """Every Gaussian's table offsets [N, 10] at `time` (the network's Gaussians included, as tabled)."""
@@ -385,7 +414,7 @@ class TimeTable:
         times = [time - 1.5 * h, time - 0.5 * h, time + 0.5 * h, time + 1.5 * h]
         out = self.base.clone()
         if self.moving.numel():
-            r = (field_offsets(field, xyz, times) - self.base)[:, self.moving]
+            r = (field_offsets(field, xyz, times, scales=self.scales) - self.base)[:, self.moving]
             probe = TimeTable(
                 TableSpec(**{**self.spec.to_dict(), "intervals": 4 - 2 * PAD, "anchor_every": 3}),
                 self.base,
@@ -406,8 +435,7 @@ class TimeTable:
         xyz = canonical.means.detach()
         d = self.offsets_halfway(field, xyz, time) if halfway else self.offsets_at(time)
         if self.network.numel():
-            exact = torch.cat(field(xyz[self.network], float(time)), dim=-1).float()
-            d.index_copy_(0, self.network, exact)
+            d.index_copy_(0, self.network, self.network_offsets(field, xyz, time))
         d = d.to(canonical.means.dtype)
         quats = F.normalize(canonical.quats, dim=-1)
         return canonical.means + d[:, :3], quats + d[:, 3:7], canonical.log_scales + d[:, 7:]

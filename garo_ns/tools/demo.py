@@ -213,8 +213,11 @@ def floor_check(model: Any, resolution: int, box_slide: float = 0.0) -> Optional
         if idx.numel() == 0:
             return {"floor_gaussians": 0}
         times = torch.linspace(0.0, 1.0, model.config.static_times)
-        deviation, mean = motion_statistics(model.deformation, means[idx], times)
-        size = torch.exp(model.scales.detach()[idx] + mean[:, 7:]).amax(dim=-1)
+        log_scales = model.scales.detach()[idx]
+        deviation, mean = motion_statistics(
+            model.deformation, means[idx], times, log_scales=log_scales, scale_offset=model.config.deform_scale_offset
+        )
+        size = torch.exp(log_scales + mean[:, 7:]).amax(dim=-1)
         move = displacement(deviation, size).float().cpu()
     threshold = model.config.static_threshold * model.scene_extent
     pixel = S.CAMERA_RADIUS * 2 * math.tan(0.5 * S.CAMERA_ANGLE_X) / resolution
