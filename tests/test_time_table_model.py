@@ -44,10 +44,10 @@ def test_training_records_the_table_and_a_loaded_model_renders_the_recorded_chan
     table = record[TABLE]
     assert 0 <= record["tried"][TABLE] < math.inf
     info = table["info"]
-    # 8 training times, 2, 4, 8, 16 or 32 intervals per gap (the fewest within the ladder's margin, else the one that
-    # changed the views least), two padding keys at each end; built from the trained field.
+    # 8 training times, 2, 4, 8, 16, 32 or 64 intervals per gap (the fewest within the ladder's margin, else the one
+    # that changed the views least), two padding keys at each end; built from the trained field.
     intervals = info["spec"]["intervals"]
-    assert intervals in (14, 28, 56, 112, 224) and info["keys"] == intervals + 4
+    assert intervals in (14, 28, 56, 112, 224, 448) and info["keys"] == intervals + 4
     assert info["gaussians"] > 0 and info["mb"] > 0 and info["build_s"] >= 0
     ladder = table.get("intervals_tried_db", {})
     if ladder:  # denser tables were tried only while the sparser missed the margin
