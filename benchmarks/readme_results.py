@@ -408,7 +408,7 @@ def _training_line(path: Path, readme_dir: Path) -> str:
         was = f" ({b['minutes_per_40k']:.1f} before)" if b else ""
         psnr = f", {a['psnr']:.2f} dB" if a.get("psnr") is not None else ""
         parts.append(f"`{method}` {a['minutes_per_40k']:.1f} min{was}{runs}{psnr}")
-    scenes = sorted({r["file"].split("_")[-2] for e in data["methods"].values() for r in e["after"]["runs"]})
+    scenes = sorted({r["scene"] for e in data["methods"].values() for r in e["after"]["runs"]})
     return (
         f"\nTraining, 40k steps of {', '.join(scenes)} alone on one {', '.join(data['gpus'])} "
         f"({_link(path, readme_dir)}; test PSNR): {'; '.join(parts)}.\n"

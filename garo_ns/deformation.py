@@ -9,7 +9,7 @@ first passes the time encoding through a small network of its own (one hidden la
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, List, Literal, Tuple
+from typing import Dict, List, Literal, Optional, Tuple
 
 import torch
 from torch import Tensor, nn
@@ -34,6 +34,18 @@ def log_scale_offset(log_scales: Tensor, d_scale: Tensor, mode: ScaleOffset) -> 
         raise ValueError(f"scale offset must be one of {SCALE_OFFSETS}, got {mode!r}")
     scales = torch.exp(log_scales) + d_scale
     return torch.log(scales.abs().clamp_min(SCALE_FLOOR)) - log_scales
+
+
+def as_log_offsets(offsets: Tensor, log_scales: Optional[Tensor], mode: ScaleOffset) -> Tensor:
+    """Concatenated offsets [..., N, 10] (position, rotation, scale) with their scale part made offsets of the
+    log-scales [N, 3] (`log_scale_offset`), in place; unchanged under `log`. For the readers that sample the field
+    apart from a frame: the time table, the static classification."""
+    if mode == "log":
+        return offsets
+    if log_scales is None:
+        raise ValueError(f"a {mode!r} scale offset needs the Gaussians' log-scales")
+    offsets[..., 7:] = log_scale_offset(log_scales.detach().to(offsets.dtype), offsets[..., 7:], mode)
+    return offsets
 
 
 def frequency_bands(n_freqs: int, device: torch.device | None = None) -> Tensor:

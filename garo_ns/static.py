@@ -16,7 +16,7 @@ from typing import Callable, Optional, Tuple
 import torch
 from torch import Tensor
 
-from garo_ns.deformation import ScaleOffset, log_scale_offset
+from garo_ns.deformation import ScaleOffset, as_log_offsets
 
 OFFSET_DIM = 10  # xyz 3, quaternion 4, log-scale 3
 
@@ -55,10 +55,8 @@ def motion_statistics(
     for start in range(0, n, chunk):
         xyz = means[start : start + chunk]
         d = torch.stack([torch.cat(offsets(xyz, t), dim=-1).float() for t in times.tolist()])  # [T, n, 10]
-        if scale_offset != "log":
-            if log_scales is None:
-                raise ValueError(f"a {scale_offset!r} scale offset needs the Gaussians' log-scales")
-            d[..., 7:] = log_scale_offset(log_scales[start : start + chunk].detach().float(), d[..., 7:], scale_offset)
+        part = None if log_scales is None else log_scales[start : start + chunk]
+        d = as_log_offsets(d, part, scale_offset)
         avg = d.mean(dim=0)
         dev = d - avg
         norms = torch.stack([dev[..., :3].norm(dim=-1), dev[..., 3:7].norm(dim=-1), dev[..., 7:].norm(dim=-1)], -1)

@@ -241,7 +241,7 @@ def test_training_line_reads_minutes_and_psnr_from_the_train_speed_file(tmp_path
     from readme_results import training_block
 
     def side(minutes, psnr):
-        run = {"file": f"train_profile_garo-deform_lego_GPU{minutes}.json", "minutes_per_40k": minutes, "psnr": psnr}
+        run = {"file": f"run{minutes}.json", "scene": "lego", "minutes_per_40k": minutes, "psnr": psnr}
         return {"runs": [run], "minutes_per_40k": minutes, "psnr": psnr}
 
     data = {"gpus": ["GPU X"], "methods": {"garo-deform": {"before": side(9.31, 30.0), "after": side(4.5, 30.1)}}}

@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from garo_ns.deformation import SCALE_FLOOR, DeformationField, log_scale_offset
+from garo_ns.deformation import SCALE_FLOOR, DeformationField, as_log_offsets, log_scale_offset
 from garo_ns.render.frame import Canonical, FramePath, FrameSettings, activate, compose
 from garo_ns.render.time_table import PAD, TableSpec, TimeTable, field_offsets
 from garo_ns.static import classify
@@ -24,6 +24,8 @@ def test_log_offsets_pass_through_and_linear_ones_add_to_the_scale():
     assert (torch.exp(log_scales) + d < 0).any()  # some offsets overturn their scale: taken by magnitude
     with pytest.raises(ValueError, match="scale offset"):
         log_scale_offset(log_scales, d, "exp")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="log-scales"):  # a linear offset cannot be read without its scales
+        as_log_offsets(torch.zeros(200, 10), None, "linear")
 
 
 def test_an_offset_that_cancels_its_scale_leaves_the_floor_and_finite_gradients():

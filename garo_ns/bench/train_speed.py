@@ -24,6 +24,7 @@ def run_row(path: Path) -> Dict[str, Any]:
     score = r.get("score") or {}
     return {
         "file": Path(path).name,
+        "scene": r.get("scene"),
         "gpu": env.get("gpu"),
         "git_commit": env.get("git_commit"),
         "steps": r["steps"],

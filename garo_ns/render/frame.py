@@ -153,7 +153,8 @@ class FramePath:
         if settings.time_table and table is not None and not torch.is_grad_enabled():
             tabled = self.time_table(field, canonical, table)
             if tabled is not None:
-                cache_key = ("table", float(time), self.halfway, table, versions(list(canonical)), self.scale_offset)
+                table_key = self._table[0]  # type: ignore[index]  # the spec, the parameters' versions, the scales
+                cache_key = ("table", float(time), self.halfway, table_key)
                 if settings.cache_deformation and self._deformed is not None and self._deformed[0] == cache_key:
                     return self._deformed[1]
                 device = canonical.means.device
@@ -167,8 +168,7 @@ class FramePath:
 
                     # The network's graph and this one share a TimeGraph: one capture counter names the buffers
                     # the camera's projection graph reads (Splats.graph). The table's key changes with its tensors.
-                    key = ("table", self._table[0] if self._table is not None else None)
-                    out = self._graph(key, step, time, device, reuse=settings.cache_deformation)
+                    out = self._graph(("table", table_key), step, time, device, reuse=settings.cache_deformation)
                     return Splats(*out[:5], graph=self._graph.captures)
                 else:
                     rows, network_rows, opacities, colors = self._table_rows

@@ -38,7 +38,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from garo_ns.deformation import log_scale_offset
+from garo_ns.deformation import as_log_offsets
 
 Order = Literal["linear", "cubic"]
 ORDERS: Tuple[Order, ...] = ("linear", "cubic")
@@ -154,8 +154,8 @@ def field_offsets(
         for k, t in enumerate(times):
             for s in range(0, xyz.shape[0], chunk):
                 d = torch.cat(field(xyz[s : s + chunk], float(t)), dim=-1).float()
-                if scales is not None and scales[1] != "log":
-                    d[:, 7:] = log_scale_offset(scales[0][s : s + chunk], d[:, 7:], scales[1])  # type: ignore[arg-type]
+                if scales is not None:
+                    d = as_log_offsets(d, scales[0][s : s + chunk], scales[1])  # type: ignore[arg-type]
                 out[k, s : s + chunk] = d
     return out
 
@@ -391,8 +391,8 @@ class TimeTable:
     def network_offsets(self, field: Any, xyz: Tensor, time: float) -> Tensor:
         """The MLP's own offsets [R, 10] of the Gaussians on the network (scale offsets as the table's)."""
         d = torch.cat(field(xyz[self.network], float(time)), dim=-1).float()
-        if self.scales is not None and self.scales[1] != "log":
-            d[:, 7:] = log_scale_offset(self.scales[0][self.network], d[:, 7:], self.scales[1])  # type: ignore[arg-type]
+        if self.scales is not None:
+            d = as_log_offsets(d, self.scales[0][self.network], self.scales[1])  # type: ignore[arg-type]
         return d
 
     def offsets_at(self, time: float) -> Tensor:
