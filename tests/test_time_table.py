@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from garo_ns.render.frame import Canonical, activate, compose, table_rows
-from garo_ns.render.time_table import PAD, TableSpec, TimeTable, plan_intervals, spec_for, weights
+from garo_ns.render.time_table import PAD, TableSpec, TimeTable, plan_intervals, spec_for, table_bytes, weights
 
 W = 2 * math.pi  # one period over the time range
 
@@ -128,12 +128,30 @@ def test_the_memory_budget_gives_fewer_keys_or_no_table():
     assert want == 2 * 149
     fewer = plan_intervals(150, 2, n, budget_mb=200, precision="fp16")
     assert 2 <= fewer < want
-    mb = (n * 10 * 2 * (fewer + 2 * PAD) + n * (10 * 4 + 16)) / 2**20
-    assert mb <= 200
+    # The most that fit: one interval more would not.
+    assert table_bytes(fewer, n, "fp16") <= 200 * 2**20 < table_bytes(fewer + 1, n, "fp16")
     spec, why = spec_for(torch.linspace(0, 1, 150), 2, n, 5, "fp16", 1e-4, 1.0)
     assert spec is None and "memory budget" in why
     spec, why = spec_for(None, 2, n, 5, "fp16", 1e-4, 1.0)
     assert spec is None and why == "no training times"
+
+
+@pytest.mark.parametrize("precision", ["int16", "fp16", "fp32"])
+@pytest.mark.parametrize("anchor_every", [1, 4, 16])
+def test_a_table_planned_for_a_budget_stays_within_it(precision, anchor_every):
+    # A table refused on load for exceeding its budget by half a megabyte (the plan counted a fraction of an anchor
+    # per key where the keys round up to whole anchors) is the case this guards: the plan's bytes are the table's.
+    n = 64
+    field = _field(n, amp=0.5)  # every Gaussian moves
+    for budget_mb in (0.05, 0.137, 0.3):
+        intervals = plan_intervals(400, 4, n, budget_mb, precision, anchor_every)
+        assert intervals >= 2
+        spec = _spec(intervals, precision=precision, anchor_every=anchor_every, tolerance=0.0)  # all on the network
+        table = TimeTable.build(spec, field, _xyz(n))
+        assert table.moving.numel() == n and table.network.numel() == n
+        assert table.nbytes() == table_bytes(intervals, n, precision, anchor_every) <= budget_mb * 2**20
+        if intervals < 4 * 399:
+            assert table_bytes(intervals + 1, n, precision, anchor_every) > budget_mb * 2**20
 
 
 def test_int16_keys_resolve_each_gaussians_motion_evenly():

@@ -441,18 +441,34 @@ class TimeTable:
         return canonical.means + d[:, :3], quats + d[:, 3:7], canonical.log_scales + d[:, 7:]
 
 
+def table_bytes(intervals: int, gaussians: int, precision: str, anchor_every: int = 16) -> int:
+    """The most bytes a table of `intervals` over `gaussians` Gaussians takes (`TimeTable.nbytes`): every
+    Gaussian moving and every one on the network, which no table exceeds."""
+    spec = TableSpec(0.0, 1.0, intervals, precision=precision, anchor_every=anchor_every)  # type: ignore[arg-type]
+    keys, anchors = intervals + 2 * PAD, len(spec.anchor_keys())
+    row = gaussians * CHANNELS
+    fine = {"fp32": 4, "fp16": 2, "int16": 2}[precision]
+    scale = row * 4 if precision == "int16" else 0  # the codec's fp32 scale per Gaussian and channel
+    return row * 4 * (1 + anchors) + row * fine * keys + scale + gaussians * 8 * 2  # + moving and network indices
+
+
 def plan_intervals(
     frames: int, keys_per_frame: int, gaussians: int, budget_mb: float, precision: str, anchor_every: int = 16
 ) -> int:
-    """Intervals of a table over `frames` training times with `keys_per_frame` keys per gap, reduced to
-    fit `budget_mb` when every Gaussian moves (0: not even two intervals fit)."""
-    # A key's fine residuals, and its share of an fp32 anchor (one more anchor at the end: in `fixed`)
-    per_key = gaussians * CHANNELS * ((4 if precision == "fp32" else 2) + 4 / max(anchor_every, 1))
-    fixed = gaussians * (CHANNELS * 12 + 16)  # base, int16 scales, the last anchor, indices
-    fit = int((budget_mb * 2**20 - fixed) // max(per_key, 1)) - 2 * PAD
+    """Intervals of a table over `frames` training times with `keys_per_frame` keys per gap, reduced to the
+    most whose `table_bytes` fit `budget_mb` (0: not even two intervals fit)."""
     want = max(1, keys_per_frame * max(frames - 1, 1))
-    n = min(want, fit)
-    return n if n >= 2 else 0
+    budget = budget_mb * 2**20
+    lo, hi = 1, want  # the most intervals that fit lies in [lo, hi] once lo fits
+    if table_bytes(lo, gaussians, precision, anchor_every) > budget:
+        return 0
+    while lo < hi:  # bytes grow with the intervals
+        mid = (lo + hi + 1) // 2
+        if table_bytes(mid, gaussians, precision, anchor_every) <= budget:
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo if lo >= 2 else 0
 
 
 def spec_for(
