@@ -31,6 +31,7 @@ from nerfstudio.plugins.types import MethodSpecification
 from torch.nn import Parameter
 
 from garo_ns import compat
+from garo_ns.adam import LeanAdam
 from garo_ns.data.dnerf import GaroDNeRFDataParserConfig
 from garo_ns.data.nerfds import NerfDSDataParserConfig
 from garo_ns.garo_model import GaroModelConfig
@@ -45,12 +46,14 @@ SPATIAL_LR_SCALE = 5.0  # D-3DGS's fixed `spatial_lr_scale` (gaussian_model.py, 
 @dataclass
 class AdamConfig(AdamOptimizerConfig):
     """nerfstudio's Adam, fused (one kernel per parameter group) where its parameters are on CUDA: the same update
-    as the multi-tensor path that nerfstudio uses, with far less host time in each step's eight updates."""
+    as the multi-tensor path that nerfstudio uses, with far less host time in each step's eight updates, and that
+    fused step without torch's per-call bookkeeping (`garo_ns.adam.LeanAdam`)."""
 
     def setup(self, params: Iterable[Parameter]) -> torch.optim.Optimizer:
         params = list(params)
-        fused = bool(params) and all(p.is_cuda for p in params)
-        return torch.optim.Adam(params, lr=self.lr, eps=self.eps, weight_decay=self.weight_decay, fused=fused or None)
+        if params and all(p.is_cuda for p in params):
+            return LeanAdam(params, lr=self.lr, eps=self.eps, weight_decay=self.weight_decay)
+        return torch.optim.Adam(params, lr=self.lr, eps=self.eps, weight_decay=self.weight_decay)
 
 
 def optimizers(max_steps: int = ITERATIONS, spatial: float = SPATIAL_LR_SCALE) -> dict:

@@ -1,0 +1,126 @@
+"""LeanAdam: bitwise torch's fused Adam (updates, state, checkpoints both ways), torch's step where it does not
+apply."""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+
+from garo_ns.adam import LeanAdam
+
+
+def _params(seed=0, shapes=((100, 3), (7,), (5, 4, 2))):
+    g = torch.Generator().manual_seed(seed)
+    return [torch.nn.Parameter(torch.randn(s, generator=g)) for s in shapes]
+
+
+def _steps(opt, params, steps, seed=1, decay=0.9):
+    g = torch.Generator().manual_seed(seed)
+    for _ in range(steps):
+        for p in params:
+            p.grad = torch.randn(p.shape, generator=g)
+        params[1].grad = None if _ % 3 == 2 else params[1].grad  # a parameter without a gradient is left alone
+        opt.param_groups[0]["lr"] *= decay  # a scheduler's float learning rate
+        opt.step()
+
+
+def _same(a, b):
+    return all(torch.equal(x, y) for x, y in zip(a, b))
+
+
+def test_lean_updates_are_bitwise_those_of_torchs_fused_adam():
+    ref, lean = _params(), _params()
+    torch_opt = torch.optim.Adam(ref, lr=1e-2, eps=1e-15, fused=True)
+    lean_opt = LeanAdam(lean, lr=1e-2, eps=1e-15)
+    _steps(torch_opt, ref, 25)
+    _steps(lean_opt, lean, 25)
+    assert _same(ref, lean)
+    for p, q in zip(ref, lean):
+        s, t = torch_opt.state[p], lean_opt.state[q]
+        assert set(s) == set(t) == {"step", "exp_avg", "exp_avg_sq"}
+        assert all(torch.equal(s[k], t[k]) and s[k].dtype == t[k].dtype for k in s)
+    assert not _same(_params(), lean)  # the control: the parameters moved
+
+
+@pytest.mark.parametrize("first", ["lean", "torch"])
+def test_checkpoints_move_between_lean_and_torchs_fused_adam(first):
+    make = {
+        "lean": lambda ps: LeanAdam(ps, lr=1e-2, eps=1e-15),
+        "torch": lambda ps: torch.optim.Adam(ps, lr=1e-2, eps=1e-15, fused=True),
+    }
+    second = "torch" if first == "lean" else "lean"
+    params = _params()
+    opt = make[first](params)
+    _steps(opt, params, 10)
+    saved = ([p.detach().clone() for p in params], copy.deepcopy(opt.state_dict()))
+    _steps(opt, params, 10, seed=2)  # go on in the first
+
+    resumed = [torch.nn.Parameter(p.clone()) for p in saved[0]]
+    other = make[second](resumed)
+    other.load_state_dict(saved[1])
+    _steps(other, resumed, 10, seed=2)  # the same ten steps in the second
+    assert _same(params, resumed)
+
+
+def test_an_edited_state_is_followed_as_torch_follows_it():
+    # gsplat's densification puts new parameters in the group and carries (grown) moments and the step counter over.
+    runs = []
+    for make in (lambda ps: LeanAdam(ps, lr=1e-2), lambda ps: torch.optim.Adam(ps, lr=1e-2, fused=True)):
+        params = _params()
+        opt = make(params)
+        _steps(opt, params, 5)
+        old = params[0]
+        new = torch.nn.Parameter(torch.cat([old.detach(), old.detach()[:10]]))
+        state = opt.state.pop(old)
+        state["exp_avg"] = torch.cat([state["exp_avg"], torch.zeros(10, 3)])
+        state["exp_avg_sq"] = torch.cat([state["exp_avg_sq"], torch.zeros(10, 3)])
+        opt.param_groups[0]["params"][0] = new
+        opt.state[new] = state
+        params[0] = new
+        _steps(opt, params, 5, seed=3)
+        runs.append(params)
+    assert _same(*runs)
+
+
+@pytest.mark.parametrize("option", [{"amsgrad": True}, {"maximize": True}])
+def test_what_the_lean_step_does_not_cover_goes_through_torchs_step(option):
+    ref, lean = _params(), _params()
+    _steps(torch.optim.Adam(ref, lr=1e-2, fused=True, **option), ref, 8)
+    _steps(LeanAdam(lean, lr=1e-2, **option), lean, 8)
+    assert _same(ref, lean)
+
+
+def test_a_closure_is_evaluated_as_torch_evaluates_it():
+    params = _params()
+    opt = LeanAdam(params, lr=1e-2)
+    calls = []
+
+    def closure():
+        calls.append(1)
+        for p in params:
+            p.grad = torch.ones_like(p)
+        return 3.0
+
+    assert opt.step(closure) == 3.0 and calls == [1]
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA: training's optimizers are lean on CUDA only")
+def test_lean_updates_on_cuda_are_bitwise_torchs_and_training_uses_them():
+    from garo_ns.config import AdamConfig
+
+    ref = [torch.nn.Parameter(p.detach().cuda()) for p in _params()]
+    lean = [torch.nn.Parameter(p.detach().cuda()) for p in _params()]
+    torch_opt = torch.optim.Adam(ref, lr=1e-2, eps=1e-15, fused=True)
+    lean_opt = AdamConfig(lr=1e-2, eps=1e-15).setup(lean)
+    assert isinstance(lean_opt, LeanAdam)
+    for opt, params in ((torch_opt, ref), (lean_opt, lean)):
+        g = torch.Generator(device="cuda").manual_seed(1)
+        for _ in range(20):
+            for p in params:
+                p.grad = torch.randn(p.shape, generator=g, device="cuda")
+            opt.param_groups[0]["lr"] *= 0.9
+            opt.step()
+    assert _same(ref, lean)
+    assert not isinstance(AdamConfig(lr=1e-2).setup(_params()), LeanAdam)  # the CPU keeps torch's default Adam
