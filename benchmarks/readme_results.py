@@ -381,11 +381,13 @@ def gpu_tests_sentence(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
             logs.append((head[2], path, head[1], " ".join(head[3:]), counts))
     if not logs:
         return ""
-    date, path, commit, gpu, counts = max(logs)
-    return (
-        f"\nThe CUDA-only tests (`bash benchmarks/device_run.sh gputests 0`): {counts} on an {gpu}, "
-        f"{date}, commit {commit[:7]} ({_link(path, readme_dir)}).\n"
+    # The newest day's runs, one clause per GPU model: a day's log names no hour to order them by.
+    newest = max(x[0] for x in logs)
+    runs = "; ".join(
+        f"{counts} on an {gpu.removeprefix('NVIDIA ')}, commit {commit[:7]} ({_link(path, readme_dir)})"
+        for _, path, commit, gpu, counts in sorted(x for x in logs if x[0] == newest)
     )
+    return f"\nThe CUDA-only tests ([docs/testing.md](docs/testing.md#gpu-only-tests)), {newest}: {runs}.\n"
 
 
 def training_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:

@@ -232,4 +232,8 @@ def test_the_readme_names_the_newest_gpu_test_run(tmp_path):
     )
     (tmp_path / "gputests_X.log").write_text("a log of a run that broke off\n")
     got = readme_results.gpu_tests_sentence(tmp_path, tmp_path)
-    assert "69 passed, 1 skipped on an NVIDIA H200, 2026-11-26, commit bbbbbbb" in got and "warning" not in got
+    assert "2026-11-26: 69 passed, 1 skipped on an H200, commit bbbbbbb" in got and "warning" not in got
+    assert "H100" not in got  # an older day's run
+    (tmp_path / "gputests_H100.log").write_text("commit cccccccccc 2026-11-26 NVIDIA H100\n\n57 passed in 3s\n")
+    got = readme_results.gpu_tests_sentence(tmp_path, tmp_path)
+    assert "57 passed on an H100, commit ccccccc" in got and "69 passed, 1 skipped on an H200" in got
