@@ -24,6 +24,7 @@ from torch import Tensor
 from torch.nn import Parameter
 
 from garo_ns import checkpoints
+from garo_ns.adam import install_grouped_step
 from garo_ns.compaction.guard import TrainingViewGuard
 from garo_ns.compaction.schedule import CompactionSettings, last_training_step
 from garo_ns.compaction.training import fixed_ratio_round, run_round
@@ -140,6 +141,8 @@ class GaroModel(SplatfactoModel):
         trainer = attributes.trainer
         if trainer is not None:  # the checkpoint is loaded by now: a resumed run starts after its step
             self._last_step = last_training_step(getattr(trainer, "_start_step", 0), trainer.config.max_num_iterations)
+        if attributes.optimizers is not None:
+            install_grouped_step(attributes.optimizers)  # CUDA runs: all groups' Adam updates at once (garo_ns.adam)
         before, after = TrainingCallbackLocation.BEFORE_TRAIN_ITERATION, TrainingCallbackLocation.AFTER_TRAIN_ITERATION
         return [
             TrainingCallback([before], self.step_cb, args=[attributes.optimizers]),

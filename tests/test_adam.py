@@ -8,6 +8,7 @@ import copy
 import pytest
 import torch
 
+from garo_ns import adam
 from garo_ns.adam import LeanAdam
 
 
@@ -124,3 +125,106 @@ def test_lean_updates_on_cuda_are_bitwise_torchs_and_training_uses_them():
             opt.step()
     assert _same(ref, lean)
     assert not isinstance(AdamConfig(lr=1e-2).setup(_params()), LeanAdam)  # the CPU keeps torch's default Adam
+
+
+def _nerfstudio_optimizers(lean: bool, max_norm=None, device="cpu"):
+    from nerfstudio.engine.optimizers import Optimizers
+
+    from garo_ns.config import AdamConfig
+
+    groups = {name: [torch.nn.Parameter(p.detach().to(device))] for name, p in zip("abc", _params())}
+    config = {
+        name: {"optimizer": AdamConfig(lr=lr, eps=1e-15, max_norm=max_norm), "scheduler": None}
+        for name, lr in zip("abc", (1e-2, 3e-3, 5e-2))
+    }
+    opts = Optimizers(config, groups)
+    make = (
+        (lambda ps, lr: LeanAdam(ps, lr=lr, eps=1e-15))
+        if lean
+        else (lambda ps, lr: torch.optim.Adam(ps, lr=lr, eps=1e-15, fused=True))
+    )
+    opts.optimizers = {name: make(groups[name], config[name]["optimizer"].lr) for name in groups}
+    return opts, [groups[n][0] for n in "abc"]
+
+
+class _Scaler:
+    """nerfstudio's grad scaler as the loop sees it; `enabled`: one that scales (mixed precision)."""
+
+    def __init__(self, enabled=False):
+        self.enabled, self.steps = enabled, 0
+
+    def is_enabled(self):
+        return self.enabled
+
+    def step(self, optimizer):
+        self.steps += 1
+        return optimizer.step()
+
+
+def _loop(opts, params, steps, scaler, seed=1):
+    g = torch.Generator().manual_seed(seed)
+    for i in range(steps):
+        opts.zero_grad_some(["a", "b", "c"])
+        for p in params:
+            if not (p is params[2] and i % 4 == 3):  # a group without a gradient this step
+                p.grad = torch.randn(p.shape, generator=g).to(p.device)
+        for name in "abc":
+            opts.optimizers[name].param_groups[0]["lr"] *= 0.95
+        opts.optimizer_scaler_step_some(scaler, ["a", "b", "c"])
+
+
+def test_the_grouped_step_updates_every_group_as_nerfstudios_loop_does():
+    ref, ref_params = _nerfstudio_optimizers(lean=False)
+    grouped, params = _nerfstudio_optimizers(lean=True)
+    assert adam.install_grouped_step(grouped) and not adam.install_grouped_step(grouped)  # once
+    scaler = _Scaler()
+    _loop(ref, ref_params, 12, _Scaler())
+    _loop(grouped, params, 12, scaler)
+    assert scaler.steps == 0  # nothing went through the per-optimizer path
+    assert _same(ref_params, params)
+    for name in "abc":
+        s, t = (o.optimizers[name].state_dict()["state"][0] for o in (ref, grouped))
+        assert all(torch.equal(s[k], t[k]) for k in s)
+    grouped.zero_grad_some(["a"])
+    assert params[0].grad is None and params[1].grad is not None
+
+
+def test_the_grouped_step_is_not_installed_where_it_would_change_the_step():
+    assert not adam.install_grouped_step(_nerfstudio_optimizers(lean=False)[0])  # torch's Adam (the CPU's)
+    assert not adam.install_grouped_step(_nerfstudio_optimizers(lean=True, max_norm=1.0)[0])  # clipping
+
+
+def test_a_scaling_grad_scaler_takes_nerfstudios_path():
+    ref, ref_params = _nerfstudio_optimizers(lean=False)
+    grouped, params = _nerfstudio_optimizers(lean=True)
+    adam.install_grouped_step(grouped)
+    scaler = _Scaler(enabled=True)
+    _loop(ref, ref_params, 4, _Scaler(enabled=True))
+    _loop(grouped, params, 4, scaler)
+    assert scaler.steps > 0 and _same(ref_params, params)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA: the grouped step is installed on CUDA runs")
+def test_a_cuda_run_steps_its_optimizers_grouped():
+    from nerfstudio.engine.optimizers import Optimizers
+
+    from garo_ns.config import AdamConfig
+
+    groups = {name: [torch.nn.Parameter(p.detach().cuda())] for name, p in zip("abc", _params())}
+    config = {
+        name: {"optimizer": AdamConfig(lr=lr, eps=1e-15), "scheduler": None}
+        for name, lr in zip("abc", (1e-2, 3e-3, 5e-2))
+    }
+    opts = Optimizers(config, groups)  # our config's Adam, as a CUDA training run makes it
+    assert all(isinstance(o, LeanAdam) for o in opts.optimizers.values()) and adam.install_grouped_step(opts)
+    ref, ref_params = _nerfstudio_optimizers(lean=False, device="cuda")
+    params = [groups[n][0] for n in "abc"]
+    g = torch.Generator(device="cuda").manual_seed(1)
+    grads = [[torch.randn(p.shape, generator=g, device="cuda") for p in params] for _ in range(6)]
+    for o, ps in ((opts, params), (ref, ref_params)):
+        for step_grads in grads:
+            o.zero_grad_some(list("abc"))
+            for p, gr in zip(ps, step_grads):
+                p.grad = gr.clone()
+            o.optimizer_scaler_step_some(_Scaler(), list("abc"))
+    assert _same(params, ref_params) and not _same(params, [p.cuda() for p in _params()])
