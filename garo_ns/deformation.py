@@ -262,8 +262,9 @@ class DeformationSettings:
     """How the field's scale offset composes with a Gaussian's scale: `log` adds it to the log-scale (scales stay
     positive), `linear` to the scale itself, as the official D-3DGS code does (its magnitude, floored at 1e-8:
     garo_ns.deformation.log_scale_offset). Every reader follows it: training, rendering and the time table, the
-    static classification, export. On mutant at 40k, `linear` gave 42.46 dB in one run against 42.24 and 42.19
-    (benchmarks/results/official_terms_mutant_scale40k_H200.json)."""
+    static classification, export. At 40k on the three shared scenes (deform-splatfacto, one run each) `linear`
+    changed test PSNR by -0.30, +0.16 and +0.14 dB (jumpingjacks, mutant, standup; +0.00 on average) with worse LPIPS
+    on all three, so `log` is the default (docs/benchmarks.md)."""
     deform_cuda_graph: bool = True
     """Training on CUDA: the field's forward and backward replay a CUDA graph captured for the current count of
     Gaussians (captured anew when it changes; garo_ns.train_graphs). See `loss_cuda_graph` for what the two
