@@ -42,7 +42,7 @@ from garo_ns.render.switches import RenderSettings, SwitchDecision
 from garo_ns.render.view import HostCameras, RenderView, camera_numbers, camera_view
 from garo_ns.static import StaticSettings, classification_due, classify, sample_times, static_fraction
 from garo_ns.train_graphs import GraphedField
-from garo_ns.training_data import adopt_training_data
+from garo_ns.training_data import adopt_training_data, reuse_step_cameras
 
 
 @dataclass
@@ -143,6 +143,8 @@ class GaroModel(SplatfactoModel):
             self._last_step = last_training_step(getattr(trainer, "_start_step", 0), trainer.config.max_num_iterations)
         if attributes.optimizers is not None:
             install_grouped_step(attributes.optimizers)  # CUDA runs: all groups' Adam updates at once (garo_ns.adam)
+        if getattr(attributes.pipeline, "datamanager", None) is not None:
+            reuse_step_cameras(attributes.pipeline.datamanager)  # one device camera per view, not one per step
         before, after = TrainingCallbackLocation.BEFORE_TRAIN_ITERATION, TrainingCallbackLocation.AFTER_TRAIN_ITERATION
         return [
             TrainingCallback([before], self.step_cb, args=[attributes.optimizers]),

@@ -37,3 +37,35 @@ def adopt_training_data(model: Any, pipeline: Any) -> None:
         model.strategy_state["scene_scale"] = model.scene_extent
     model.compaction_guard = TrainingViewGuard.from_datamanager(pipeline.datamanager, model.config.compact_guard_views)
     model.switch_guard = TrainingViewGuard.from_datamanager(pipeline.datamanager, model.config.switch_views)
+
+
+def reuse_step_cameras(datamanager: Any) -> bool:
+    """Serve each training step's camera from one device copy per training view: nerfstudio's full-image
+    datamanager slices its cameras anew at every step (a dozen small tensors, a few hundred microseconds of host
+    time in a step of a few milliseconds). The views come in the datamanager's own order, with the same images and
+    the same `cam_idx`; a datamanager that overrides `next_train` is left alone. Returns whether it was installed.
+
+    The cameras handed out are shared between the steps of one view: a step must not change them (the model's
+    training step reads them only)."""
+    from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager
+
+    own = type(datamanager).next_train is FullImageDatamanager.next_train
+    if not own or getattr(datamanager, "_step_cameras_reused", False):
+        return False
+    dm, cameras = datamanager, {}
+
+    def next_train(step: int) -> Any:
+        index = dm.train_unseen_cameras.pop(0)
+        if not dm.train_unseen_cameras:  # an epoch is over: the datamanager's next order
+            dm.train_unseen_cameras = dm.sample_train_cameras()
+        data = dict(dm.cached_train[index])  # a new dict each step: the cached one stays as it is
+        data["image"] = data["image"].to(dm.device)
+        camera = cameras.get(index)
+        if camera is None:
+            camera = cameras[index] = dm.train_cameras[index : index + 1].to(dm.device)
+            camera.metadata = {**(camera.metadata or {}), "cam_idx": index}
+        return camera, data
+
+    dm.next_train = next_train
+    dm._step_cameras_reused = True
+    return True

@@ -233,3 +233,31 @@ def test_the_fields_offsets_under_tf32_inputs_move_by_under_1e4_scene_units():
     assert 0 < float(err.max()) < 1e-4  # scene units: a 200,000th of the D-NeRF extent (about 5), 0.01 px at 800 px
     assert (err / want.pow(2).mean(0).sqrt()).max() < 5e-3  # and within 0.5% of each channel's RMS offset
     assert float(_tf32(torch.tensor([1.0 + 2**-11]))) == 1.0 and float(_tf32(torch.tensor([1.0 + 2**-10]))) > 1.0
+
+
+def test_a_training_run_reuses_one_device_camera_per_view_in_the_datamanagers_order(scene_dir, tmp_path):
+    import copy
+
+    from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager
+
+    from garo_ns.tools.train import QuickSchedule, make_config
+
+    config = make_config("garo-deform", scene_dir, tmp_path, schedule=QuickSchedule(steps=10), experiment_name="x")
+    config.set_timestamp()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    dm = trainer.pipeline.datamanager
+    assert dm._step_cameras_reused and dm.next_train is not FullImageDatamanager.next_train
+    steps = 2 * len(dm.train_dataset) + 3  # across two epochs' orders
+    start = (list(dm.train_unseen_cameras), copy.deepcopy(getattr(dm, "random_generator", None)))
+    ours = [dm.next_train(s) for s in range(steps)]
+    dm.train_unseen_cameras, dm.random_generator = list(start[0]), start[1]
+    theirs = [FullImageDatamanager.next_train(dm, s) for s in range(steps)]
+    for (cam, data), (ref_cam, ref_data) in zip(ours, theirs):
+        assert cam.metadata["cam_idx"] == ref_cam.metadata["cam_idx"]
+        assert torch.equal(cam.camera_to_worlds, ref_cam.camera_to_worlds) and torch.equal(cam.times, ref_cam.times)
+        assert torch.equal(cam.fx, ref_cam.fx) and torch.equal(data["image"], ref_data["image"])
+        assert set(data) == set(ref_data)
+    indices = [cam.metadata["cam_idx"] for cam, _ in ours]
+    assert len(set(indices)) == len(dm.train_dataset)  # every view came, and each view's camera is one object
+    assert all(ours[i][0] is ours[j][0] for i in range(steps) for j in range(steps) if indices[i] == indices[j])
