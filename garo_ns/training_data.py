@@ -49,7 +49,7 @@ def reuse_step_cameras(datamanager: Any) -> bool:
     training step reads them only)."""
     from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager
 
-    own = type(datamanager).next_train is FullImageDatamanager.next_train
+    own = getattr(type(datamanager), "next_train", None) is FullImageDatamanager.next_train  # any other: as it is
     if not own or getattr(datamanager, "_step_cameras_reused", False):
         return False
     dm, cameras = datamanager, {}

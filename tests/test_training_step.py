@@ -261,3 +261,13 @@ def test_a_training_run_reuses_one_device_camera_per_view_in_the_datamanagers_or
     indices = [cam.metadata["cam_idx"] for cam, _ in ours]
     assert len(set(indices)) == len(dm.train_dataset)  # every view came, and each view's camera is one object
     assert all(ours[i][0] is ours[j][0] for i in range(steps) for j in range(steps) if indices[i] == indices[j])
+
+
+def test_a_datamanager_of_another_kind_keeps_its_own_next_train():
+    from types import SimpleNamespace
+
+    from garo_ns.training_data import reuse_step_cameras
+
+    other = SimpleNamespace(next_train=lambda step: ("camera", {}))
+    assert not reuse_step_cameras(other) and not reuse_step_cameras(SimpleNamespace())
+    assert other.next_train(0) == ("camera", {})
