@@ -447,7 +447,7 @@ def table_bytes(intervals: int, gaussians: int, precision: str, anchor_every: in
     spec = TableSpec(0.0, 1.0, intervals, precision=precision, anchor_every=anchor_every)  # type: ignore[arg-type]
     keys, anchors = intervals + 2 * PAD, len(spec.anchor_keys())
     row = gaussians * CHANNELS
-    fine = {"fp32": 4, "fp16": 2, "int16": 2}[precision]
+    fine = torch.empty(0, dtype=Codec(precision).dtype).element_size()  # a stored residual, as `Codec` keeps it
     scale = row * 4 if precision == "int16" else 0  # the codec's fp32 scale per Gaussian and channel
     return row * 4 * (1 + anchors) + row * fine * keys + scale + gaussians * 8 * 2  # + moving and network indices
 
