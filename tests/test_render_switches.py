@@ -15,9 +15,12 @@ from garo_ns.render.switches import (
     measure_on_views,
     replay,
     resolve,
+    rung_name,
+    table_ladder,
     view_change_db,
     worst_view_change_db,
 )
+from garo_ns.render.time_table import table_bytes
 
 AUTO = {"render_precision": None, "static_skip": None, "cuda_graph": None, "lean_raster": None, "time_table": None}
 
@@ -290,3 +293,41 @@ def test_a_recorded_table_from_before_the_anchors_is_not_used_and_says_why():
     config, cpu = RenderSettings(), torch.device("cpu")
     assert not decision.settings(config, False, cpu).time_table
     assert "table layout before anchors" in decision.line(config, False, cpu)
+
+
+class LadderModel:
+    """What `table_ladder` reads of a model: its training times, its count of Gaussians and its scene extent."""
+
+    def __init__(self, frames=200, gaussians=34_000):
+        self.train_times = torch.linspace(0, 1, frames)
+        self.num_points = gaussians
+        self.scene_extent = 5.0
+
+
+def test_the_ladder_goes_on_in_int8_only_where_the_budget_caps_int16():
+    model = LadderModel()
+    # A budget that holds every int16 rung: 2, 4, ..., 64 keys per frame, no int8.
+    roomy = table_ladder(model, RenderSettings(time_table_budget_mb=1e6))[0]
+    assert [s.intervals for s in roomy] == [k * 199 for k in (2, 4, 8, 16, 32, 64)]
+    assert {s.precision for s in roomy} == {"int16"}
+    # 6 GB at 60k Gaussians caps int16 below 32 keys per frame: int8 rungs follow, up to about 1.8x the keys.
+    config, model = RenderSettings(), LadderModel(gaussians=60_000)
+    capped = table_ladder(model, config)[0]
+    int16 = [s for s in capped if s.precision == "int16"]
+    int8 = [s for s in capped if s.precision == "int8"]
+    assert int16 and int8 and capped == int16 + int8
+    assert int16[-1].intervals < 32 * 199 and 1.7 * int16[-1].intervals < int8[-1].intervals < 64 * 199
+    assert all(a.intervals < b.intervals for a, b in zip(capped, capped[1:]))  # sparsest first
+    for spec in capped:  # every rung within the budget
+        assert table_bytes(spec.intervals, model.num_points, spec.precision) <= config.time_table_budget_mb * 2**20
+    assert rung_name(int16[-1], config) == str(int16[-1].intervals)
+    assert rung_name(int8[0], config) == f"{int8[0].intervals} int8"
+    # Capped only at the densest rung asked for (34k Gaussians: 8411 of 12736 intervals): int8 still follows.
+    last_two = table_ladder(LadderModel(), config)[0][-2:]
+    assert [(s.precision, s.intervals) for s in last_two] == [("int16", 8411), ("int8", 64 * 199)]
+    # Turned off, or another precision asked for: no int8 rungs.
+    assert table_ladder(model, RenderSettings(time_table_try_int8=False))[0] == int16
+    assert {s.precision for s in table_ladder(model, RenderSettings(time_table_precision="fp16"))[0]} == {"fp16"}
+    # No budget for any table: none, and why.
+    specs, why = table_ladder(model, RenderSettings(time_table_budget_mb=1e-3))
+    assert specs == [] and "memory budget" in why

@@ -136,7 +136,7 @@ def test_the_memory_budget_gives_fewer_keys_or_no_table():
     assert spec is None and why == "no training times"
 
 
-@pytest.mark.parametrize("precision", ["int16", "fp16", "fp32"])
+@pytest.mark.parametrize("precision", ["int16", "int8", "fp16", "fp32"])
 @pytest.mark.parametrize("anchor_every", [1, 4, 16])
 def test_a_table_planned_for_a_budget_stays_within_it(precision, anchor_every):
     # A table refused on load for exceeding its budget by half a megabyte (the plan counted a fraction of an anchor
@@ -173,26 +173,60 @@ def test_int16_keys_resolve_each_gaussians_motion_evenly():
     assert worst16[0].max() < 0.25 * worst_half[0].max()
 
 
-def test_int16_error_follows_the_bends_not_the_size_of_the_motion():
-    """Fine residuals from the anchor lines are what int16 stores: on dense keys its error is at most half a step
-    of each Gaussian's fine-residual range, and on a Gaussian that moves 80x more than the others that step is
-    hundreds of times finer than a step over its whole motion (what whole residuals from the base gave)."""
+@pytest.mark.parametrize("precision, levels", [("int16", 32767), ("int8", 127)])
+def test_integer_keys_error_follows_the_bends_not_the_size_of_the_motion(precision, levels):
+    """Fine residuals from the anchor lines are what an integer key stores: on dense keys its error is at most half
+    a step of each Gaussian's fine-residual range, and on a Gaussian that moves 80x more than the others that step
+    is hundreds of times finer than a step over its whole motion (what whole residuals from the base gave)."""
     field = _field(amp=0.5)
     field.amp[0] = 40.0
     xyz = _xyz()
-    spec = dict(intervals=320, anchor_every=4)
+    spec = dict(intervals=320, anchor_every=4, tolerance=1.0)  # both linear: int8's step alone would tip the order
     full = TimeTable.build(_spec(**spec), field, xyz)
-    q16 = TimeTable.build(_spec(precision="int16", **spec), field, xyz)
-    assert q16.residual.dtype == torch.int16 and q16.anchors.dtype == torch.float32
-    assert len(q16.anchors) == len(spec_anchor_keys := _spec(**spec).anchor_keys()) and spec_anchor_keys[-1] == 323
+    quantised = TimeTable.build(_spec(precision=precision, **spec), field, xyz)
+    assert quantised.residual.dtype == getattr(torch, precision) and quantised.anchors.dtype == torch.float32
+    anchor_keys = _spec(**spec).anchor_keys()
+    assert full.spec.order == quantised.spec.order == "linear"
+    assert len(quantised.anchors) == len(anchor_keys) and anchor_keys[-1] == 323
     worst = torch.zeros(64, 10)
     for t in torch.linspace(0, 1, 97).tolist():
-        worst = torch.maximum(worst, (q16.offsets_at(t) - full.offsets_at(t)).abs())
-    fine_step = q16.codec.scale  # [M, 10]: each Gaussian's largest fine residual / 32767
+        worst = torch.maximum(worst, (quantised.offsets_at(t) - full.offsets_at(t)).abs())
+    fine_step = quantised.codec.scale  # [M, 10]: each Gaussian's largest fine residual / levels
     rounding = 4 * torch.finfo(torch.float32).eps * field.amp[:, None]  # fp32 sums at the offsets' own size
     assert bool((worst <= 0.5 * fine_step * 1.01 + rounding + 2e-6).all())
-    whole_step = 2 * 40.0 / 32767
+    whole_step = 2 * 40.0 / levels
     assert float(fine_step[0].max()) < whole_step / 300
+
+
+class KinkField:
+    """Offsets that bend sharply once, as a ReLU MLP's do: d = amp_i * max(t - t0_i, 0) on every channel."""
+
+    def __init__(self, n=64, seed=0):
+        g = torch.Generator().manual_seed(seed)
+        self.amp = 0.5 + torch.rand(n, generator=g)
+        self.t0 = 0.1 + 0.8 * torch.rand(n, generator=g)
+
+    def __call__(self, xyz, t):
+        i = xyz[:, 0].long()
+        d = (self.amp[i] * (float(t) - self.t0[i]).clamp_min(0.0))[:, None].expand(-1, 10)
+        return d[:, :3], d[:, 3:7], d[:, 7:]
+
+
+def test_at_one_budget_int8_keys_follow_a_kinked_motion_closer_than_int16_keys():
+    """Where the field bends sharply the error between keys falls only as 1/K, so the keys int8 fits in a budget
+    (about 1.8x) outweigh its coarser step: what the render switches' int8 rungs rely on."""
+    field, xyz, n = KinkField(), _xyz(), 64
+    budget_mb = 0.25
+    worst = {}
+    for precision in ("int16", "int8"):
+        intervals = plan_intervals(200, 64, n, budget_mb, precision)
+        table = TimeTable.build(_spec(intervals, precision=precision, tolerance=1.0), field, xyz)
+        assert table.nbytes() <= budget_mb * 2**20 and table.network.numel() == 0
+        times = torch.rand(4000, generator=torch.Generator().manual_seed(3)).tolist()
+        worst[precision] = max(float((table.offsets_at(t) - torch.cat(field(xyz, t), -1)).abs().max()) for t in times)
+        worst[precision, "intervals"] = intervals
+    assert worst["int8", "intervals"] > 1.7 * worst["int16", "intervals"]
+    assert worst["int8"] < 0.8 * worst["int16"]
 
 
 def test_anchors_are_exact_and_the_table_stays_exact_at_every_key():
@@ -214,6 +248,7 @@ def test_anchors_are_exact_and_the_table_stays_exact_at_every_key():
     [
         ("linear", 61, 1e-2, 4, "int16"),  # anchors every 4 keys: many segments end on an anchor
         ("linear", 61, 1e-2, 16, "fp16"),
+        ("linear", 61, 1e-2, 16, "int8"),
         ("cubic", 16, 2e-3, 5, "int16"),
         ("cubic", 8, 1e-3, 3, "fp32"),  # a strict tolerance: some Gaussians on the network
     ],
@@ -257,7 +292,7 @@ def test_a_frame_reads_the_table_as_the_reference_does(order, intervals, toleran
 
 
 @pytest.mark.parametrize("anchor_every", [3, 4, 16])
-@pytest.mark.parametrize("precision", ["int16", "fp32"])
+@pytest.mark.parametrize("precision", ["int16", "int8", "fp32"])
 def test_the_fast_orders_are_the_stored_keys_interpolated(anchor_every, precision):
     """Linear and cubic frames take shortcuts through the anchor lines; both equal the definition: the stored fine
     residuals interpolated plus the same interpolation of the lines, in every segment (across anchors too)."""
@@ -276,13 +311,14 @@ def test_the_fast_orders_are_the_stored_keys_interpolated(anchor_every, precisio
                 assert torch.allclose(got, want, rtol=1e-5, atol=1e-6), (order, i, f)
 
 
+@pytest.mark.parametrize("precision", ["int16", "int8"])
 @pytest.mark.parametrize("still", [0, 16])
-def test_the_device_time_frame_is_the_host_time_frame(still):
+def test_the_device_time_frame_is_the_host_time_frame(still, precision):
     """`rows_at` (segment and keys found on the device, what the frame's CUDA graph replays) against `frame_rows`."""
     field = _field(amp=0.05)
     field.amp[64 - still :] = 0.0
     xyz = _xyz()
-    table = TimeTable.build(_spec(61, tolerance=1e-2, anchor_every=4, precision="int16"), field, xyz)
+    table = TimeTable.build(_spec(61, tolerance=1e-2, anchor_every=4, precision=precision), field, xyz)
     assert table.graphable and table.moving.numel() == 64 - still
     rows = torch.randn(64, 10, generator=torch.Generator().manual_seed(2))
     keys = table.spec.key_times()

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, fields, replace
-from typing import Any, Callable, Dict, Literal, Mapping, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Literal, Mapping, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
@@ -194,9 +194,15 @@ class RenderSettings:
     """Largest time table in MB (int16: 20 bytes per moving Gaussian and key, so 32 keys per frame of 200
     frames take 4.4 GB at 34k Gaussians). At the end of training a model that would need more gets fewer
     keyframes; a loaded model whose recorded table exceeds it renders through the network (and says so)."""
-    time_table_precision: Literal["int16", "fp16", "fp32"] = "int16"
+    time_table_precision: Literal["int16", "int8", "fp16", "fp32"] = "int16"
     """Storage of the table's fine residuals (each key less the mid-range offsets and less the line between its two
     fp32 anchors); int16 with a scale per Gaussian and channel resolves each Gaussian's bends evenly at fp16's size."""
+    time_table_try_int8: bool = True
+    """When the memory budget caps an int16 ladder before a table comes within the margin, go on with int8 fine
+    residuals (same scales, 127 levels: about 1.8x the keys in the same bytes), measured like every rung and taken
+    only if a table changes the training views less. Jumpingjacks' compacted model at 40k missed the bound by
+    0.0023 dB at the most int16 keys 6 GB hold, its error falling about as 1/K
+    (benchmarks/results/table40k_jumpingjacks2_H200.json)."""
     time_table_tolerance: float = 0.03
     """Largest interpolation error at keyframe midpoints (positions in scene extents; rotation and log-scale
     offsets absolute) for a Gaussian to be tabled; those over it stay on the network."""
@@ -233,6 +239,46 @@ MEASURE_VERSION = "view_change_db"
 """Names the check a record's losses come from (`worst_view_change_db`). Records written before it
 (a one-sided PSNR loss on 16 views, which a render could pass by changing pixels without raising its
 error) are not trusted: their approximate switches stay off unless set."""
+
+
+def table_ladder(model: Any, cfg: RenderSettings) -> Tuple[List[TableSpec], str]:
+    """The tables the end of training may measure, sparsest first, and why there is none if so: from
+    `time_table_keys_per_frame` keys per frame, doubling up to `time_table_max_keys_per_frame` or as many as the budget
+    holds; where the budget caps an int16 ladder first, int8 rungs go on from there (`time_table_try_int8`)."""
+    precisions = [cfg.time_table_precision]
+    if cfg.time_table_try_int8 and cfg.time_table_precision == "int16":
+        precisions.append("int8")
+    specs: List[TableSpec] = []
+    why = ""
+    keys = max(1, cfg.time_table_keys_per_frame)
+    top = max(cfg.time_table_max_keys_per_frame, cfg.time_table_keys_per_frame)
+    gaps = max(int(model.train_times.numel()) - 1, 1) if model.train_times is not None else 1
+    for precision in precisions:
+        capped = False
+        while keys <= top and not capped:
+            spec, reason = spec_for(
+                model.train_times,
+                keys,
+                model.num_points,
+                cfg.time_table_budget_mb,
+                precision,
+                cfg.time_table_tolerance,
+                model.scene_extent,
+            )
+            if spec is None or (specs and spec.intervals <= specs[-1].intervals):  # nothing denser fits
+                why, capped = reason or why, True
+                break
+            specs.append(spec)
+            capped = spec.intervals < keys * gaps  # the budget held fewer keys than asked for
+            keys *= 1 if capped else 2
+        if not capped:  # the densest table asked for fits: no other precision needed
+            break
+    return specs, why
+
+
+def rung_name(spec: TableSpec, cfg: RenderSettings) -> str:
+    """A ladder rung's name in the record: its intervals, and its precision where not the configured one."""
+    return str(spec.intervals) if spec.precision == cfg.time_table_precision else f"{spec.intervals} {spec.precision}"
 
 
 class SwitchDecision:
@@ -385,22 +431,7 @@ class SwitchDecision:
         model.eval()  # no time noise
         self.record = None
         cfg = model.config
-        specs, why = [], ""
-        keys = max(1, cfg.time_table_keys_per_frame)
-        while keys <= max(cfg.time_table_max_keys_per_frame, cfg.time_table_keys_per_frame):
-            spec, why = spec_for(
-                model.train_times,
-                keys,
-                model.num_points,
-                cfg.time_table_budget_mb,
-                cfg.time_table_precision,
-                cfg.time_table_tolerance,
-                model.scene_extent,
-            )
-            if spec is None or (specs and spec.intervals <= specs[-1].intervals):  # the budget caps the keys
-                break
-            specs.append(spec)
-            keys *= 2
+        specs, why = table_ladder(model, cfg)
         spec = specs[0] if specs else None
         self._measuring = spec
         model.frame.halfway = True
@@ -418,11 +449,11 @@ class SwitchDecision:
                 probe = measure_on_views(render, targets)
                 for candidate in specs:
                     self._measuring = spec = candidate
-                    ladder[str(candidate.intervals)] = probe(FrameSettings(time_table=True))
-                    if ladder[str(candidate.intervals)] <= cfg.switch_bound_db * cfg.time_table_margin:
+                    ladder[rung_name(candidate, cfg)] = probe(FrameSettings(time_table=True))
+                    if ladder[rung_name(candidate, cfg)] <= cfg.switch_bound_db * cfg.time_table_margin:
                         break
                 else:
-                    best = min(specs, key=lambda s: ladder[str(s.intervals)])
+                    best = min(specs, key=lambda s: ladder[rung_name(s, cfg)])
                     self._measuring = spec = best
             line = self.measure(cfg, model.device, render, targets, step)
             built = model.frame.table_info

@@ -16,6 +16,11 @@ instead of an 8-layer MLP.
   few keys, hundreds of times smaller than the motion itself, so int16 resolves them far below what a key
   spacing leaves to interpolation; stored whole (from the base), int16's step grew with each Gaussian's range of
   motion and, measured on 40k models, held the error above 0.02 dB from 16 keys per frame on.
+  int8 keys (same scales, 127 levels) take about half the bytes per key, so a memory budget holds nearly twice
+  the keys. Where the field bends sharply (its ReLUs' kinks) a table's error falls only about as 1/K with the
+  keys K (jumpingjacks' compacted model at 40k: 0.0297 dB at 6368 intervals, 0.0223 at 8195), so more keys in the
+  same bytes may outweigh int8's coarser step: the render switches try int8 when the budget caps int16's keys
+  short of the bound, and take whichever table changes the training views less (garo_ns.render.switches).
 * **Gaussians the table cannot follow** (a trajectory that bends between keyframes more than the
   tolerance allows at the midpoints checked at build time) stay on the network: each frame runs the MLP
   on those few only (`network`).
@@ -54,7 +59,7 @@ class TableSpec:
     t_hi: float
     intervals: int
     order: Order = "linear"
-    precision: Literal["int16", "fp16", "fp32"] = "int16"
+    precision: Literal["int16", "int8", "fp16", "fp32"] = "int16"
     tolerance: float = 1e-4
     """Largest interpolation error at the checked midpoints for a Gaussian to stay in the table: in
     units of the scene extent for positions, absolute for quaternion and log-scale offsets."""
@@ -111,21 +116,25 @@ def interpolate(keys: Tensor, order: Order, i: int, f: float) -> Tensor:
 
 
 Q16 = 32767.0  # int16 keys: a residual of the Gaussian's own largest size maps to +-Q16
+# The largest stored integer of each integer precision.
+LEVELS = {"int16": Q16, "int8": 127.0}
 
 
 class Codec:
-    """How fine residuals are stored: fp32, fp16, or int16 with a scale per Gaussian and channel (a residual of
-    at most `spread` stored to spread / 32767: uniform resolution over the Gaussian's own fine residuals)."""
+    """How fine residuals are stored: fp32, fp16, or an integer (int16, int8) with a scale per Gaussian and channel
+    (a residual of at most `spread` stored to spread / 32767, or / 127: uniform resolution over the Gaussian's own
+    fine residuals)."""
 
     def __init__(self, precision: str, spread: Optional[Tensor] = None) -> None:
         self.precision = precision
-        self.dtype = {"fp16": torch.float16, "fp32": torch.float32, "int16": torch.int16}[precision]
-        self.scale = (spread.clamp_min(1e-12) / Q16) if precision == "int16" and spread is not None else None
+        self.dtype = {"fp16": torch.float16, "fp32": torch.float32, "int16": torch.int16, "int8": torch.int8}[precision]
+        self.levels = LEVELS.get(precision)
+        self.scale = (spread.clamp_min(1e-12) / self.levels) if self.levels and spread is not None else None
 
     def encode(self, r: Tensor) -> Tensor:
         if self.scale is None:
             return r.to(self.dtype)
-        return torch.round(r / self.scale).clamp_(-Q16, Q16).to(torch.int16)
+        return torch.round(r / self.scale).clamp_(-self.levels, self.levels).to(self.dtype)
 
     def interpolate(self, keys: Tensor, order: Order, i: int, f: float, rows: Optional[Tensor] = None) -> Tensor:
         """`interpolate` of stored keys, back in fp32 (`rows`: which Gaussians' scales the keys hold)."""
@@ -448,7 +457,7 @@ def table_bytes(intervals: int, gaussians: int, precision: str, anchor_every: in
     keys, anchors = intervals + 2 * PAD, len(spec.anchor_keys())
     row = gaussians * CHANNELS
     fine = torch.empty(0, dtype=Codec(precision).dtype).element_size()  # a stored residual, as `Codec` keeps it
-    scale = row * 4 if precision == "int16" else 0  # the codec's fp32 scale per Gaussian and channel
+    scale = row * 4 if precision in LEVELS else 0  # the codec's fp32 scale per Gaussian and channel
     return row * 4 * (1 + anchors) + row * fine * keys + scale + gaussians * 8 * 2  # + moving and network indices
 
 
