@@ -277,7 +277,7 @@ class GaroModel(SplatfactoModel):
         degree = min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
         backend: Backend = self.config.rasterizer
         if self.training:
-            return render_splats(splats, view, degree, backgrounds, render_mode, backend)
+            return render_splats(splats, view, degree, backgrounds, render_mode, backend, self.config.train_lean_raster)
         lean = bool(self.render_settings().lean_raster)
         return self.frame.rasterize(splats, view, degree, backgrounds, render_mode, backend, lean)
 

@@ -39,12 +39,13 @@ def test_lean_path_gives_gsplat_pixels(mode):
     torch.testing.assert_close(lean, ref, rtol=0, atol=1e-5)
 
 
-def test_lean_is_ignored_under_autograd():
+def test_lean_under_autograd_takes_the_training_path():
     means, quats, scales, opacities, colors, viewmat, K = _scene(2000)
     means.requires_grad_(True)
     render, _, info = rasterize(means, quats, scales, opacities, colors, viewmat, K, 64, 48, sh_degree=3, lean=True)
+    assert type(render.grad_fn).__name__ == "_CompositeBackward"  # garo_ns.render.train_raster, not gsplat's
     render.sum().backward()
-    assert means.grad is not None and "gaussian_ids" in info  # gsplat's own path, with its info
+    assert means.grad is not None and "gaussian_ids" in info  # with gsplat's info keys
 
 
 @torch.no_grad()

@@ -63,15 +63,37 @@ def rasterize(
     """Render with classic (non-antialiased) 3DGS rasterization, unpacked, plain gradients.
 
     Same arguments and outputs on both backends; `info` always carries means2d (with grad after
-    backward), radii, width, height and n_cameras for the densification strategies. `lean`: on
-    CUDA without autograd, call the kernels directly (`rasterize_lean`, which takes `front` when
-    the caller has it); ignored otherwise.
+    backward), radii, width, height and n_cameras for the densification strategies. `lean`, on
+    CUDA for RGB or RGB+ED with SH or RGB colours: without autograd, call the kernels directly
+    (`rasterize_lean`, which takes `front` when the caller has it); with autograd and one camera,
+    the training path of two autograd nodes (`train_raster.rasterize_train_lean`, same values and
+    gradients as gsplat's; `front` unused). Ignored otherwise (the reference, other modes).
     """
     on_cuda = resolve_backend(backend, means.device) == "cuda"
     # The lean path composites SH colours or plain RGB (plus depth); other channel counts need the
     # wrapper's padding to a kernel-supported width, so they take gsplat's own path.
     lean_fits = sh_degree is not None or colors.shape[-1] == 3
-    if on_cuda and lean and lean_fits and not torch.is_grad_enabled() and render_mode in ("RGB", "RGB+ED"):
+    lean = on_cuda and lean and lean_fits and render_mode in ("RGB", "RGB+ED")
+    if lean and torch.is_grad_enabled() and viewmats.shape[0] == 1:
+        from garo_ns.render.train_raster import rasterize_train_lean  # imports this module
+
+        return rasterize_train_lean(
+            means,
+            quats,
+            scales,
+            opacities,
+            colors,
+            viewmats,
+            Ks,
+            width,
+            height,
+            sh_degree,
+            backgrounds,
+            with_depth=render_mode == "RGB+ED",
+            near_plane=near_plane,
+            far_plane=far_plane,
+        )
+    if lean and not torch.is_grad_enabled():
         return rasterize_lean(
             means,
             quats,
