@@ -41,7 +41,7 @@ from garo_ns.render.outputs import camera_outputs
 from garo_ns.render.switches import RenderSettings, SwitchDecision
 from garo_ns.render.view import HostCameras, RenderView, camera_numbers, camera_view
 from garo_ns.static import StaticSettings, classification_due, classify, sample_times, static_fraction
-from garo_ns.train_graphs import GraphedField
+from garo_ns.train_graphs import GraphedField, GraphedSplats
 from garo_ns.training_data import adopt_training_data, reuse_step_cameras
 
 
@@ -87,6 +87,7 @@ class GaroModel(SplatfactoModel):
         self.loss_watch = NonFiniteWatch()
         self.image_loss = ImageLoss(self.ssim, cfg.ssim_lambda, cfg.loss_cuda_graph)
         self.train_field = GraphedField(lambda: self.deformation, cfg.deform_cuda_graph)
+        self.train_splats = GraphedSplats(lambda: self.deformation, cfg.deform_cuda_graph and cfg.deform_graph_splats)
         # The dataset's cameras on the host: a training step reads its camera's numbers there (garo_ns.training_data).
         self.step_cameras: Optional[HostCameras] = None
         self._lpips = [lpips]  # out of the module tree: LPIPS may be absent, checkpoints must not need it
@@ -108,6 +109,7 @@ class GaroModel(SplatfactoModel):
         self.train_times: Optional[Tensor] = None
         self.train_cameras: Optional[Cameras] = None
         self._last_step: Optional[int] = None
+        self._metrics_every = 1  # the trainer's steps_per_log, once training starts
         self.frame = FramePath()
         self.frame.scale_offset = cfg.deform_scale_offset
         self.health_log: List[Dict[str, Any]] = []
@@ -141,6 +143,7 @@ class GaroModel(SplatfactoModel):
         trainer = attributes.trainer
         if trainer is not None:  # the checkpoint is loaded by now: a resumed run starts after its step
             self._last_step = last_training_step(getattr(trainer, "_start_step", 0), trainer.config.max_num_iterations)
+            self._metrics_every = max(int(trainer.config.logging.steps_per_log), 1)
         if attributes.optimizers is not None:
             install_grouped_step(attributes.optimizers)  # CUDA runs: all groups' Adam updates at once (garo_ns.adam)
         if getattr(attributes.pipeline, "datamanager", None) is not None:
@@ -207,6 +210,8 @@ class GaroModel(SplatfactoModel):
         if self.training or exact:
             frames = len(self.train_times) if self.train_times is not None else 1
             time = time + time_noise(cfg.time_noise, cfg.time_noise_steps, self.step, frames, self.training)
+            if self.training and self.train_splats.enabled:
+                return self.train_splats(canonical, time, cfg.deform_scale_offset)
             field = self.train_field if self.training else self.deformation
             return activate(canonical, compose(field, canonical, time, cfg.deform_scale_offset))
         state = self.strategy_state
@@ -314,6 +319,10 @@ class GaroModel(SplatfactoModel):
         return self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
 
     def get_metrics_dict(self, outputs, batch) -> Dict[str, Any]:
+        """PSNR (and the camera optimizer's metrics) against the batch; in training only on the steps the trainer
+        logs (its `steps_per_log`: it writes the metrics on those alone), for the host time of the rest."""
+        if self.training and self.step % self._metrics_every:
+            return {"gaussian_count": self.num_points}
         metrics: Dict[str, Any] = {"psnr": psnr(outputs["rgb"], self.ground_truth(outputs, batch))}
         if self.training:
             self.camera_optimizer.get_metrics_dict(metrics)

@@ -98,3 +98,62 @@ def test_the_graphed_field_runs_eagerly_without_gradients_or_when_off():
     assert on.captures == 0 and off.captures == 0
     on(xyz, t)
     assert on.captures == 1
+
+
+def _canonical(n, seed):
+    from garo_ns.render.frame import Canonical
+
+    g = torch.Generator(device="cuda").manual_seed(seed)
+
+    def leaf(*shape, mean=0.0, std=1.0):
+        return (mean + std * torch.randn(*shape, generator=g, device="cuda")).requires_grad_(True)
+
+    return Canonical(
+        leaf(n, 3), leaf(n, 4), leaf(n, 3, mean=-3.0, std=0.3), leaf(n, 1), leaf(n, 3), leaf(n, 15, 3, std=0.1)
+    )
+
+
+@pytest.mark.parametrize("scale_offset", ["log", "linear"])
+def test_the_graphed_splats_are_the_composed_gaussians_forward_and_backward(scale_offset):
+    """The whole step's Gaussians (field, composition, activations) from one graph: the eager values and the
+    gradients of every canonical tensor and field parameter, call after call; a new count captures anew."""
+    from garo_ns.deformation import DeformationField
+    from garo_ns.render.frame import Canonical, activate, compose
+    from garo_ns.train_graphs import GraphedSplats
+
+    torch.manual_seed(0)
+    field = DeformationField(time_net=30).cuda().train()
+    graphed = GraphedSplats(lambda: field, enabled=True)
+    for n, seed in ((4000, 0), (4000, 1), (4000, 2), (6000, 3)):
+        canonical = _canonical(n, seed)
+        t = 0.1 + 0.2 * seed
+        leaves = list(canonical) + list(field.parameters())
+        out = graphed(canonical, t, scale_offset)
+        got = torch.autograd.grad(sum(o.square().sum() for o in out[:5]), leaves)
+        twin = Canonical(*(x.detach().clone().requires_grad_(True) for x in canonical))
+        want = activate(twin, compose(field, twin, t, scale_offset))
+        want_grads = torch.autograd.grad(sum(o.square().sum() for o in want[:5]), list(twin) + list(field.parameters()))
+        assert type(out[0].grad_fn).__name__ != "AddBackward0"  # the graph's node, not the eager sum
+        for a, b in zip(out[:5], want[:5]):
+            assert torch.allclose(a, b, rtol=1e-5, atol=1e-6)
+        for a, b in zip(got, want_grads):
+            assert torch.allclose(a, b, rtol=1e-4, atol=1e-6 * float(b.abs().max().clamp_min(1.0)))
+    assert graphed.captures == 2  # 4000 Gaussians, then 6000
+
+
+def test_the_graphed_splats_run_eagerly_without_gradients_or_when_off():
+    from garo_ns.deformation import DeformationField
+    from garo_ns.train_graphs import GraphedSplats
+
+    field = DeformationField(time_net=30).cuda().train()
+    canonical = _canonical(1000, 0)
+    on, off = GraphedSplats(lambda: field, enabled=True), GraphedSplats(lambda: field, enabled=False)
+    with torch.no_grad():
+        on(canonical, 0.5, "log")
+    field.eval()
+    on(canonical, 0.5, "log")  # an evaluation: no graph either
+    field.train()
+    off(canonical, 0.5, "log")
+    assert on.captures == 0 and off.captures == 0
+    on(canonical, 0.5, "log")
+    assert on.captures == 1

@@ -271,3 +271,48 @@ def test_a_datamanager_of_another_kind_keeps_its_own_next_train():
     other = SimpleNamespace(next_train=lambda step: ("camera", {}))
     assert not reuse_step_cameras(other) and not reuse_step_cameras(SimpleNamespace())
     assert other.next_train(0) == ("camera", {})
+
+
+def test_graphed_splats_off_the_gpu_are_the_composed_gaussians():
+    """CPU runs (and CI) take the eager composition whatever the setting: the same tensors, bit for bit."""
+    from garo_ns.deformation import DeformationField
+    from garo_ns.render.frame import Canonical, activate, compose
+    from garo_ns.train_graphs import GraphedSplats
+
+    torch.manual_seed(0)
+    field = DeformationField(time_net=30).train()
+    canonical = Canonical(
+        *(torch.randn(*s).requires_grad_(True) for s in ((50, 3), (50, 4), (50, 3), (50, 1), (50, 3), (50, 15, 3)))
+    )
+    graphed = GraphedSplats(lambda: field, enabled=True)
+    got = graphed(canonical, 0.3, "log")
+    want = activate(canonical, compose(field, canonical, 0.3, "log"))
+    assert graphed.captures == 0 and all(torch.equal(a, b) for a, b in zip(got[:5], want[:5]))
+
+
+def test_training_metrics_are_computed_on_the_trainers_log_steps_only(scene_dir, tmp_path):
+    from garo_ns.tools.train import QuickSchedule, make_config
+
+    config = make_config("garo-deform", scene_dir, tmp_path, schedule=QuickSchedule(steps=10), experiment_name="x")
+    config.set_timestamp()
+    config.logging.steps_per_log = 3
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    model = trainer.pipeline.model
+    logged = []
+    for step in range(7):
+        model.step_cb(trainer.optimizers, step)  # what the trainer runs before each step
+        _, _, metrics = trainer.pipeline.get_train_loss_dict(step=step)
+        assert metrics["gaussian_count"] == model.num_points
+        if "psnr" in metrics:
+            assert math.isfinite(float(metrics["psnr"]))
+            logged.append(step)
+    assert logged == [0, 3, 6]  # the steps the trainer writes metrics on (step_check with run_at_zero)
+    model.eval()  # outside training: always
+    assert model._metrics_every == 3 and "psnr" in model.get_metrics_dict(*_outputs_and_batch(trainer))
+
+
+def _outputs_and_batch(trainer):
+    camera, batch = trainer.pipeline.datamanager.next_train(0)
+    with torch.no_grad():
+        return trainer.pipeline.model.get_outputs(camera), batch
