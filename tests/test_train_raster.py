@@ -133,8 +133,11 @@ def _compare(params, viewmat, K, colour, mode, grad_rtol, grad_atol):
     for key in ("width", "height", "n_cameras", "tile_size", "tile_width", "tile_height"):
         assert info[key] == ref_info[key], key
     assert info["gaussian_ids"] is None and info["camera_ids"] is None
-    torch.testing.assert_close(info["means2d"].detach(), ref_info["means2d"].detach(), rtol=1e-5, atol=1e-5)
-    torch.testing.assert_close(info["depths"].detach(), ref_info["depths"].detach(), rtol=1e-6, atol=1e-6)
+    # The projection kernel leaves a culled Gaussian's entries unwritten (uninitialised memory, on both sides).
+    seen = ref_info["radii"] > 0
+    assert 0 < int(seen.sum()) < seen.numel()  # some culled, most seen
+    torch.testing.assert_close(info["means2d"].detach()[seen], ref_info["means2d"].detach()[seen], rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(info["depths"].detach()[seen], ref_info["depths"].detach()[seen], rtol=1e-6, atol=1e-6)
     torch.testing.assert_close(alpha, ref_alpha, rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(got, ref, rtol=1e-5, atol=1e-6)
     assert set(grads) == set(ref_grads)
