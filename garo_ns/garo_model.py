@@ -143,7 +143,8 @@ class GaroModel(SplatfactoModel):
         trainer = attributes.trainer
         if trainer is not None:  # the checkpoint is loaded by now: a resumed run starts after its step
             self._last_step = last_training_step(getattr(trainer, "_start_step", 0), trainer.config.max_num_iterations)
-            self._metrics_every = max(int(trainer.config.logging.steps_per_log), 1)
+            logging = getattr(trainer.config, "logging", None)  # a trainer of nerfstudio's has one; stand-ins may not
+            self._metrics_every = max(int(getattr(logging, "steps_per_log", 1)), 1)
         if attributes.optimizers is not None:
             install_grouped_step(attributes.optimizers)  # CUDA runs: all groups' Adam updates at once (garo_ns.adam)
         if getattr(attributes.pipeline, "datamanager", None) is not None:
