@@ -24,7 +24,7 @@ from typing import Any, Dict, Optional, Tuple
 import torch
 from torch import Tensor
 
-from garo_ns.render.backend import EPS2D, TILE_SIZE, _kernels
+from garo_ns.render.backend import EPS2D, TILE_SIZE, _kernels, lean_front
 
 ALPHA_FLOOR = 1e-10  # gsplat's clamp on the alpha that divides the accumulated depth (RGB+ED)
 
@@ -53,30 +53,13 @@ class _Front(torch.autograd.Function):
         ctx.set_materialize_grads(False)
         means, quats, scales = means.contiguous(), quats.contiguous(), scales.contiguous()
         viewmats, Ks = viewmats.contiguous(), Ks.contiguous()
-        radii, means2d, depths, conics, _ = kernels.fully_fused_projection_fwd(
-            means,
-            None,
-            quats,
-            scales,
-            viewmats,
-            Ks,
-            width,
-            height,
-            EPS2D,
-            near_plane,
-            far_plane,
-            0.0,  # no radius clip
-            False,  # no antialiasing compensation
-            kernels.CameraModelType.PINHOLE,
+        # The inference path's projection and view directions (camera centre in closed form, -R^T t).
+        radii, means2d, depths, conics, dirs, visible = lean_front(
+            means, quats, scales, viewmats, Ks, width, height, coeffs is not None, near_plane, far_plane
         )
         ctx.mark_non_differentiable(radii)
-        rgb = dirs = visible = shifted = None
+        rgb = shifted = None
         if coeffs is not None:
-            # Camera centre in closed form (-R^T t): the world-to-camera matrix is rigid.
-            rot, trans = viewmats[:, :3, :3], viewmats[:, :3, 3:4]
-            campos = -(rot.transpose(1, 2) @ trans).squeeze(-1)
-            dirs = means[None] - campos[:, None]
-            visible = radii > 0
             # [N, K, 3] coefficients are shared by the camera: a leading axis of one, no copy.
             ctx.shared = coeffs.dim() == 3
             coeffs = (coeffs[None] if ctx.shared else coeffs).contiguous()
