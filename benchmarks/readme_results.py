@@ -441,7 +441,7 @@ def claim_sentence(summary: Dict[str, Any], variants: List[str]) -> str:
 
 def compaction_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     """`garo-compact` against the baseline at 40k with the compaction target judged, from `compact_<GPU>.json`
-    (`python -m garo_ns.bench.summary ... --target compaction`); until that exists, where its defaults come from."""
+    (`python -m garo_ns.bench.summary ... --target compaction` or `--target time-table`); until that exists, where its defaults come from."""
     paths = sorted(p for p in results.glob("compact_*.json") if COMPACT_FILE.fullmatch(p.name))
     if not paths:
         line = "\n`garo-compact` has not been run at 40k yet."
@@ -456,7 +456,7 @@ def compaction_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
         data = json.loads(path.read_text())
         check = data.get("target_check")
         if check is None:
-            raise ValueError(f"{path.name} has no target_check: make it with --target compaction")
+            raise ValueError(f"{path.name} has no target_check: make it with --target")
         fast, size, base = check["variant"], check.get("size_variant"), data["baseline"]
         plain = fast.split("+")[0] if fast.split("+")[0] in data["variants"] else fast
         arms = [r[v] for r in data["rows"] for v in (base, plain)]
@@ -479,7 +479,11 @@ def compaction_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
                 + (f" {r[size]['model_size_mb']:.1f} |" if size else "")
             )
         out += ["", claim_sentence(data, [plain, fast])]
-        out += ["", f"{target_lines(check)[-1]} Criterion by criterion: {_link(path.with_suffix('.md'), readme_dir)}."]
+        out += [
+            "",
+            f"Target `{check['target']['name']}`: {target_lines(check)[-1]} Criterion by criterion: "
+            f"{_link(path.with_suffix('.md'), readme_dir)}.",
+        ]
         missing = [s for s in SCENES if s not in {r["scene"] for r in data["rows"]}]
         if missing:  # rows land one machine hold at a time: say what the average does not cover yet
             out += [

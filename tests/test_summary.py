@@ -269,3 +269,29 @@ def test_the_frame_rate_is_judged_on_the_scenes_measured_on_the_targets_gpu():
     assert slow["met"] is False and fast["met"] is None
     assert slow["values"] == [900.0, 700.0]  # every value is shown; only the H200 one is judged
     assert fast["note"] == "b left out (measured on NVIDIA H100 80GB HBM3)"
+
+
+def test_the_time_table_target_judges_the_worst_view_against_the_plain_render():
+    """Issue #44's target: the compaction target's speed criteria, the mean PSNR loss, and each scene's worst test
+    view within 0.02 dB of the same model's plain render (its `psnr_vs_plain`); no size or LPIPS criterion."""
+    from garo_ns.bench.targets import TIME_TABLE, check_target, target_lines
+
+    def runs(worst_b):
+        out = [
+            _compact_result("a", "NVIDIA H200", 200.0, 1400.0, 0.2, 0.002, 3.0),
+            _compact_result("b", "NVIDIA H200", 150.0, 1050.0, 0.35, 0.001, 4.5),
+        ]
+        for r, worst in zip(out, (0.004, worst_b)):
+            if worst is not None:
+                r["variants"]["garo-compact+auto"]["psnr_vs_plain"] = {"max_abs_db": worst, "mean_db": 0.0}
+        return summarise([(f"{r['scene']}.json", r) for r in out], COMPACT_ROWS)
+
+    check = check_target(runs(0.015), "garo-compact+auto", TIME_TABLE)
+    names = [c["criterion"] for c in check["criteria"]]
+    assert "model MB in half-precision storage, each scene" not in names and "LPIPS increase, each scene" not in names
+    assert check["met"] and check["judged"] == len(names) == 5
+    assert target_lines(check)[-1] == "Every criterion is met on 2 scene(s)."
+    check = check_target(runs(0.025), "garo-compact+auto", TIME_TABLE)
+    assert check["missed"] == ["worst view vs plain render, each scene (dB)"]
+    check = check_target(runs(None), "garo-compact+auto", TIME_TABLE)  # a file without the comparison
+    assert check["criteria"][-1]["met"] is None and not check["met"] and check["missed"] == []

@@ -41,7 +41,7 @@ class SummaryArgs:
     aliases: List[str] = field(default_factory=list)
     """`ROW=VARIANT`: a file without VARIANT's row is read from its ROW instead, for a run made under
     another name with the settings VARIANT has now (e.g. garo-window=garo-deform); recorded per scene."""
-    target: Optional[Literal["compaction"]] = None
+    target: Optional[Literal["compaction", "time-table"]] = None
     """Also judge a speed and quality target (garo_ns.bench.targets) for `--target-variant`."""
     target_variant: Optional[str] = None
     """The variant the target is judged for (one of --variants), e.g. garo-compact+auto."""
@@ -98,6 +98,8 @@ def scene_rows(
             "psnr_drop_db": base["psnr"] - v["psnr"],
             "gaussian_ratio": v["num_gaussians"] / max(base["num_gaussians"], 1),
         }
+        if "psnr_vs_plain" in v:  # an approximate render path's largest per-view change from the plain render
+            row[name]["worst_view_db"] = v["psnr_vs_plain"]["max_abs_db"]
         if "fps_paired" in v and "fps_paired" in base:  # the benchmark's alternating re-timing
             row[name]["fps_ratio_paired"] = v["fps_paired"]["fps"] / base["fps_paired"]["fps"]
     return row
@@ -128,6 +130,8 @@ def combine_runs(runs: List[Dict[str, Any]], variants: List[str]) -> Dict[str, A
         arms = [r[name] for r in runs]
         ratios = () if name == BASELINE else ("fps_ratio", "psnr_drop_db", "gaussian_ratio")
         row[name] = {k: _mean([a[k] for a in arms]) for k in (*METRICS, *ratios)}
+        if name != BASELINE and all("worst_view_db" in a for a in arms):  # the worst of the runs, not their mean
+            row[name]["worst_view_db"] = max(a["worst_view_db"] for a in arms)
         iterations = {a.get("iterations") for a in arms}
         row[name]["iterations"] = iterations.pop() if len(iterations) == 1 else None
         row[name]["shortened"] = any(a.get("shortened") for a in arms)
