@@ -440,8 +440,9 @@ def claim_sentence(summary: Dict[str, Any], variants: List[str]) -> str:
 
 
 def compaction_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
-    """`garo-compact` against the baseline at 40k with the compaction target judged, from `compact_<GPU>.json`
-    (`python -m garo_ns.bench.summary ... --target compaction` or `--target time-table`); until that exists, where its defaults come from."""
+    """`garo-compact` against the baseline at 40k with a target judged, from `compact_<GPU>.json`
+    (`python -m garo_ns.bench.summary ... --target compaction` or `--target time-table`); until that exists,
+    where its defaults come from."""
     paths = sorted(p for p in results.glob("compact_*.json") if COMPACT_FILE.fullmatch(p.name))
     if not paths:
         line = "\n`garo-compact` has not been run at 40k yet."
