@@ -266,14 +266,12 @@ class DeformationSettings:
     changed test PSNR by -0.30, +0.16 and +0.14 dB (jumpingjacks, mutant, standup; +0.00 on average) with worse LPIPS
     on all three, so `log` is the default (docs/benchmarks.md)."""
     deform_cuda_graph: bool = True
-    """Training on CUDA: the field's forward and backward replay a CUDA graph captured for the current count of
-    Gaussians (captured anew when it changes; garo_ns.train_graphs). See `loss_cuda_graph` for what the two
-    graphs save."""
-    deform_graph_splats: bool = False
-    """With `deform_cuda_graph`: the graph takes the whole step from the canonical parameters to the rasterizer's
-    inputs (the field, the composition, the activations; garo_ns.train_graphs.GraphedSplats), one autograd node
-    instead of a dozen each way: the same kernels and numbers (tests/test_training_graphs.py). Off until measured
-    on a GPU."""
+    """Training on CUDA: the step's Gaussians, from the canonical parameters to the rasterizer's inputs (the field,
+    the composition, the activations), replay a CUDA graph captured for the current count of Gaussians (captured
+    anew when it changes; garo_ns.train_graphs.GraphedSplats): one autograd node instead of a few dozen each way,
+    the same kernels and numbers (tests/test_training_graphs.py). 40k jumpingjacks steps alone on an H100 took 394 s
+    with it and 403 s with the field alone in the graph (benchmarks/results/train_profile_splats*). See
+    `loss_cuda_graph` for what the two graphs save."""
     deform_train_tf32: bool = True
     """Training on CUDA: the matrix products (the deformation MLP's, forward and backward) take TF32 inputs
     (10-bit mantissa, fp32 sums) on tensor cores; rendering, evaluation and the CPU stay exact fp32."""

@@ -41,7 +41,7 @@ from garo_ns.render.outputs import camera_outputs
 from garo_ns.render.switches import RenderSettings, SwitchDecision
 from garo_ns.render.view import HostCameras, RenderView, camera_numbers, camera_view
 from garo_ns.static import StaticSettings, classification_due, classify, sample_times, static_fraction
-from garo_ns.train_graphs import GraphedField, GraphedSplats
+from garo_ns.train_graphs import GraphedSplats
 from garo_ns.training_data import adopt_training_data, reuse_step_cameras
 
 
@@ -86,8 +86,7 @@ class GaroModel(SplatfactoModel):
         self.psnr, self.ssim, lpips = metric_modules()
         self.loss_watch = NonFiniteWatch()
         self.image_loss = ImageLoss(self.ssim, cfg.ssim_lambda, cfg.loss_cuda_graph)
-        self.train_field = GraphedField(lambda: self.deformation, cfg.deform_cuda_graph)
-        self.train_splats = GraphedSplats(lambda: self.deformation, cfg.deform_cuda_graph and cfg.deform_graph_splats)
+        self.train_splats = GraphedSplats(lambda: self.deformation, cfg.deform_cuda_graph)
         # The dataset's cameras on the host: a training step reads its camera's numbers there (garo_ns.training_data).
         self.step_cameras: Optional[HostCameras] = None
         self._lpips = [lpips]  # out of the module tree: LPIPS may be absent, checkpoints must not need it
@@ -211,10 +210,9 @@ class GaroModel(SplatfactoModel):
         if self.training or exact:
             frames = len(self.train_times) if self.train_times is not None else 1
             time = time + time_noise(cfg.time_noise, cfg.time_noise_steps, self.step, frames, self.training)
-            if self.training and self.train_splats.enabled:
+            if self.training:  # the step's CUDA graph where it applies, else the eager composition
                 return self.train_splats(canonical, time, cfg.deform_scale_offset)
-            field = self.train_field if self.training else self.deformation
-            return activate(canonical, compose(field, canonical, time, cfg.deform_scale_offset))
+            return activate(canonical, compose(self.deformation, canonical, time, cfg.deform_scale_offset))
         state = self.strategy_state
         settings = self.render_settings() if settings is None else settings
         static, offset, table = state["static"], state["static_offset"], self.switches.table_spec()

@@ -1,5 +1,5 @@
-"""CUDA only: the training loss and the deformation field replayed from CUDA graphs give the eager values and
-gradients, call after call with new inputs, and capture anew for a new size (benchmarks/device_run.sh gputests runs
+"""CUDA only: the training loss and the step's deformed Gaussians replayed from CUDA graphs give the eager values
+and gradients, call after call with new inputs, and capture anew for a new size (benchmarks/device_run.sh gputests runs
 them)."""
 
 from __future__ import annotations
@@ -45,59 +45,6 @@ def test_a_second_size_gets_its_own_graph_and_evaluation_stays_eager():
         gt, pred = _images((16, 16, 3), 1)
         graphed(gt, pred)
     assert len(graphed.graphs) == 2
-
-
-def _field_inputs(n, seed):
-    g = torch.Generator(device="cuda").manual_seed(seed)
-    return torch.rand(n, 3, generator=g, device="cuda") * 2 - 1, float(torch.rand(1, generator=g, device="cuda"))
-
-
-@pytest.mark.parametrize("tf32", [False, True])
-def test_the_graphed_field_is_the_field_forward_and_backward(tf32):
-    """Offsets and parameter gradients as the eager field gives them, call after call with new positions and times
-    (TF32 on: both in TF32, so within its rounding); a new count of Gaussians captures a new graph."""
-    from garo_ns.deformation import DeformationField
-    from garo_ns.train_graphs import GraphedField
-
-    torch.manual_seed(0)
-    field = DeformationField(time_net=30).cuda().train()
-    graphed = GraphedField(lambda: field, enabled=True)
-    torch.backends.cuda.matmul.allow_tf32 = tf32
-    try:
-        for n, seed in ((5000, 0), (5000, 1), (5000, 2), (7000, 3)):
-            xyz, t = _field_inputs(n, seed)
-            field.zero_grad()
-            out = graphed(xyz, t)
-            sum(o.square().sum() for o in out).backward()
-            got = [p.grad.clone() for p in field.parameters()]
-            field.zero_grad()
-            want = field(xyz, t)
-            sum(o.square().sum() for o in want).backward()
-            tol = dict(rtol=1e-2, atol=1e-4) if tf32 else dict(rtol=1e-5, atol=1e-6)
-            assert all(torch.allclose(a, b, **tol) for a, b in zip(out, want))
-            assert all(torch.allclose(a, p.grad, **tol) for a, p in zip(got, field.parameters()))
-        assert graphed.captures == 2  # 5000 Gaussians, then 7000
-    finally:
-        torch.backends.cuda.matmul.allow_tf32 = False
-
-
-def test_the_graphed_field_runs_eagerly_without_gradients_or_when_off():
-    from garo_ns.deformation import DeformationField
-    from garo_ns.train_graphs import GraphedField
-
-    field = DeformationField(time_net=30).cuda().train()
-    xyz, t = _field_inputs(1000, 0)
-    on = GraphedField(lambda: field, enabled=True)
-    with torch.no_grad():
-        on(xyz, t)
-    field.eval()
-    on(xyz, t)  # an evaluation: no graph either
-    field.train()
-    off = GraphedField(lambda: field, enabled=False)
-    off(xyz, t)
-    assert on.captures == 0 and off.captures == 0
-    on(xyz, t)
-    assert on.captures == 1
 
 
 def _canonical(n, seed):
