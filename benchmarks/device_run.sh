@@ -5,7 +5,7 @@
 #   bash benchmarks/device_run.sh gputests GPU         the CUDA-only tests
 #   bash benchmarks/device_run.sh smoke SCENE GPU      a 200-step run of both arms with every speed row on
 #                                                      one GPU; checks that graph and lean rows score like
-#                                                      the rows without, and the +half rows' worst view
+#                                                      the rows without
 #   bash benchmarks/device_run.sh launch NAME SCENE SPLIT GPUS [benchmark args...]
 #                                                      python -m garo_ns.bench.benchmark in the background on the
 #                                                      GPUs GPUS (e.g. 2,3; pass --gpus 0 1 to use both),
@@ -79,7 +79,7 @@ gputests)
   # The CUDA-only tests and those whose CUDA path differs (the time table, the switches, the camera); the log names
   # the commit, the date and the GPU: benchmarks/results/gputests_<GPU>.log.
   { echo "commit ${GARO_GIT_COMMIT:-$(git rev-parse HEAD 2>/dev/null)} $(date -u +%F) $(nvidia-smi --query-gpu=name --format=csv,noheader | head -1)"
-    python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py tests/test_rendering_cuda.py tests/test_half_field.py \
+    python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py tests/test_rendering_cuda.py \
       tests/test_time_table.py tests/test_render_switches.py tests/test_view.py tests/test_training_graphs.py tests/test_adam.py \
       tests/test_train_raster.py 2>&1 | tail -3; } | tee $OUT/gputests.log ;;
 smoke)
@@ -98,9 +98,6 @@ for name, row in v.items():
         plain = v.get(name.replace(switch, ""), {}) if switch in name and "error" not in row else {}
         if "psnr" in plain:
             print(f"{name}: psnr {row['psnr']:.4f} vs {plain['psnr']:.4f} without {switch}, fps {row['fps']:.0f} vs {plain['fps']:.0f}")
-    if "+half" in name and "psnr_vs_plain" in row:  # fp16: within 0.02 dB, every view
-        worst = row["psnr_vs_plain"]["max_abs_db"]
-        print(f"{name}: worst view {worst:.4f} dB from the plain row ({'ok' if worst <= 0.02 else 'OVER 0.02 dB'})")
     if "error" in row:
         print(f"{name}: ERROR {row['error']}")
 PY

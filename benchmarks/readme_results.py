@@ -176,10 +176,6 @@ def render_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
         for r in rows
         for arm in ("base", "garo")
         for k in ("static_skip", "cuda_graph", "lean_raster", "storage_fp16")
-    ) or any(
-        r[arm].get("render_settings", {}).get("render_precision", "fp32") != "fp32"
-        for r in rows
-        for arm in ("base", "garo")
     )
     protocol = "with render switches on (see the files)" if switches else "plain fp32 render, no speed switches"
     missing = [s for s in SCENES if s not in files]

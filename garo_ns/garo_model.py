@@ -102,7 +102,7 @@ class GaroModel(SplatfactoModel):
         self.switch_guard: Optional[TrainingViewGuard] = None  # training views the render switches are measured on
         self.training_run = False  # set when the model gets training callbacks
         self.switches = SwitchDecision(lambda: self.step)  # what each approximate switch cost, and what that decides
-        for warning in checkpoints.upgrade_render_settings(cfg):  # an old config.yml naming a deleted path
+        for warning in checkpoints.upgrade_render_settings(cfg):  # an old config.yml naming a deleted setting
             CONSOLE.print(f"[yellow]{warning}[/yellow]")
         self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene_extent)
         self.train_times: Optional[Tensor] = None

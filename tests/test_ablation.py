@@ -98,7 +98,7 @@ def test_the_rho_figure_sorts_by_rho_reads_a_renamed_joint_row_and_says_where_th
         {
             "garo-rho0.1": _row(500.0, 36.6, 10_000, rho_max=0.1),
             "garo-rho0.005": _row(220.0, 37.0, 90_000, rho_max=0.005),
-            "garo-rho0.1+half": _row(900.0, 36.6, 10_000, rho_max=0.1),  # a render row, not an arm
+            "garo-rho0.1+static+graph": _row(900.0, 36.6, 10_000, rho_max=0.1),  # a render row, not an arm
         },
     )
     paths = []

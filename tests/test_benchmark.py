@@ -20,7 +20,7 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
         split="val",
         output=out,
         work_dir=tmp_path / "runs",
-        variants=["deform-splatfacto", "garo-deform", "garo-prune0.3", "garo-deform+static+half", "garo-deform+auto"],
+        variants=["deform-splatfacto", "garo-deform", "garo-prune0.3", "garo-deform+lean+static", "garo-deform+auto"],
         speed=True,
         iterations=40,
         device="cpu",
@@ -38,7 +38,7 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
     rows = ["", *SPEED_ROWS]
     assert "+graph" in rows and "+lean" in rows and "+static+graph+lean+fp16" in rows
     expected = [t + r for t in trained for r in rows]
-    assert list(result["variants"]) == expected + ["garo-deform+static+half", "garo-deform+auto"]
+    assert list(result["variants"]) == expected + ["garo-deform+lean+static", "garo-deform+auto"]
     # Render-time rows reuse their variant's training: one run per trained variant.
     assert sorted(p.name for p in (tmp_path / "runs").glob("*.record.json")) == sorted(
         f"{t}.record.json" for t in trained
@@ -75,7 +75,6 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
     default = settings["garo-deform"]["static_threshold"]
     assert settings["garo-deform+static+graph+lean+fp16"] == {
         "static_skip": True,
-        "render_precision": "fp32",
         "cuda_graph": True,
         "lean_raster": True,
         "time_table": False,
@@ -84,7 +83,6 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
     }
     assert settings["garo-deform"] == {
         "static_skip": False,
-        "render_precision": "fp32",
         "cuda_graph": False,
         "lean_raster": False,
         "time_table": False,
@@ -92,22 +90,22 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
         "storage_fp16": False,
     }
     # The static classification of the trained parameters again after the fp16 row (they were put back).
-    assert variants["garo-deform+static+half"]["static_fraction"] == variants["garo-deform+static"]["static_fraction"]
+    assert variants["garo-deform+lean+static"]["static_fraction"] == variants["garo-deform+static"]["static_fraction"]
     # +auto leaves every switch to the finished model: on a CPU no graph, no lean path, fp32 field.
     used = variants["garo-deform+auto"]["render_switches_used"]
     assert settings["garo-deform+auto"]["static_skip"] is None and settings["garo-deform+auto"]["cuda_graph"] is None
-    assert (used["cuda_graph"], used["lean_raster"], used["render_precision"]) == (False, False, "fp32")
+    assert (used["cuda_graph"], used["lean_raster"]) == (False, False) and "render_precision" not in used
     assert variants["garo-deform"]["render_switches_used"]["static_skip"] is False  # an explicit row as set
     assert variants["garo-deform+static"]["render_switches_used"]["static_skip"] is True
     for t in trained:
         plain, half = variants[t + "+static+graph+lean"], variants[t + "+static+graph+lean+fp16"]
         assert half["model_size_mb"] < 0.6 * plain["model_size_mb"] and half["storage"].startswith("fp16")
         assert abs(half["psnr"] - plain["psnr"]) < 0.1  # rounding to half precision costs ~nothing
-        for row in ("+graph", "+lean", "+half", "+graph+half"):  # no CUDA: the eager fp32 path, reference raster
+        for row in ("+graph", "+lean"):  # no CUDA: the eager fp32 path, reference raster
             assert variants[t + row]["psnr"] == variants[t]["psnr"]
             assert variants[t + row]["psnr_vs_plain"]["max_abs_db"] == 0.0
         assert "psnr_vs_plain" not in variants[t]  # the plain row is the reference
-        assert len(variants[t + "+half"]["psnr_vs_plain"]["per_view_db"]) == len(images)
+        assert len(variants[t + "+static"]["psnr_vs_plain"]["per_view_db"]) == len(images)
     # Pruning the least contributing 30% at step 28 leaves fewer Gaussians than GARO alone.
     assert variants["garo-prune0.3"]["num_gaussians"] < variants["garo-deform"]["num_gaussians"]
     # The exact switches on top of the static skip change no pixel (no CUDA: the graph is the eager path).
@@ -119,7 +117,7 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
     for t in trained:
         paired = variants[t]["fps_paired"]
         assert paired["passes"] == 6 and len(paired["pass_ms_per_view"]) == 6 and paired["fps"] > 0
-        assert "fps_paired" not in variants[t + "+half"]
+        assert "fps_paired" not in variants[t + "+static"]
     ratio = variants["garo-deform"]["fps_paired"]["fps"] / variants["deform-splatfacto"]["fps_paired"]["fps"]
     assert result["garo_vs_baseline"]["fps_ratio_paired"] == pytest.approx(ratio)
     assert "alternating passes" in out.with_suffix(".md").read_text()
@@ -130,25 +128,28 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
 def test_auto_row_leaves_every_switch_to_the_model():
     base, render = split_variant("garo-compact+auto")
     assert base == "garo-compact"
-    assert all(render[k] is None for k in ("static_skip", "render_precision", "cuda_graph", "lean_raster"))
+    assert all(render[k] is None for k in ("static_skip", "cuda_graph", "lean_raster", "time_table"))
+    assert "render_precision" not in render
     assert render["storage"] == "fp32"
 
 
-def test_half_row_selects_render_precision_fp16_and_is_compared_view_by_view():
-    base, render = split_variant("garo-deform+static+graph+half+lean")
-    assert base == "garo-deform" and render["render_precision"] == "fp16" and render["storage"] == "fp32"
-    assert {"+half", "+graph+half"} <= set(SPEED_ROWS)
+def test_a_render_row_selects_its_switches_and_is_compared_view_by_view():
+    base, render = split_variant("garo-deform+static+graph+lean")
+    assert base == "garo-deform" and render["storage"] == "fp32" and not render["time_table"]
+    assert render["static_skip"] and render["cuda_graph"] and render["lean_raster"]
     diff = psnr_difference([30.0, 31.5, 29.99], [30.01, 31.5, 29.98])
     assert diff["per_view_db"] == pytest.approx([-0.01, 0.0, 0.01])
     assert diff["max_abs_db"] == pytest.approx(0.01) and diff["mean_db"] == pytest.approx(0.0, abs=1e-12)
 
 
-def test_deleted_tf32_row_is_refused_and_no_speed_row_names_it():
-    """tf32 was deleted as a render path (benchmarks/HISTORY.md, issue 31): its suffix is an unknown switch."""
-    assert not any("tf32" in row for row in SPEED_ROWS)
+@pytest.mark.parametrize("deleted", ["tf32", "half"])
+def test_a_deleted_precision_row_is_refused_and_no_speed_row_names_it(deleted):
+    """tf32 (issue 31) and the fp16 field (`+half`) were deleted as render paths (benchmarks/HISTORY.md): their
+    suffixes are unknown switches."""
+    assert not any(deleted in row for row in SPEED_ROWS)
     assert len(set(SPEED_ROWS)) == len(SPEED_ROWS)  # no row twice (without tf32, "+graph+tf32" was "+graph")
-    with pytest.raises(ValueError, match=r"unknown render switch '\+tf32'"):
-        split_variant("garo-deform+static+graph+tf32")
+    with pytest.raises(ValueError, match=rf"unknown render switch '\+{deleted}'"):
+        split_variant(f"garo-deform+static+graph+{deleted}")
 
 
 def tiny_run(scene, tmp_path, name: str, **settings) -> BenchArgs:

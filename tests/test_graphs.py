@@ -22,7 +22,7 @@ def _field() -> DeformationField:
 
 @torch.no_grad()
 def test_replay_matches_eager():
-    """The fp32 field (the half field's replay: tests/test_half_field.py)."""
+    """The fp32 field, as the frame path's deformation graph replays it."""
     field, xyz = _field(), torch.rand(20_000, 3, device="cuda")
 
     def step(t):

@@ -4,6 +4,7 @@ import math
 
 import pytest
 import torch
+import yaml
 
 from garo_ns.render.frame import FrameSettings
 from garo_ns.render.switches import (
@@ -22,7 +23,7 @@ from garo_ns.render.switches import (
 )
 from garo_ns.render.time_table import table_bytes
 
-AUTO = {"render_precision": None, "static_skip": None, "cuda_graph": None, "lean_raster": None, "time_table": None}
+AUTO = {"static_skip": None, "cuda_graph": None, "lean_raster": None, "time_table": None}
 
 
 def losses(**table):
@@ -31,8 +32,6 @@ def losses(**table):
 
     def measure(trial: FrameSettings) -> float:
         calls.append(trial)
-        if trial.render_precision != "fp32":
-            return table.get(trial.render_precision, math.inf)  # a precision not listed: too lossy
         if trial.time_table:
             return table.get("time_table", math.inf)  # not listed: no table for this model
         return table["static_skip"] if trial.static_skip else 0.0
@@ -41,17 +40,17 @@ def losses(**table):
 
 
 def test_training_run_keeps_every_auto_switch_off_even_on_cuda():
-    measure, calls = losses(static_skip=0.0, fp16=0.0)
+    measure, calls = losses(static_skip=0.0, time_table=0.0)
     settings, tried = resolve(AUTO, training_run=True, cuda=True, measure=measure)
     assert settings == FrameSettings()
     assert calls == [] and tried == {}
 
 
 def test_finished_model_on_cuda_gets_the_exact_switches_and_the_static_skip_within_the_bound():
-    measure, calls = losses(static_skip=0.005, fp16=0.0)
+    measure, calls = losses(static_skip=0.005)
     settings, tried = resolve(AUTO, training_run=False, cuda=True, measure=measure)
     assert settings.cuda_graph and settings.lean_raster and settings.static_skip
-    assert settings.render_precision == "fp32" and tried == {APPROXIMATE: 0.005, TABLE: math.inf}
+    assert tried == {APPROXIMATE: 0.005, TABLE: math.inf}
     assert not settings.time_table and len(calls) == 2 and calls[0].static_skip and not calls[0].time_table
     assert calls[1].time_table and not calls[1].static_skip  # the table measured alone
 
@@ -60,50 +59,44 @@ def test_a_switch_that_costs_more_than_the_bound_stays_off():
     for loss in (0.5, float("nan")):
         measure, _ = losses(static_skip=loss)
         settings, tried = resolve(AUTO, training_run=False, cuda=True, measure=measure, bound_db=0.02)
-        assert not settings.static_skip and settings.render_precision == "fp32"
+        assert not settings.static_skip and not settings.time_table
         assert set(tried) == {APPROXIMATE, TABLE}
 
 
-def test_auto_never_picks_a_reduced_precision():
-    """Issue 31: fp16 missed the 0.02 dB bound on standup's GARO arm and jumpingjacks' baseline at 40k
-    (benchmarks/HISTORY.md), so a render_precision left to auto stays fp32 even where fp16 measures lossless;
-    it is used only when set."""
-    measure, calls = losses(static_skip=0.0, fp16=0.0, tf32=0.0, bf16=0.0)
-    settings, tried = resolve(AUTO, training_run=False, cuda=True, measure=measure)
-    assert settings.render_precision == "fp32" and settings.static_skip and settings.cuda_graph
-    assert all(c.render_precision == "fp32" for c in calls) and set(tried) == {APPROXIMATE, TABLE}
-    # Replaying any record, even one that measured every reduced precision lossless, changes nothing.
+def test_render_precision_is_no_switch_and_an_old_records_precisions_decide_nothing():
+    """The MLP renders in fp32 only (fp16 was deleted with its setting: benchmarks/HISTORY.md): a precision asked
+    of `resolve` is an unknown switch, and a record that measured precisions lossless decides as one without."""
+    assert "render_precision" not in FrameSettings.__dataclass_fields__
+    with pytest.raises(ValueError, match="unknown render switches"):
+        resolve(dict(AUTO, render_precision="fp16"), training_run=False, cuda=True)
     record = {"static_skip": 0.0, "render_precision=fp16": 0.0, "render_precision=tf32": 0.0}
-    assert resolve(AUTO, training_run=False, cuda=True, measure=replay(record))[0].render_precision == "fp32"
-    # Set explicitly, fp16 is used as set, and the static skip is measured on top of it under its own name.
-    explicit, tried = resolve(dict(AUTO, render_precision="fp16"), training_run=False, cuda=True, measure=measure)
-    assert explicit.render_precision == "fp16" and explicit.static_skip
-    assert tried == {APPROXIMATE: 0.0, TABLE: 0.0}
-    assert calls[-2].render_precision == "fp16" and calls[-2].static_skip
+    with_precisions = resolve(AUTO, training_run=False, cuda=True, measure=replay(record))[0]
+    assert with_precisions == resolve(AUTO, training_run=False, cuda=True, measure=replay({"static_skip": 0.0}))[0]
+    assert with_precisions.static_skip and with_precisions.cuda_graph
 
 
-def test_on_cpu_no_cuda_switch_and_no_reduced_precision():
-    measure, calls = losses(static_skip=0.0, fp16=0.0)
+def test_on_cpu_no_cuda_switch():
+    measure, calls = losses(static_skip=0.0)
     settings, _ = resolve(AUTO, training_run=False, cuda=False, measure=measure)
-    assert not settings.cuda_graph and not settings.lean_raster and settings.render_precision == "fp32"
+    assert not settings.cuda_graph and not settings.lean_raster
     assert settings.static_skip  # exact enough on training views, and it runs on a CPU
-    assert all(c.render_precision == "fp32" for c in calls)
+    assert calls and not any(c.cuda_graph or c.lean_raster for c in calls)
 
 
 def test_explicit_flags_override_in_both_directions():
-    requested = dict(AUTO, cuda_graph=False, static_skip=False, render_precision="fp16", lean_raster=True)
+    requested = dict(AUTO, cuda_graph=False, static_skip=False, lean_raster=True)
     requested["time_table"] = False
-    measure, calls = losses(static_skip=0.0, fp16=0.0)
+    measure, calls = losses(static_skip=0.0, time_table=0.0)
     finished, tried = resolve(requested, training_run=False, cuda=True, measure=measure)
     assert (finished.cuda_graph, finished.lean_raster, finished.static_skip) == (False, True, False)
-    assert finished.render_precision == "fp16" and calls == [] and tried == {}
+    assert not finished.time_table and calls == [] and tried == {}
     training, _ = resolve(requested, training_run=True, cuda=True, measure=measure)
-    assert training.lean_raster and training.render_precision == "fp16"
+    assert training.lean_raster and not training.cuda_graph
 
 
 def test_without_a_measure_the_approximate_switches_stay_off():
     settings, tried = resolve(AUTO, training_run=False, cuda=True)
-    assert settings.cuda_graph and not settings.static_skip and settings.render_precision == "fp32"
+    assert settings.cuda_graph and not settings.static_skip and not settings.time_table
     assert tried == {}
 
 
@@ -168,23 +161,23 @@ def test_replay_of_recorded_losses_gives_the_same_decision_and_unmeasured_trials
     assert again == first and first.static_skip and first.cuda_graph
     # A record without the static skip's measurement: it stays off.
     later, _ = resolve(AUTO, training_run=False, cuda=True, measure=replay({}))
-    assert not later.static_skip and later.render_precision == "fp32" and later.cuda_graph
+    assert not later.static_skip and not later.time_table and later.cuda_graph
 
 
 def test_measure_on_views_compares_each_trial_with_the_plain_renders():
     torch.manual_seed(1)
     targets = [torch.rand(4, 4, 3) for _ in range(2)]
-    noise = {None: 0.01, True: 0.01, False: 0.03}  # static_skip on: as plain; precision trial: worse
+    noise = {None: 0.01, True: 0.01, False: 0.03}  # static_skip on: as plain; table trial: worse
 
     def render(i, trial):
-        key = None if trial is None else trial.render_precision == "fp32"
+        key = None if trial is None else not trial.time_table
         return targets[i] + noise[key]
 
     measure = measure_on_views(render, targets)
     assert measure(FrameSettings(static_skip=True)) == pytest.approx(0.0, abs=1e-6)
     # 0.03 against 0.01 off the ground truth: 10 log10(9) dB worse, pixels 0.02 from the plain render
     # (10 log10(1 + 4) dB on the plain error's scale): the larger counts.
-    assert measure(FrameSettings(render_precision="fp16")) == pytest.approx(10 * math.log10(9), rel=1e-4)
+    assert measure(FrameSettings(time_table=True)) == pytest.approx(10 * math.log10(9), rel=1e-4)
 
 
 def test_the_line_on_load_names_the_switches_and_each_measured_change():
@@ -194,7 +187,8 @@ def test_the_line_on_load_names_the_switches_and_each_measured_change():
     assert "none measured" in decision.line(config, False, cpu)
     decision.record = {"step": 99, "views": 32, "tried": {"static_skip": 0.004}, "measure": MEASURE_VERSION}
     line = decision.line(config, False, cpu)
-    assert "render_precision=fp32" in line and "static_skip" in line.split(";")[0]  # in use
+    assert line.startswith("Render switches: static_skip") and "static_skip" in line.split(";")[0]  # in use
+    assert "render_precision" not in line
     assert "static_skip 0.0040 dB" in line and "32 training views at step 99" in line and "bound 0.02 dB" in line
     summary = decision.summary(config, False, cpu)
     assert summary["in_use"]["static_skip"] and summary["measured_db"] == {"static_skip": 0.004}
@@ -206,35 +200,50 @@ def test_the_line_on_load_names_the_switches_and_each_measured_change():
     assert decision.summary(config, False, cpu)["untrusted_record"]
 
 
-@pytest.mark.parametrize("deleted", ["bf16", "fp16-fused", "tf32"])
-def test_an_old_config_naming_a_deleted_precision_loads_with_a_warning_and_renders_exactly(deleted, capsys):
-    import yaml
+def _old_config_model(render_precision):
+    """A model set up from a config.yml written while `render_precision` was a setting, naming this value."""
     from nerfstudio.data.scene_box import SceneBox
 
     from garo_ns.garo_model import GaroModelConfig
 
     config = GaroModelConfig(num_random=50, deform_width=16, deform_depth=2, deform_skip=0)
-    config.render_precision = deleted  # as a config.yml written before the deletion holds it
+    config.render_precision = render_precision  # as a config.yml written before the deletion holds it
     config = yaml.load(yaml.dump(config), Loader=yaml.Loader)
+    assert config.render_precision == render_precision  # the old file's value reaches the loaded config
     box = SceneBox(torch.tensor([[-1.5] * 3, [1.5] * 3]))
-    model = config.setup(scene_box=box, num_train_data=1, metadata={"camera_extent": 4.0})
-    assert model.config.render_precision == "fp32"
+    return config.setup(scene_box=box, num_train_data=1, metadata={"camera_extent": 4.0})
+
+
+@pytest.mark.parametrize("deleted", ["bf16", "fp16-fused", "tf32", "fp16"])
+def test_an_old_config_naming_a_deleted_precision_loads_with_a_warning_and_renders_exactly(deleted, capsys):
+    model = _old_config_model(deleted)
+    assert not hasattr(model.config, "render_precision")  # dropped: nothing reads it
+    assert "render_precision" not in yaml.dump(model.config)  # nor writes it back
     out = capsys.readouterr().out
-    assert f"render_precision={deleted} was deleted" in out and "exact fp32" in out
+    assert out.count("was deleted") == 1
+    assert f"render_precision={deleted} was deleted (benchmarks/HISTORY.md)" in out and "exact fp32" in out
+    assert model.render_settings() == FrameSettings()  # a CPU, no record: the plain fp32 path
+
+
+@pytest.mark.parametrize("value", ["fp32", None])
+def test_an_old_config_naming_fp32_or_auto_loads_silently(value, capsys):
+    model = _old_config_model(value)
+    assert not hasattr(model.config, "render_precision")
+    assert "render_precision" not in capsys.readouterr().out
 
 
 def test_an_old_record_naming_tf32_loads_and_renders_fp32(monkeypatch):
-    """A checkpoint measured before tf32 was deleted and before fp16 left the defaults holds both
-    precisions' changes, within the bound: the loaded model renders fp32 with the other switches it
-    allows, and reports only the change of a switch that decides something."""
+    """A checkpoint measured while MLP precisions were switches (since deleted) holds their changes, within the
+    bound: the loaded model renders fp32 with the other switches it allows, and reports only the change of a
+    switch that decides something."""
     monkeypatch.setattr(RenderSettings, "renders_on_cuda", lambda self, device: True)  # as on a GPU
     decision, config, device = SwitchDecision(), RenderSettings(), torch.device("cpu")
     tried = {"static_skip": 0.004, "render_precision=fp16": 0.003, "render_precision=tf32": 0.002}
     decision.record = {"step": 39999, "views": 32, "tried": tried, "measure": MEASURE_VERSION}
     settings = decision.settings(config, False, device)
-    assert settings.render_precision == "fp32" and settings.static_skip and settings.cuda_graph
+    assert settings.static_skip and settings.cuda_graph
     line = decision.line(config, False, device)
-    assert line.startswith("Render switches: render_precision=fp32") and "static_skip 0.0040 dB" in line
+    assert line.startswith("Render switches: static_skip") and "static_skip 0.0040 dB" in line
     assert "tf32" not in line and "fp16" not in line
     assert decision.summary(config, False, device)["measured_db"] == {"static_skip": 0.004}
 

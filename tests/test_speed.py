@@ -1,5 +1,5 @@
-"""Render-time speed techniques: static Gaussians, the viewer cache, and contribution pruning (the
-reduced-precision MLP: tests/test_half_field.py). Each must be exact or measurably close to the plain path."""
+"""Render-time speed techniques: static Gaussians, the viewer cache, and contribution pruning (the time table:
+tests/test_time_table.py). Each must be exact or measurably close to the plain path."""
 
 from __future__ import annotations
 

@@ -14,17 +14,16 @@ Variants: deform-splatfacto (baseline), garo-deform (full GARO), and on request 
 of a fixed share of the least contributing Gaussians) and garo-compact / garo-compact<dB> (GARO plus
 compaction measured on training views, with its default total budget or the one given in dB) /
 garo-compact--<setting>-<value>--... (any compaction settings, e.g. `garo-compact--fraction-0.3`).
-A name may carry render-time switches after `+`: `+static` (static Gaussians skip the MLP), `+half`
-(`render_precision=fp16`: the half-precision field with each Gaussian's position part cached,
-garo_ns.render.half_field), `+graph` (everything before the rasterizer as one CUDA graph), `+lean`
-(gsplat's kernels called directly), `+fp16` (parameters rounded to the compact half-precision file of
-garo_ns.storage; its size is the model size), `+auto` (every switch left to the finished model, as ns-viewer,
-ns-render and garo-eval render without flags; the row records what it chose in `render_switches_used`), e.g.
-`garo-deform+static+graph+half`; such variants reuse the
-training of the name before the first `+` and differ only at render time. Every such row records
-`psnr_vs_plain`: its PSNR minus the plain row's (the name before the first `+`), view by view (`+half`'s
-bound: within 0.02 dB on every view). Deleted paths (`+bf16`, `+fused`, `+static4x`, `+tf32`) and what
-they measured: benchmarks/HISTORY.md.
+A name may carry render-time switches after `+`: `+static` (static Gaussians skip the MLP), `+graph`
+(everything before the rasterizer as one CUDA graph), `+lean` (gsplat's kernels called directly), `+table`
+(the time table forced on, garo_ns.render.time_table), `+fp16` (parameters rounded to the compact
+half-precision file of garo_ns.storage; its size is the model size), `+auto` (every switch left to the
+finished model, as ns-viewer, ns-render and garo-eval render without flags; the row records what it chose in
+`render_switches_used`), e.g. `garo-deform+static+graph+lean`; such variants reuse the training of the name
+before the first `+` and differ only at render time. Every such row records `psnr_vs_plain`: its PSNR minus
+the plain row's (the name before the first `+`), view by view (an approximate switch's bound: within 0.02 dB
+on every view). Deleted paths (`+bf16`, `+fused`, `+static4x`, `+tf32`, `+half`) and what they measured:
+benchmarks/HISTORY.md; their names are refused as unknown switches.
 """
 
 from __future__ import annotations
@@ -49,7 +48,6 @@ RHO_SWEEP = (0.005, 0.01, 0.02, 0.05, 0.1)
 FULL_ITERATIONS = 40_000
 RENDER_SWITCHES: Dict[str, Dict[str, Any]] = {
     "static": {"static_skip": True},
-    "half": {"render_precision": "fp16"},
     "graph": {"cuda_graph": True},
     "lean": {"lean_raster": True},
     "fp16": {"storage": "fp16"},
@@ -57,7 +55,6 @@ RENDER_SWITCHES: Dict[str, Dict[str, Any]] = {
     # finished model, which decides from the losses it measured at the end of training.
     "auto": {
         "static_skip": None,
-        "render_precision": None,
         "cuda_graph": None,
         "lean_raster": None,
         "time_table": None,
@@ -73,9 +70,6 @@ SPEED_ROWS = (
     "+static+graph",
     "+static+graph+lean",
     "+static+graph+lean+fp16",
-    "+half",
-    "+graph+half",
-    "+static+graph+half+lean",
 )
 
 
@@ -84,7 +78,6 @@ def split_variant(name: str) -> Tuple[str, Dict[str, Any]]:
     base, *switches = name.split("+")
     render: Dict[str, Any] = {
         "static_skip": False,
-        "render_precision": "fp32",
         "cuda_graph": False,
         "lean_raster": False,
         "time_table": False,

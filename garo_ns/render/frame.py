@@ -2,17 +2,17 @@
 
 During training every frame is the plain D-3DGS composition in fp32 (`compose`). Outside training
 (the viewer, `ns-render`, `garo-eval`, the benchmark) `FramePath` renders the same model with the
-render switches: the MLP in another precision (fp16: `garo_ns.render.half_field`), static Gaussians
-with frozen offsets (only the dynamic ones go through the MLP), a cache of the last time rendered,
-and CUDA graphs of the deformation and of the camera's projection. It holds only caches: everything
-it renders from is passed in, so it knows nothing of the model.
+render switches: static Gaussians with frozen offsets (only the dynamic ones go through the MLP), the
+time table (`garo_ns.render.time_table`), a cache of the last time rendered, and CUDA graphs of the
+deformation and of the camera's projection. The MLP always runs in fp32, as trained. It holds only
+caches: everything it renders from is passed in, so it knows nothing of the model.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from time import perf_counter
-from typing import Any, Callable, Dict, Literal, NamedTuple, Optional, Tuple, Union
+from typing import Any, Callable, Dict, NamedTuple, Optional, Tuple, Union
 
 import torch
 import torch.nn.functional as F
@@ -21,17 +21,8 @@ from torch import Tensor
 from garo_ns.deformation import DeformationField, ScaleOffset, log_scale_offset
 from garo_ns.render.backend import Backend, lean_front, rasterize
 from garo_ns.render.graphs import InputGraph, TimeGraph, graphs_available, versions
-from garo_ns.render.half_field import HalfField
 from garo_ns.render.time_table import TableSpec, TimeTable
 from garo_ns.render.view import RenderView
-
-# The deformation MLP's precision outside training: fp32 (exact) or fp16 (HalfField: half weights, per-Gaussian
-# position part cached, heads in fp32; CUDA and no gradients only, the plain fp32 field elsewhere). fp16 is an
-# explicit opt-in only, never chosen by default: it missed the 0.02 dB bound on standup's GARO arm and, by
-# 0.0002 dB, on jumpingjacks' baseline (garo_ns.render.switches). bf16, fp16-fused and tf32 were deleted
-# (benchmarks/HISTORY.md, issue 31); garo_ns.checkpoints maps them to fp32 in old configs.
-RenderPrecision = Literal["fp32", "fp16"]
-RENDER_PRECISIONS = ("fp32", "fp16")
 
 
 class Canonical(NamedTuple):
@@ -66,7 +57,6 @@ class Splats(NamedTuple):
 class FrameSettings:
     """The render switches (the model config's fields of the same names)."""
 
-    render_precision: RenderPrecision = "fp32"
     static_skip: bool = False
     cache_deformation: bool = True
     cuda_graph: bool = False
@@ -75,7 +65,7 @@ class FrameSettings:
 
 
 Deformed = Tuple[Tensor, Tensor, Tensor]  # means, quaternions (unnormalised), log-scales
-# (canonical positions [N, 3], time) -> (d_xyz, d_rot, d_log_scale): a DeformationField or its render-time form.
+# (canonical positions [N, 3], time) -> (d_xyz, d_rot, d_log_scale): a DeformationField or a stand-in for one.
 OffsetField = Callable[[Tensor, Union[float, Tensor]], Tuple[Tensor, Tensor, Tensor]]
 
 
@@ -119,9 +109,7 @@ def table_rows(canonical: Canonical, table: TimeTable) -> Optional[Tuple[Tensor,
 class FramePath:
     """Caches and CUDA graphs of the render-time frame (one per model)."""
 
-    def __init__(self, half_field: Optional[HalfField] = None) -> None:
-        # render_precision fp16's field (weight copies and position cache); by default CUDA only.
-        self.half_field = HalfField() if half_field is None else half_field
+    def __init__(self) -> None:
         self._deformed: Optional[Tuple[Any, Splats]] = None
         self._static: Optional[Tuple[Any, Tensor, Deformed, Deformed]] = None
         self._graph = TimeGraph()
@@ -183,12 +171,9 @@ class FramePath:
             def step(t: Tensor) -> Splats:
                 return activate(canonical, self.deform(field, canonical, static, static_offset, t, settings, key, True))
 
-            captures = self._graph.captures
             out = self._graph(self.graph_key(settings, key), step, time, device, reuse=settings.cache_deformation)
-            if self._graph.captures != captures:  # the capture built the half field's copies it reads: key them
-                self._graph.key = self.graph_key(settings, key)
             return Splats(*out[:5], graph=self._graph.captures)
-        cache_key = (float(time), settings.render_precision, settings.static_skip, key, self.scale_offset)
+        cache_key = (float(time), settings.static_skip, key, self.scale_offset)
         if settings.cache_deformation and self._deformed is not None and self._deformed[0] == cache_key:
             return self._deformed[1]
         out = activate(canonical, self.deform(field, canonical, static, static_offset, time, settings, key))
@@ -219,11 +204,9 @@ class FramePath:
         return self._table[1]
 
     def graph_key(self, settings: FrameSettings, key: Tuple[Any, ...]) -> Tuple[Any, ...]:
-        """What the deformation graph reads besides the time: the switches, the parameters (`key`) and, in
-        fp16, the half field's weight copies and position cache, which an eager frame in another precision
-        or static setting releases or rebuilds (`HalfField.generation`)."""
-        half = self.half_field.generation if settings.render_precision == "fp16" else None
-        return (settings.render_precision, settings.static_skip, key, half, self.scale_offset)
+        """What the deformation graph reads besides the time: the static switch, the parameters (`key`) and
+        how the scale offsets compose."""
+        return (settings.static_skip, key, self.scale_offset)
 
     def deform(
         self,
@@ -236,42 +219,18 @@ class FramePath:
         key: Tuple[Any, ...],
         in_place: bool = False,
     ) -> Deformed:
-        """`compose` in `render_precision`, with `static_skip` the MLP on the dynamic Gaussians only.
+        """`compose` with the fp32 field, with `static_skip` the MLP on the dynamic Gaussians only.
         `in_place` writes the dynamic rows into the cached frozen tensors (for a CUDA graph, whose
         outputs the next replay overwrites anyway; the static rows never change)."""
-        device = canonical.means.device
-        dynamic_only = settings.static_skip and static is not None
-        offsets = self._offset_field(field, settings.render_precision, key, dynamic_only, device)
         if not settings.static_skip or static is None:
-            return compose(offsets, canonical, time, self.scale_offset)
+            return compose(field, canonical, time, self.scale_offset)
         dynamic, frozen, moving = self._static_split(canonical, static, static_offset, key)
-        d_xyz, d_rot, d_scale = offsets(moving[0], time)
+        d_xyz, d_rot, d_scale = field(moving[0], time)
         d_log_scale = log_scale_offset(moving[2], d_scale, self.scale_offset)
         moved = (moving[0] + d_xyz, moving[1] + d_rot, moving[2] + d_log_scale)
         if in_place:
             return tuple(f.index_copy_(0, dynamic, m) for f, m in zip(frozen, moved))  # type: ignore[return-value]
         return tuple(f.index_copy(0, dynamic, m) for f, m in zip(frozen, moved))  # type: ignore[return-value]
-
-    def _offset_field(
-        self,
-        field: DeformationField,
-        render_precision: RenderPrecision,
-        key: Tuple[Any, ...],
-        dynamic_only: bool,
-        device: torch.device,
-    ) -> OffsetField:
-        """What computes the offsets: for fp16 the half field where it runs (CUDA, no gradients), else
-        the fp32 field as trained."""
-        if render_precision != "fp16":
-            self.half_field.release()  # not the field rendering now: no cache to hold
-            return field
-        fast = self.half_field
-        if not fast.runs_on(device) or torch.is_grad_enabled():
-            return field
-        # The position cache belongs to these Gaussians: the parameters' versions (in `key`) and
-        # whether the MLP gets the dynamic ones or all of them.
-        points_key = ("dynamic" if dynamic_only else "all", key)
-        return lambda xyz, t: fast(field, xyz, t, points_key)  # type: ignore[misc]
 
     def _static_split(
         self, canonical: Canonical, static: Tensor, offset: Tensor, key: Tuple[Any, ...]

@@ -9,13 +9,8 @@ loaded model says in one line which switches it uses and what each approximate o
 change. During a training run, and so for a viewer attached to one, every switch left to auto stays
 off: what the user watches is what trains. A switch set explicitly is used as set, in both cases.
 
-A reduced MLP precision is never chosen by default: `render_precision` fp16 is an explicit opt-in, and
-`static_skip` is the one approximate switch `resolve` measures. On 40k-step models (H100, worst test
-view against the plain render) fp16 was within the 0.02 dB bound on mutant (0.0108 dB baseline, 0.0116
-GARO: mutant40k_switches_H100.json) and on jumpingjacks' GARO arm (0.0124), but over it on standup's
-GARO arm (0.045: standup40k_garo_switches_H100.json) and, by 0.0002 dB, on jumpingjacks' baseline
-(0.0202: table1_jumpingjacks_run2_H100.json), all in benchmarks/results/. Issue #31's rule: a reduced
-precision is chosen by default only if it meets the bound on every test view of those three scenes at 40k.
+The approximate switches `resolve` measures are `static_skip` and the time table; the deformation MLP
+always runs in fp32 (the reduced-precision fields were deleted: benchmarks/HISTORY.md).
 """
 
 from __future__ import annotations
@@ -28,7 +23,7 @@ import torch
 from torch import Tensor
 
 from garo_ns.render.backend import Backend, resolve_backend
-from garo_ns.render.frame import FrameSettings, RenderPrecision
+from garo_ns.render.frame import FrameSettings
 from garo_ns.render.time_table import TableSpec, spec_for
 
 EXACT = ("cuda_graph", "lean_raster")
@@ -45,7 +40,7 @@ over time: one bad frame of a motion is what the bound must catch."""
 
 APPROXIMATE = "static_skip"
 """The approximate switch `resolve` measures, and the name its loss is recorded under. Records written while
-precisions were measured too also hold `render_precision=<mode>` entries: kept as measured, never used."""
+MLP precisions were measured too (since deleted) also hold an entry for each: kept as measured, never used."""
 
 TABLE = "time_table"
 """The time table (garo_ns.render.time_table): measured like `static_skip`, with every measured view halfway
@@ -68,7 +63,7 @@ def resolve(
     Args:
         requested: the config's value of each FrameSettings field; None leaves it to this function.
         training_run: whether the model belongs to a run that is training (or will train).
-        cuda: whether the model renders on CUDA (graphs, the lean path and fp16 need it).
+        cuda: whether the model renders on CUDA (graphs and the lean path need it).
         measure: see `Measure`; without one the approximate switches left to auto stay off.
         bound_db: see DEFAULT_BOUND_DB.
     """
@@ -88,7 +83,7 @@ def resolve(
         return settings, tried
 
     if requested.get(APPROXIMATE) is None:
-        trial = replace(settings, static_skip=True, time_table=False)  # on top of a precision set explicitly
+        trial = replace(settings, static_skip=True, time_table=False)
         tried[APPROXIMATE] = float(measure(trial))
         if tried[APPROXIMATE] <= bound_db:  # False for NaN too
             settings = replace(settings, static_skip=True)
@@ -151,23 +146,14 @@ class RenderSettings:
     measured by the benchmark. None (the default) leaves a switch to `resolve`: off in a training run
     (and for a viewer attached to it); for a finished model, the exact ones (cuda_graph, lean_raster)
     on where CUDA runs, static_skip on when its change against the plain render on training views,
-    measured at the end of training, is within switch_bound_db, and render_precision fp32 (a reduced
-    precision is opt-in only; see the module docstring). A value set is used as set."""
+    measured at the end of training, is within switch_bound_db, and the time table likewise. A value set is
+    used as set."""
 
     rasterizer: Backend = "auto"
     """'cuda' (gsplat kernels), 'reference' (pure torch), or 'auto': cuda when it can run."""
     static_skip: Optional[bool] = None
     """When not training, Gaussians classified static skip the MLP; their offsets are frozen at
     their time average (the classification itself always runs during training; it is cheap)."""
-    render_precision: Optional[RenderPrecision] = None
-    """Precision of the deformation MLP when not training: fp32 or fp16 (CUDA: half weights with fp32
-    accumulation, each Gaussian's position part of the first and skip layers cached, the heads in fp32;
-    garo_ns.render.half_field). None renders fp32: fp16 is an explicit opt-in, never chosen by default.
-    Measured at 40k steps (the benchmark's `+half` rows, worst test view against fp32), it is within
-    0.02 dB on mutant (both arms) and jumpingjacks' GARO arm, but 0.045 dB off on standup's GARO arm
-    and 0.0202 on jumpingjacks' baseline (benchmarks/results/mutant40k_switches_H100.json,
-    table1_jumpingjacks_run2_H100.json, standup40k_garo_switches_H100.json). bf16, fp16-fused and tf32
-    were deleted (benchmarks/HISTORY.md): an old config naming them renders fp32."""
     time_table: Optional[bool] = None
     """When not training, take the Gaussians at a time from a table of the deformation field's offsets at
     keyframe times, interpolated between the two (or four) around the time (garo_ns.render.time_table): the
@@ -390,7 +376,7 @@ class SwitchDecision:
                 f"time_table ({t['keys']} keys, {t['spec']['order']}, {t['mb']:.0f} MB, "
                 f"{t['network']} of {t['gaussians']} Gaussians on the network)",
             )
-        names = ", ".join([f"render_precision={used['render_precision']}"] + on)
+        names = ", ".join(on) or "none"
         if info["measured_db"]:
             changes = ", ".join(f"{k} {v:.4f} dB" for k, v in info["measured_db"].items())
             where = f"measured on {info['measured_views']} training views at step {info['measured_at_step']}"
