@@ -74,6 +74,9 @@ class DeformationField(nn.Module):
     first updates, and that layer can die as a whole (see GaroModelConfig.deform_head_init).
     """
 
+    times_per_row = True
+    """`forward` takes one time per position ([N, 1]): a caller may sample several times in one call."""
+
     def __init__(
         self,
         pos_freqs: int = 10,

@@ -370,3 +370,35 @@ def test_a_tabled_frame_replayed_as_a_cuda_graph_is_the_eager_frame():
             for x, y in zip(a[:5], b[:5]):
                 assert torch.allclose(x, y, rtol=1e-5, atol=1e-6), t
     assert graphed._graph.captures == 1  # one capture, replayed at every time
+
+
+def test_a_field_that_takes_a_time_per_row_is_sampled_several_times_per_call():
+    """A table's keys on a model of some 10^4 Gaussians are thousands of small field calls: the deformation field
+    takes one time per row, so the keys are sampled several at a time, with the offsets (and so the table) those
+    calls one time at a time give, in the same order."""
+    from garo_ns.deformation import DeformationField
+    from garo_ns.render.time_table import field_offsets, iter_field_offsets
+
+    torch.manual_seed(0)
+    field = DeformationField(pos_freqs=4, time_freqs=3, depth=3, width=32, skip=1).eval()
+    calls = []
+    field.register_forward_hook(lambda module, args, out: calls.append(args[0].shape[0]))
+    xyz = torch.rand(300, 3) * 2 - 1
+    scales = (torch.randn(300, 3) - 3.0, "log")
+    times = torch.rand(40, generator=torch.Generator().manual_seed(1)).tolist()
+    batched = field_offsets(field, xyz, times, chunk=3000, scales=scales)
+    assert calls == [3000] * 4  # ten times per call
+    assert [k for k, _ in iter_field_offsets(field, xyz, times, chunk=3000)] == list(range(40))
+    calls.clear()
+    field.times_per_row = False  # as a stand-in field that takes one time per call
+    single = field_offsets(field, xyz, times, chunk=3000, scales=scales)
+    assert calls == [300] * 40
+    assert torch.allclose(batched, single, rtol=1e-5, atol=1e-6)
+
+    spec = _spec(60, precision="int16", tolerance=1.0)
+    table = TimeTable.build(spec, field, xyz, scales=scales)
+    field.times_per_row = True
+    twin = TimeTable.build(spec, field, xyz, scales=scales)
+    assert torch.allclose(table.anchors, twin.anchors, rtol=1e-5, atol=1e-6)
+    for t in (0.03, 0.41, 0.77):
+        assert torch.allclose(table.offsets_at(t), twin.offsets_at(t), atol=1e-5)

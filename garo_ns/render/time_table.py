@@ -37,7 +37,7 @@ from __future__ import annotations
 import bisect
 import math
 from dataclasses import asdict, dataclass
-from typing import Any, Callable, Dict, List, Literal, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -159,14 +159,39 @@ def field_offsets(
     """The field's offsets [T, N, 10] at each time, for canonical positions `xyz` [N, 3] (no gradients), the scale
     offsets as offsets of the log-scales (`scales`: the Gaussians' log-scales and the composition)."""
     out = torch.empty(len(times), xyz.shape[0], CHANNELS, device=xyz.device)
-    with torch.no_grad():
-        for k, t in enumerate(times):
-            for s in range(0, xyz.shape[0], chunk):
-                d = torch.cat(field(xyz[s : s + chunk], float(t)), dim=-1).float()
-                if scales is not None:
-                    d = as_log_offsets(d, scales[0][s : s + chunk], scales[1])  # type: ignore[arg-type]
-                out[k, s : s + chunk] = d
+    for k, d in iter_field_offsets(field, xyz, times, chunk, scales):
+        out[k] = d
     return out
+
+
+def iter_field_offsets(
+    field: Any, xyz: Tensor, times: Sequence[float], chunk: int = 1 << 18, scales: Scales = None
+) -> Iterator[Tuple[int, Tensor]]:
+    """(k, the field's offsets [N, 10] at times[k]) for each k in order, as `field_offsets` gives them, holding
+    a few times' offsets at once rather than all of them. A field that takes one time per row
+    (`times_per_row`, e.g. garo_ns.deformation.DeformationField) gets several times in one call of up to `chunk`
+    rows: a table's keys on a model of some 10^4 Gaussians are thousands of small calls otherwise, bound by
+    their launches."""
+    n = xyz.shape[0]
+    per_call = max(1, chunk // max(n, 1)) if getattr(field, "times_per_row", False) else 1
+    with torch.no_grad():
+        for k0 in range(0, len(times), per_call):
+            group = [float(t) for t in times[k0 : k0 + per_call]]
+            if len(group) == 1:
+                d = torch.empty(n, CHANNELS, device=xyz.device)
+                for s in range(0, n, chunk):
+                    part = torch.cat(field(xyz[s : s + chunk], group[0]), dim=-1).float()
+                    if scales is not None:
+                        part = as_log_offsets(part, scales[0][s : s + chunk], scales[1])  # type: ignore[arg-type]
+                    d[s : s + chunk] = part
+                yield k0, d
+                continue
+            t = torch.tensor(group, dtype=xyz.dtype, device=xyz.device).repeat_interleave(n)[:, None]
+            d = torch.cat(field(xyz.repeat(len(group), 1), t), dim=-1).float()
+            if scales is not None:
+                d = as_log_offsets(d, scales[0].repeat(len(group), 1), scales[1])  # type: ignore[arg-type]
+            for j, block in enumerate(d.view(len(group), n, CHANNELS)):
+                yield k0 + j, block
 
 
 def midpoint_errors(
@@ -186,9 +211,10 @@ def midpoint_errors(
     picks = torch.linspace(0, n_seg - 1, min(samples, n_seg)).round().long().unique().tolist()
     key_t = spec.key_times()
     err = {o: torch.zeros(xyz.shape[0], device=xyz.device) for o in ORDERS}
-    for p in picks:
-        i = PAD - 1 + p
-        truth = field_offsets(field, xyz, [float(key_t[i]) + 0.5 * spec.spacing], scales=scales)[0] - base
+    halfway = [float(key_t[PAD - 1 + p]) + 0.5 * spec.spacing for p in picks]
+    for j, truth in iter_field_offsets(field, xyz, halfway, scales=scales):
+        i = PAD - 1 + picks[j]
+        truth = truth - base
         for o in ORDERS:
             d = (interp(o, i, 0.5) - truth).abs()
             err[o] = torch.maximum(err[o], torch.maximum(d[:, :3].amax(-1) / spec.extent, d[:, 3:].amax(-1)))
@@ -249,22 +275,19 @@ class TimeTable:
         # residual first (a pass of its own).
         base = field_offsets(field, xyz, [0.5 * (spec.t_lo + spec.t_hi)], scales=scales)[0]
         anchor_keys = spec.anchor_keys()
-        anchors = torch.stack([field_offsets(field, xyz, [times[k]], scales=scales)[0] - base for k in anchor_keys])
+        anchors = field_offsets(field, xyz, [times[k] for k in anchor_keys], scales=scales) - base
         line = anchor_lines(anchors, anchor_keys)
-
-        def from_base(k: int) -> Tensor:
-            return field_offsets(field, xyz, [times[k]], scales=scales)[0] - base
 
         spread = torch.zeros(xyz.shape[0], CHANNELS, device=xyz.device)  # largest fine residual
         motion = torch.zeros_like(spread)  # largest offset from the base
-        for k in range(len(times)):
-            r = from_base(k)
+        for k, d in iter_field_offsets(field, xyz, times, scales=scales):
+            r = d - base
             spread = torch.maximum(spread, (r - line(k)).abs())
             motion = torch.maximum(motion, r.abs())
         codec = Codec(spec.precision, spread)
         residual = torch.empty(len(times), xyz.shape[0], CHANNELS, dtype=codec.dtype, device=xyz.device)
-        for k in range(len(times)):
-            residual[k] = codec.encode(from_base(k) - line(k))
+        for k, d in iter_field_offsets(field, xyz, times, scales=scales):
+            residual[k] = codec.encode(d - base - line(k))
         whole = cls(spec, base, anchors, residual, torch.arange(xyz.shape[0], device=xyz.device), None, {}, codec)
         err = midpoint_errors(spec, field, xyz, base, whole.interpolate_moving, midpoint_samples, scales)
         off = {o: int((err[o] > spec.tolerance).sum()) for o in ORDERS}
