@@ -86,7 +86,7 @@ class GaroModel(SplatfactoModel):
         self.psnr, self.ssim, lpips = metric_modules()
         self.loss_watch = NonFiniteWatch()
         self.image_loss = ImageLoss(self.ssim, cfg.ssim_lambda, cfg.loss_cuda_graph)
-        self.train_splats = GraphedSplats(lambda: self.deformation, cfg.deform_cuda_graph)
+        self.train_splats = GraphedSplats(lambda: self.deformation, cfg.deform_cuda_graph, cfg.deform_train_bf16)
         # The dataset's cameras on the host: a training step reads its camera's numbers there (garo_ns.training_data).
         self.step_cameras: Optional[HostCameras] = None
         self._lpips = [lpips]  # out of the module tree: LPIPS may be absent, checkpoints must not need it

@@ -7,6 +7,8 @@ them (benchmarks/results/train_profile_fast_*). For fixed shapes the whole of it
 (torch.cuda.make_graphed_callables) and replayed with the step's canonical parameters and time copied in, as one
 autograd node; a new count of Gaussians (densification, pruning, compaction) captures anew. Off the GPU, without
 gradients, or when the setting is off, it runs eagerly.
+
+`deform_train_bf16` runs the field's matrix products in bf16 (`Bf16Field`), graphed or eager, on CUDA only.
 """
 
 from __future__ import annotations
@@ -27,6 +29,21 @@ def _time_tensor(time: Union[float, Tensor], like: Tensor) -> Tensor:
     return torch.full((1, 1), float(time), dtype=like.dtype, device=like.device)
 
 
+class Bf16Field(nn.Module):
+    """`field`'s forward under bf16 autocast: its matrix products on bf16 tensor cores, the weights kept in fp32
+    (autocast casts a copy per call, so the optimizer's master weights stay fp32) and the offsets returned in the
+    positions' dtype. A thin wrapper: its parameters are the field's."""
+
+    def __init__(self, field: nn.Module) -> None:
+        super().__init__()
+        self.field = field
+
+    def forward(self, xyz: Tensor, time: Union[float, Tensor]) -> Tuple[Tensor, Tensor, Tensor]:
+        # No weight cache: a captured CUDA graph must recast the weights the optimizer has just updated.
+        with torch.autocast(xyz.device.type, dtype=torch.bfloat16, cache_enabled=False):
+            return self.field(xyz, time)
+
+
 class _SplatsCall(nn.Module):
     """A training step's Gaussians as a module of (the six canonical tensors, time [1, 1]): what
     make_graphed_callables captures (the field's parameters are the module's)."""
@@ -44,11 +61,13 @@ class _SplatsCall(nn.Module):
 class GraphedSplats:
     """`activate(canonical, compose(field(), canonical, time, scale_offset))`, the Gaussians of a training step; with
     `enabled`, on CUDA and with gradients, through one CUDA graph captured for the parameters' shapes, the field
-    object, the scale term and the TF32 setting (the canonical tensors are copied into the graph's inputs)."""
+    object, the scale term and the TF32 setting (the canonical tensors are copied into the graph's inputs). With
+    `bf16`, on CUDA the field runs under bf16 autocast (`Bf16Field`), graphed or not; a CPU stays fp32."""
 
-    def __init__(self, field: Callable[[], nn.Module], enabled: bool = False) -> None:
+    def __init__(self, field: Callable[[], nn.Module], enabled: bool = False, bf16: bool = False) -> None:
         self.field = field
         self.enabled = bool(enabled)
+        self.bf16 = bool(bf16)
         self.key: Optional[Tuple[Any, ...]] = None
         self.graphed: Optional[Callable[..., Tuple[Tensor, ...]]] = None
         self.captures = 0
@@ -56,15 +75,16 @@ class GraphedSplats:
     def __call__(self, canonical: Canonical, time: Union[float, Tensor], scale_offset: ScaleOffset) -> Splats:
         field = self.field()
         means = canonical.means
+        run: nn.Module = Bf16Field(field) if self.bf16 and means.is_cuda else field
         if not (self.enabled and means.is_cuda and torch.is_grad_enabled() and field.training):
-            return activate(canonical, compose(field, canonical, time, scale_offset))
+            return activate(canonical, compose(run, canonical, time, scale_offset))
         t = _time_tensor(time, means)
         shapes = tuple((x.shape, x.dtype, x.requires_grad) for x in canonical)
         key = (shapes, means.device, id(field), scale_offset, torch.backends.cuda.matmul.allow_tf32)
         if key != self.key:
             self.graphed = None  # the old graph's memory first
             samples = tuple(x.detach().clone().requires_grad_(x.requires_grad) for x in canonical) + (t.clone(),)
-            self.graphed = torch.cuda.make_graphed_callables(_SplatsCall(field, scale_offset), samples)
+            self.graphed = torch.cuda.make_graphed_callables(_SplatsCall(run, scale_offset), samples)
             self.key = key
             self.captures += 1
         assert self.graphed is not None

@@ -104,3 +104,31 @@ def test_the_graphed_splats_run_eagerly_without_gradients_or_when_off():
     assert on.captures == 0 and off.captures == 0
     on(canonical, 0.5, "log")
     assert on.captures == 1
+
+
+def test_the_bf16_step_graph_replays_the_eager_bf16_step():
+    """`deform_train_bf16` graphed: the same autocast kernels as the eager bf16 step, so the same values and
+    gradients up to the order of the products' sums; the weights the graph reads are recast at every replay (an
+    optimizer step between two replays shows in the second)."""
+    from garo_ns.deformation import DeformationField
+    from garo_ns.train_graphs import GraphedSplats
+
+    torch.manual_seed(0)
+    field = DeformationField(time_net=30).cuda().train()
+    graphed = GraphedSplats(lambda: field, enabled=True, bf16=True)
+    eager = GraphedSplats(lambda: field, enabled=False, bf16=True)
+    for seed in range(3):
+        canonical = _canonical(4000, seed)
+        leaves = list(canonical) + list(field.parameters())
+        out = graphed(canonical, 0.2 + 0.2 * seed, "log")
+        got = torch.autograd.grad(sum(o.square().sum() for o in out[:5]), leaves)
+        want = eager(canonical, 0.2 + 0.2 * seed, "log")
+        want_grads = torch.autograd.grad(sum(o.square().sum() for o in want[:5]), leaves)
+        for a, b in zip(out[:5], want[:5]):
+            assert torch.allclose(a, b, rtol=1e-3, atol=1e-5)
+        for a, b in zip(got, want_grads):
+            assert torch.allclose(a, b, rtol=1e-2, atol=1e-4 * float(b.abs().max().clamp_min(1.0)))
+        with torch.no_grad():
+            for p in field.parameters():
+                p.add_(0.01 * torch.randn_like(p))
+    assert graphed.captures == 1
