@@ -68,6 +68,7 @@ class GraphedSplats:
         self.field = field
         self.enabled = bool(enabled)
         self.bf16 = bool(bf16)
+        self._bf16_field: Optional[Bf16Field] = None  # kept: a module built per step would cost the host every step
         self.key: Optional[Tuple[Any, ...]] = None
         self.graphed: Optional[Callable[..., Tuple[Tensor, ...]]] = None
         self.captures = 0
@@ -75,7 +76,11 @@ class GraphedSplats:
     def __call__(self, canonical: Canonical, time: Union[float, Tensor], scale_offset: ScaleOffset) -> Splats:
         field = self.field()
         means = canonical.means
-        run: nn.Module = Bf16Field(field) if self.bf16 and means.is_cuda else field
+        run: nn.Module = field
+        if self.bf16 and means.is_cuda:
+            if self._bf16_field is None or self._bf16_field.field is not field:
+                self._bf16_field = Bf16Field(field)
+            run = self._bf16_field
         if not (self.enabled and means.is_cuda and torch.is_grad_enabled() and field.training):
             return activate(canonical, compose(run, canonical, time, scale_offset))
         t = _time_tensor(time, means)
