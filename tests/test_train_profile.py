@@ -65,7 +65,7 @@ def test_profile_of_a_short_cpu_training(tmp_path):
     scene = generate_scene(tmp_path / "scene", SceneSpec(resolution=24, n_train=10, n_val=2, n_test=2))
     out = tmp_path / "profile.json"
     args = ["--scene", str(scene), "--quick", "--steps", "24", "--windows", "2", "14", "40", "--device", "cpu"]
-    args += ["--plain-steps", "2", "--phase-steps", "3", "--score", "--split", "val"]
+    args += ["--plain-steps", "2", "--phase-steps", "3", "--score", "--split", "val", "--timeline-every", "8"]
     args += ["--set", "deform_cuda_graph=True", "loss_cuda_graph=True"]  # on the CPU: the eager path
     main(args + ["--work-dir", str(tmp_path / "runs"), "--output", str(out)])
     result = json.loads(out.read_text())
@@ -81,6 +81,11 @@ def test_profile_of_a_short_cpu_training(tmp_path):
     assert "| rasterization_backward |" in out.with_suffix(".md").read_text()
     assert result["score"]["psnr"] > 10  # the scored model renders the scene, not noise
     assert result["model_settings"] == {"deform_cuda_graph": True, "loss_cuda_graph": True}
+    timeline = result["timeline"]
+    assert [row["step"] for row in timeline] == [8, 16, 24]
+    seconds = [row["seconds"] for row in timeline]
+    assert 0 < seconds[0] < seconds[1] < seconds[2] <= result["train_seconds"]
+    assert 0 <= result["seconds_before_first_step"] < result["train_seconds"]
 
 
 def test_model_overrides_are_literals_of_known_settings():

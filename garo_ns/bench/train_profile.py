@@ -234,6 +234,9 @@ class ProfileSettings:
     """Steps timed phase by phase, right after the plain ones."""
     profiler_steps: int = 10
     """On CUDA, steps under torch's profiler after those, for the GPU's busy share (0: none)."""
+    timeline_every: int = 1000
+    """Every this many steps, the run's elapsed seconds and Gaussian count (0: none): where a whole run's time goes
+    (the windows are a few steps each; the densification phase, evaluations and checkpoints fall between them)."""
 
 
 def _sync(cuda: bool) -> None:
@@ -316,6 +319,8 @@ class TrainProfiler:
         self._t0 = 0.0
         self._sync_counter: Optional[SyncCounter] = None
         self._prof: Any = None
+        self.timeline: List[Dict[str, float]] = []
+        self.run_start: Optional[float] = None
         before, after = TrainingCallbackLocation.BEFORE_TRAIN_ITERATION, TrainingCallbackLocation.AFTER_TRAIN_ITERATION
         # First before the step, first and last after it: the step's span and its after-step part.
         trainer.callbacks.insert(0, TrainingCallback([before], self._before))
@@ -323,6 +328,8 @@ class TrainProfiler:
         trainer.callbacks.append(TrainingCallback([after], self._after))
 
     def _before(self, step: int) -> None:
+        if self.run_start is None:
+            self.run_start = time.perf_counter()
         kind, start = self._plan.get(step, (None, None))
         prev = self._plan.get(step - 1, (None, None))
         if kind is not None and prev != (kind, start):  # the first step of a part of a window
@@ -343,6 +350,13 @@ class TrainProfiler:
 
     def _after(self, step: int) -> None:
         self.instrument.end_step()
+        every = self.settings.timeline_every
+        if every and (step + 1) % every == 0 and self.run_start is not None:
+            # No synchronisation: the host runs at most a few steps ahead of the GPU, which is noise at this scale.
+            elapsed = time.perf_counter() - self.run_start
+            self.timeline.append(
+                {"step": step + 1, "seconds": elapsed, "gaussians": int(self.instrument.model.num_points)}
+            )
         kind, start = self._plan.get(step, (None, None))
         if kind is None or self._plan.get(step + 1, (None, None)) == (kind, start):
             return
@@ -462,6 +476,7 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
     parser.add_argument("--plain-steps", type=int, default=100)
     parser.add_argument("--phase-steps", type=int, default=30)
     parser.add_argument("--profiler-steps", type=int, default=10)
+    parser.add_argument("--timeline-every", type=int, default=1000, help="steps between the run's elapsed-time rows")
     parser.add_argument("--device", choices=("cuda", "cpu"), default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--quick", action="store_true", help="the compressed CPU schedule (tests)")
     parser.add_argument("--split", choices=("test", "val"), default="test", help="eval split of the run's config")
@@ -495,7 +510,9 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
     windows = [w for w in args.windows if w + args.plain_steps + args.phase_steps <= config.max_num_iterations]
-    settings = ProfileSettings(windows, args.plain_steps, args.phase_steps, args.profiler_steps)
+    settings = ProfileSettings(
+        windows, args.plain_steps, args.phase_steps, args.profiler_steps, timeline_every=args.timeline_every
+    )
     profiler = TrainProfiler(trainer, settings)
     start = time.perf_counter()
     trainer.train()
@@ -510,7 +527,11 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         "train_seconds": seconds,
         "steps_per_second": steps / seconds,
         "windows": profiler.windows,
-        "settings": {k: getattr(settings, k) for k in ("plain_steps", "phase_steps", "profiler_steps")},
+        "settings": {
+            k: getattr(settings, k) for k in ("plain_steps", "phase_steps", "profiler_steps", "timeline_every")
+        },
+        "seconds_before_first_step": None if profiler.run_start is None else profiler.run_start - start,
+        "timeline": profiler.timeline,
         "model_settings": overrides,
         "gaussians_final": int(trainer.pipeline.model.num_points),
     }
