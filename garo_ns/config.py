@@ -103,8 +103,16 @@ def trainer_config(method_name: str, garo_mode: str) -> TrainerConfig:
     )
 
 
+def with_bf16_training(config: TrainerConfig) -> TrainerConfig:
+    """`config` with the deformation MLP's training products in bf16 (`deform_train_bf16`): measured at 40k on
+    jumpingjacks, mutant and standup for `garo-deform` only (docs/benchmarks.md, "Training speed"); the other methods
+    keep fp32 until their own A/B."""
+    config.pipeline.model.deform_train_bf16 = True
+    return config
+
+
 garo_deform = MethodSpecification(
-    config=trainer_config("garo-deform", "full"),
+    config=with_bf16_training(trainer_config("garo-deform", "full")),
     description="Deformable 3D Gaussians (D-3DGS) with GARO redundancy pruning.",
 )
 

@@ -86,6 +86,8 @@ def test_profile_of_a_short_cpu_training(tmp_path):
     seconds = [row["seconds"] for row in timeline]
     assert 0 < seconds[0] < seconds[1] < seconds[2] <= result["train_seconds"]
     assert 0 <= result["seconds_before_first_step"] < result["train_seconds"]
+    # The finished model's render choice runs in the last step's callback and is timed apart from the steps.
+    assert 0 < result["render_choice_seconds"] < seconds[2] - seconds[1]
 
 
 def test_model_overrides_are_literals_of_known_settings():

@@ -320,12 +320,34 @@ class TrainProfiler:
         self._sync_counter: Optional[SyncCounter] = None
         self._prof: Any = None
         self.timeline: List[Dict[str, float]] = []
+        self.render_choice_seconds: Optional[float] = None
+        self._time_render_choice()
         self.run_start: Optional[float] = None
         before, after = TrainingCallbackLocation.BEFORE_TRAIN_ITERATION, TrainingCallbackLocation.AFTER_TRAIN_ITERATION
         # First before the step, first and last after it: the step's span and its after-step part.
         trainer.callbacks.insert(0, TrainingCallback([before], self._before))
         trainer.callbacks.insert(1, TrainingCallback([after], lambda step: self.instrument.after_start()))
         trainer.callbacks.append(TrainingCallback([after], self._after))
+
+    def _time_render_choice(self) -> None:
+        """Time the finished model's render-switch measurement at the last step (garo_ns.render.switches: the time
+        tables it builds and the training views it renders), which runs inside the last step's callback: it
+        prepares rendering, not training, so the result reports it apart."""
+        switches = getattr(self.instrument.model, "switches", None)
+        inner = getattr(switches, "measure_on_training_views", None)
+        if inner is None:
+            return
+
+        def timed(*args: Any, **kwargs: Any) -> Any:
+            _sync(self.cuda)
+            t0 = time.perf_counter()
+            try:
+                return inner(*args, **kwargs)
+            finally:
+                _sync(self.cuda)
+                self.render_choice_seconds = (self.render_choice_seconds or 0.0) + time.perf_counter() - t0
+
+        switches.measure_on_training_views = timed
 
     def _before(self, step: int) -> None:
         if self.run_start is None:
@@ -530,6 +552,7 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         "settings": {
             k: getattr(settings, k) for k in ("plain_steps", "phase_steps", "profiler_steps", "timeline_every")
         },
+        "render_choice_seconds": profiler.render_choice_seconds,
         "seconds_before_first_step": None if profiler.run_start is None else profiler.run_start - start,
         "timeline": profiler.timeline,
         "model_settings": overrides,
