@@ -387,12 +387,14 @@ def gpu_tests_sentence(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
 
 
 def training_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
-    """Minutes per 40k steps of each method, now and before, one line per `train_speed_<GPU>.json`
+    """Minutes per 40k steps of each method, now and before, from the newest `train_speed_<GPU>.json`
     (garo_ns.bench.train_speed: whole runs, each alone on one GPU)."""
     files = sorted(results.glob("train_speed_*.json"))
     if not files:
         return "\nTraining has not been timed yet (`python -m garo_ns.bench.train_speed`).\n"
-    return "".join(_training_line(path, readme_dir) for path in files)
+    # The newest file (its `date`; one without is older than any with): earlier ones are in docs/benchmarks.md.
+    newest = max(files, key=lambda p: json.loads(p.read_text()).get("date") or "")
+    return _training_line(newest, readme_dir)
 
 
 def _training_line(path: Path, readme_dir: Path) -> str:
@@ -401,15 +403,18 @@ def _training_line(path: Path, readme_dir: Path) -> str:
     for method, e in data["methods"].items():
         if "after" not in e:
             continue
-        a, b = e["after"], e.get("before")
-        runs = f" over {len(a['runs'])} runs" if len(a["runs"]) > 1 else ""
-        was = f" ({b['minutes_per_40k']:.1f} before)" if b else ""
+        a = e["after"]
+        settings = sorted({f"{k}={v}" for r in a["runs"] for k, v in (r.get("model_settings") or {}).items()})
+        named = f" with `{', '.join(settings)}`" if settings else ""
+        steps = a.get("minutes_per_40k_steps")
+        without = f" ({steps:.1f})" if steps is not None else ""
+        scenes = ", ".join(sorted({r["scene"] for r in a["runs"]}))
         psnr = f", {a['psnr']:.2f} dB" if a.get("psnr") is not None else ""
-        parts.append(f"`{method}` {a['minutes_per_40k']:.1f} min{was}{runs}{psnr}")
-    scenes = sorted({r["scene"] for e in data["methods"].values() for r in e["after"]["runs"]})
+        was = f", {e['speedup']:.2f}x before's speed on {', '.join(e['scenes_compared'])}" if e.get("speedup") else ""
+        parts.append(f"`{method}`{named} {a['minutes_per_40k']:.1f} min{without} on {scenes}{psnr}{was}")
     return (
-        f"\nTraining, 40k steps of {', '.join(scenes)} alone on one {', '.join(data['gpus'])} "
-        f"({_link(path, readme_dir)}; test PSNR): {'; '.join(parts)}.\n"
+        f"\nTraining 40k steps alone on one {', '.join(data['gpus'])} ({_link(path, readme_dir)}; mean minutes, in "
+        f"brackets without the finished model's render choice; test PSNR): {'; '.join(parts)}.\n"
     )
 
 

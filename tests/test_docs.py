@@ -235,18 +235,24 @@ def test_compaction_block_comes_from_the_target_summary(tmp_path):
     assert "[`compact_H200.md`](compact_H200.md)" in block
 
 
-def test_training_line_reads_minutes_and_psnr_from_the_train_speed_file(tmp_path):
+def test_training_line_reads_the_newest_train_speed_file(tmp_path):
     import json
 
     sys.path.insert(0, str(ROOT / "benchmarks"))
     from readme_results import training_block
 
-    def side(minutes, psnr):
-        run = {"file": f"run{minutes}.json", "scene": "lego", "minutes_per_40k": minutes, "psnr": psnr}
-        return {"runs": [run], "minutes_per_40k": minutes, "psnr": psnr}
+    def side(minutes, psnr, steps=None, scenes=("lego",)):
+        runs = [{"file": f"run{minutes}{s}.json", "scene": s, "minutes_per_40k": minutes, "psnr": psnr} for s in scenes]
+        return {"runs": runs, "minutes_per_40k": minutes, "minutes_per_40k_steps": steps, "psnr": psnr}
 
-    data = {"gpus": ["GPU X"], "methods": {"garo-deform": {"before": side(9.31, 30.0), "after": side(4.5, 30.1)}}}
-    (tmp_path / "train_speed_X.json").write_text(json.dumps(data))
+    entry = {"before": side(9.31, 30.0), "after": side(4.5, 30.1, 4.0, ("lego", "ship"))}
+    entry.update(speedup=2.07, scenes_compared=["lego"])
+    (tmp_path / "train_speed_X.json").write_text(json.dumps({"gpus": ["GPU X"], "methods": {"garo-deform": entry}}))
+    newer = {"date": "2026-01-02", "gpus": ["GPU Y"], "methods": {"garo-deform": {"after": side(3.25, 30.2)}}}
+    (tmp_path / "train_speed_Y.json").write_text(json.dumps(newer))
     line = training_block(tmp_path, tmp_path)
-    assert "40k steps of lego alone on one GPU X" in line
-    assert "`garo-deform` 4.5 min (9.3 before), 30.10 dB" in line
+    assert "alone on one GPU Y" in line and "`garo-deform` 3.2 min on lego, 30.20 dB." in line and "GPU X" not in line
+    (tmp_path / "train_speed_Y.json").unlink()
+    line = training_block(tmp_path, tmp_path)
+    assert "alone on one GPU X" in line
+    assert "`garo-deform` 4.5 min (4.0) on lego, ship, 30.10 dB, 2.07x before's speed on lego." in line

@@ -116,18 +116,20 @@ def test_the_docs_profile_block_is_written_from_the_committed_files(tmp_path):
     assert files and block.strip() == docs_block(files).strip()
 
 
-def _profile(path, seconds, steps=40_000, psnr=37.0):
+def _profile(path, seconds, steps=40_000, psnr=37.0, scene="jj", extra=None):
     import json
 
     path.write_text(
         json.dumps(
             {
+                "scene": scene,
                 "environment": {"gpu": "GPU X", "git_commit": "abc"},
                 "steps": steps,
                 "train_seconds": seconds,
                 "steps_per_second": steps / seconds,
                 "score": {"psnr": psnr, "lpips": 0.01},
                 "gaussians_final": 10,
+                **(extra or {}),
             }
         )
     )
@@ -148,6 +150,38 @@ def test_train_speed_compares_the_mean_of_each_side(tmp_path):
     assert "1.71x faster, PSNR +0.30 dB" in table and out.with_suffix(".md").read_text() == table
     with pytest.raises(SystemExit, match="METHOD=FILE"):
         main(["--after", str(new1), "--output", str(out)])
+
+
+def test_train_speed_compares_the_scenes_both_sides_ran_and_the_render_choice(tmp_path):
+    from garo_ns.bench.train_speed import main
+
+    # A timeline of 1 s per 1000 steps whose last 1000 steps took 31 s: a 30 s render choice.
+    timeline = [{"step": 1000 * (k + 1), "seconds": float(k + 1), "gaussians": 1} for k in range(39)]
+    timeline.append({"step": 40_000, "seconds": 70.0, "gaussians": 1})
+    before = [_profile(tmp_path / f"b{s}.json", 100.0 * (k + 1), psnr=37.0 + k, scene=s) for k, s in enumerate("ab")]
+    after = [
+        _profile(tmp_path / "aa.json", 70.0, psnr=37.5, scene="a", extra={"timeline": timeline}),
+        _profile(tmp_path / "ab.json", 100.0, psnr=38.0, scene="b", extra={"render_choice_seconds": 20.0}),
+        _profile(tmp_path / "ac.json", 900.0, psnr=20.0, scene="c"),  # no "before" run: not compared
+    ]
+    out = tmp_path / "speed.json"
+    args = ["--before"] + [f"m={p}" for p in before] + ["--after"] + [f"m={p}" for p in after]
+    result, table = main(args + ["--output", str(out), "--date", "2026-01-01"])
+    m = result["methods"]["m"]
+    assert m["scenes_compared"] == ["a", "b"] and result["date"] == "2026-01-01"
+    assert abs(m["speedup"] - 150 / 85) < 1e-9 and abs(m["psnr_change_db"] - 0.25) < 1e-9
+    runs = {r["scene"]: r for r in m["after"]["runs"]}
+    assert (
+        abs(runs["a"]["render_choice_seconds"] - 30.0) < 1e-9
+        and runs["a"]["render_choice_source"] == "timeline estimate"
+    )
+    assert runs["b"]["render_choice_seconds"] == 20.0 and runs["b"]["render_choice_source"] == "measured"
+    assert abs(runs["a"]["minutes_per_40k_steps"] - 40 / 60) < 1e-9 and runs["c"]["minutes_per_40k_steps"] is None
+    assert m["speedup_steps"] is None  # the "before" runs do not say what their render choice took
+    assert (
+        "| m | after | a | abc | - | 1.17 | 30 (est.) | " in table
+        and "| a, b | | | 1.76x faster, PSNR +0.25 dB" in table
+    )
 
 
 def test_the_committed_train_speed_is_its_files_summary():

@@ -1,6 +1,8 @@
 """Training speed of a recipe against another, from `train_profile` result files (each a whole run alone on its
-GPU): steps per second, minutes per 40k steps and test PSNR of every run, and per method the mean of each side
-and their ratio. Writes `benchmarks/results/train_speed_<GPU>.json` and its markdown table.
+GPU): per run the minutes per 40k steps, the part of them the finished model's render choice took (it runs after
+the last step: time tables built and training views rendered, garo_ns.render.switches), steps per second and test
+PSNR; per method the mean of each side and their ratio over the scenes both sides ran. Writes
+`benchmarks/results/train_speed_<GPU>.json` and its markdown table.
 
     python -m garo_ns.bench.train_speed --before garo-deform=OLD.json --after garo-deform=NEW1.json \\
         garo-deform=NEW2.json --output benchmarks/results/train_speed_H200.json
@@ -9,12 +11,29 @@ and their ratio. Writes `benchmarks/results/train_speed_<GPU>.json` and its mark
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 from pathlib import Path
-from statistics import mean
+from statistics import mean, median
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 STEPS_40K = 40_000
+
+
+def render_choice(r: Dict[str, Any]) -> Tuple[Optional[float], Optional[str]]:
+    """Seconds the run's render choice took, and where the figure comes from: measured by `train_profile`, else
+    estimated from its timeline (the last interval's excess over the median of the five before it, per step), else
+    unknown (None, None)."""
+    if r.get("render_choice_seconds") is not None:
+        return float(r["render_choice_seconds"]), "measured"
+    rows = r.get("timeline") or []
+    if len(rows) < 3 or rows[-1]["step"] != r["steps"]:
+        return None, None
+    marks = [(0, 0.0)] + [(row["step"], row["seconds"]) for row in rows]
+    rates = [(t1 - t0) / (s1 - s0) for (s0, t0), (s1, t1) in zip(marks, marks[1:])]
+    usual = median(rates[-6:-1])
+    last_steps = marks[-1][0] - marks[-2][0]
+    return max(0.0, (rates[-1] - usual) * last_steps), "timeline estimate"
 
 
 def run_row(path: Path) -> Dict[str, Any]:
@@ -22,19 +41,30 @@ def run_row(path: Path) -> Dict[str, Any]:
     r = json.loads(Path(path).read_text())
     env = r.get("environment", {})
     score = r.get("score") or {}
+    choice, source = render_choice(r)
+    steps_seconds = r["train_seconds"] - choice if choice is not None else None
     return {
         "file": Path(path).name,
         "scene": r.get("scene"),
         "gpu": env.get("gpu"),
         "git_commit": env.get("git_commit"),
+        "model_settings": r.get("model_settings") or {},
         "steps": r["steps"],
         "train_seconds": r["train_seconds"],
         "steps_per_second": r["steps_per_second"],
         "minutes_per_40k": r["train_seconds"] / r["steps"] * STEPS_40K / 60.0,
+        "render_choice_seconds": choice,
+        "render_choice_source": source,
+        "minutes_per_40k_steps": None if steps_seconds is None else steps_seconds / r["steps"] * STEPS_40K / 60.0,
         "psnr": score.get("psnr"),
         "lpips": score.get("lpips"),
         "gaussians_final": r.get("gaussians_final"),
     }
+
+
+def _mean_or_none(values: Sequence[Optional[float]]) -> Optional[float]:
+    """The mean, or None where any value is unknown (a partial mean would compare other runs)."""
+    return mean(values) if values and all(v is not None for v in values) else None  # type: ignore[arg-type]
 
 
 def _side(rows: List[Dict[str, Any]]) -> Dict[str, Any]:
@@ -42,13 +72,22 @@ def _side(rows: List[Dict[str, Any]]) -> Dict[str, Any]:
     return {
         "runs": rows,
         "minutes_per_40k": mean(r["minutes_per_40k"] for r in rows),
+        "minutes_per_40k_steps": _mean_or_none([r["minutes_per_40k_steps"] for r in rows]),
         "steps_per_second": mean(r["steps_per_second"] for r in rows),
         "psnr": mean(psnrs) if psnrs else None,
     }
 
 
+def _by_scene(rows: List[Dict[str, Any]], key: str, scenes: Sequence[str]) -> Optional[float]:
+    """The mean over `scenes` of each scene's mean `key` over its runs (None where one is unknown)."""
+    per_scene = [_mean_or_none([r[key] for r in rows if r["scene"] == s]) for s in scenes]
+    return _mean_or_none(per_scene)
+
+
 def summary(before: Dict[str, List[Path]], after: Dict[str, List[Path]]) -> Dict[str, Any]:
-    """Per method: both sides' runs and means, the speed-up (mean minutes before / after) and the PSNR change."""
+    """Per method: both sides' runs and means; over the scenes both sides ran (each scene its runs' mean), the
+    speed-up of the whole run, that of the steps alone (without the render choice, where both sides know it) and
+    the PSNR change."""
     out: Dict[str, Any] = {}
     for method in sorted(set(before) | set(after)):
         entry: Dict[str, Any] = {}
@@ -56,30 +95,49 @@ def summary(before: Dict[str, List[Path]], after: Dict[str, List[Path]]) -> Dict
             if side.get(method):
                 entry[name] = _side([run_row(p) for p in side[method]])
         if "before" in entry and "after" in entry:
-            entry["speedup"] = entry["before"]["minutes_per_40k"] / entry["after"]["minutes_per_40k"]
-            b, a = entry["before"]["psnr"], entry["after"]["psnr"]
-            entry["psnr_change_db"] = a - b if a is not None and b is not None else None
+            b, a = entry["before"]["runs"], entry["after"]["runs"]
+            scenes = sorted({r["scene"] for r in b} & {r["scene"] for r in a})
+            entry["scenes_compared"] = scenes
+            if scenes:
+                entry["speedup"] = _by_scene(b, "minutes_per_40k", scenes) / _by_scene(a, "minutes_per_40k", scenes)
+                steps_b, steps_a = (_by_scene(x, "minutes_per_40k_steps", scenes) for x in (b, a))
+                entry["speedup_steps"] = steps_b / steps_a if steps_b and steps_a else None
+                pb, pa = (_by_scene(x, "psnr", scenes) for x in (b, a))
+                entry["psnr_change_db"] = pa - pb if pa is not None and pb is not None else None
         out[method] = entry
     gpus = sorted({r["gpu"] for e in out.values() for s in ("before", "after") if s in e for r in e[s]["runs"]})
     return {"gpus": gpus, "methods": out}
 
 
+def _cell(value: Optional[float], fmt: str) -> str:
+    return "-" if value is None else format(value, fmt)
+
+
 def markdown(result: Dict[str, Any]) -> str:
-    """One row per method and side: runs, mean minutes per 40k, steps/s, test PSNR; then the ratio."""
-    lines = ["| method | recipe | runs | minutes per 40k | steps/s | test PSNR |", "|---|---|---|---|---|---|"]
+    """One row per run (method, side, scene, commit, settings): minutes per 40k, of which the render choice,
+    steps/s, test PSNR; then each method's ratio over the scenes both sides ran."""
+    lines = [
+        "| method | recipe | scene | commit | settings | minutes per 40k | render choice (s) | steps/s | test PSNR |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for method, e in result["methods"].items():
         for side in ("before", "after"):
-            if side in e:
-                s = e[side]
-                each = ", ".join(f"{r['minutes_per_40k']:.1f}" for r in s["runs"])
-                psnr = f"{s['psnr']:.2f}" if s["psnr"] is not None else "-"
+            for r in e.get(side, {}).get("runs", []):
+                settings = ", ".join(f"{k}={v}" for k, v in sorted(r.get("model_settings", {}).items())) or "-"
+                choice = _cell(r.get("render_choice_seconds"), ".0f")
+                if r.get("render_choice_source") == "timeline estimate":
+                    choice += " (est.)"
                 lines.append(
-                    f"| {method} | {side} | {len(s['runs'])} | {s['minutes_per_40k']:.1f} ({each}) | "
-                    f"{s['steps_per_second']:.1f} | {psnr} |"
+                    f"| {method} | {side} | {r['scene']} | {(r['git_commit'] or '')[:7]} | {settings} | "
+                    f"{r['minutes_per_40k']:.2f} | {choice} | {r['steps_per_second']:.1f} | {_cell(r['psnr'], '.2f')} |"
                 )
         if "speedup" in e:
             change = f", PSNR {e['psnr_change_db']:+.2f} dB" if e.get("psnr_change_db") is not None else ""
-            lines.append(f"| {method} | after / before | | {e['speedup']:.2f}x faster{change} | | |")
+            steps = f" ({e['speedup_steps']:.2f}x the steps alone)" if e.get("speedup_steps") else ""
+            scenes = ", ".join(e["scenes_compared"])
+            lines.append(
+                f"| {method} | after / before | {scenes} | | | {e['speedup']:.2f}x faster{steps}{change} | | | |"
+            )
     return "\n".join(lines) + "\n"
 
 
@@ -98,9 +156,15 @@ def main(argv: Optional[Sequence[str]] = None) -> Tuple[Dict[str, Any], str]:
     parser.add_argument("--before", nargs="+", default=[], metavar="METHOD=FILE")
     parser.add_argument("--after", nargs="+", default=[], metavar="METHOD=FILE")
     parser.add_argument("--note", default="", help="what the two recipes are, recorded with the result")
+    parser.add_argument(
+        "--date",
+        default=None,
+        help="when the result was written (default: now, UTC, as 2026-01-31T12:00Z); the README shows the newest",
+    )
     parser.add_argument("--output", type=Path, required=True)
     args = parser.parse_args(argv)
-    result = {"note": args.note, **summary(_pairs(args.before), _pairs(args.after))}
+    date = args.date or datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%MZ")
+    result = {"note": args.note, "date": date, **summary(_pairs(args.before), _pairs(args.after))}
     table = markdown(result)
     args.output.write_text(json.dumps(result, indent=2) + "\n")
     args.output.with_suffix(".md").write_text(table)
