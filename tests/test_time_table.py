@@ -402,3 +402,30 @@ def test_a_field_that_takes_a_time_per_row_is_sampled_several_times_per_call():
     assert torch.allclose(table.anchors, twin.anchors, rtol=1e-5, atol=1e-6)
     for t in (0.03, 0.41, 0.77):
         assert torch.allclose(table.offsets_at(t), twin.offsets_at(t), atol=1e-5)
+
+
+@pytest.mark.parametrize("precision", ["int16", "int8", "fp16", "fp32"])
+def test_a_build_with_room_for_its_residuals_runs_the_field_over_the_keys_once_to_the_same_table(precision):
+    """Integer keys need every key's residual before the first is encoded: held in fp32 scratch where it fits, the
+    field runs over the keys once instead of twice and the table is the same, bit for bit; fp32 and fp16 keys are
+    stored as they come, with or without room."""
+    spec = _spec(40, precision=precision, tolerance=1e-3, anchor_every=6)
+    keys = spec.intervals + 2 * PAD
+    tables, calls = {}, {}
+    for room in (0, 1 << 30):
+        field = _field()
+        tables[room] = TimeTable.build(spec, field, _xyz(), scratch_bytes=room)
+        calls[room] = field.calls
+    one_pass = precision in ("fp16", "fp32")
+    assert calls[0] - calls[1 << 30] == (0 if one_pass else keys)
+    a, b = tables[0], tables[1 << 30]
+    for name in ("base", "anchors", "residual", "moving", "network"):
+        assert torch.equal(getattr(a, name), getattr(b, name)), name
+    assert (a.codec.scale is None) == (b.codec.scale is None) == one_pass
+    if not one_pass:
+        assert torch.equal(a.codec.scale, b.codec.scale)
+    assert a.spec == b.spec and a.info == b.info
+    # Scratch one byte short of every key's fp32 residuals: two passes.
+    field = _field()
+    TimeTable.build(spec, field, _xyz(), scratch_bytes=keys * 64 * 10 * 4 - 1)
+    assert field.calls == calls[0]

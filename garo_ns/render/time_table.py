@@ -221,6 +221,17 @@ def midpoint_errors(
     return err
 
 
+def scratch_limit(device: torch.device) -> int:
+    """Bytes a table build may hold beside the table for every key's fp32 fine residuals: half of what the GPU
+    has free (the driver's free memory and torch's cached blocks), or 1 GiB on a CPU."""
+    device = torch.device(device)
+    if device.type != "cuda":
+        return 1 << 30
+    free, _ = torch.cuda.mem_get_info(device)
+    cached = torch.cuda.memory_reserved(device) - torch.cuda.memory_allocated(device)
+    return int(0.5 * (free + cached))
+
+
 def anchor_lines(anchors: Tensor, anchor_keys: Sequence[int]) -> Callable[[int], Tensor]:
     """Key index -> the line between the two anchors [A, M, C] around it, at that key (fp32 [M, C])."""
     keys = [int(k) for k in anchor_keys]
@@ -264,30 +275,55 @@ class TimeTable:
     @classmethod
     @torch.no_grad()
     def build(
-        cls, spec: TableSpec, field: Any, xyz: Tensor, midpoint_samples: int = 64, scales: Scales = None
+        cls,
+        spec: TableSpec,
+        field: Any,
+        xyz: Tensor,
+        midpoint_samples: int = 64,
+        scales: Scales = None,
+        scratch_bytes: Optional[int] = None,
     ) -> "TimeTable":
         """Sample `field` at the spec's keyframes for canonical positions `xyz`; choose the order by the
         midpoint check (the spec's order is the preference on a tie) and which Gaussians stay on the network.
-        The table holds log-scale offsets: `scales` converts the field's where they are not."""
+        The table holds log-scale offsets: `scales` converts the field's where they are not. `scratch_bytes`: the
+        most memory the build may hold every key's fine residuals in fp32 with (default `scratch_limit`)."""
         times = spec.key_times().tolist()
-        # Offsets from those at the middle of the range, anchors first; then one key at a time, so building takes
-        # the table's memory and one key's, not every key in fp32. int16 keys need each Gaussian's largest fine
-        # residual first (a pass of its own).
+        n = xyz.shape[0]
+        # Offsets from those at the middle of the range, anchors first; then one key at a time. fp32 and fp16 keys
+        # are stored as they come. Integer keys need each Gaussian's largest fine residual before any key is
+        # encoded: where every key's fp32 residuals fit in `scratch_bytes` they are kept from that pass and encoded
+        # after it (one pass of the field over the keys, the same numbers); else the field runs over the keys twice,
+        # holding one key's residuals at a time. The field's passes are most of a build's time.
         base = field_offsets(field, xyz, [0.5 * (spec.t_lo + spec.t_hi)], scales=scales)[0]
         anchor_keys = spec.anchor_keys()
         anchors = field_offsets(field, xyz, [times[k] for k in anchor_keys], scales=scales) - base
         line = anchor_lines(anchors, anchor_keys)
 
-        spread = torch.zeros(xyz.shape[0], CHANNELS, device=xyz.device)  # largest fine residual
+        plain = Codec(spec.precision)  # fp32 and fp16 keys need no scale: they are encoded as they come
+        residual = torch.empty(len(times), n, CHANNELS, dtype=plain.dtype, device=xyz.device)
+        limit = scratch_limit(xyz.device) if scratch_bytes is None else scratch_bytes
+        fine: Optional[Tensor] = None
+        if plain.levels is not None and len(times) * n * CHANNELS * 4 <= limit:
+            fine = torch.empty(len(times), n, CHANNELS, device=xyz.device)
+        spread = torch.zeros(n, CHANNELS, device=xyz.device)  # largest fine residual
         motion = torch.zeros_like(spread)  # largest offset from the base
         for k, d in iter_field_offsets(field, xyz, times, scales=scales):
             r = d - base
-            spread = torch.maximum(spread, (r - line(k)).abs())
+            f = r - line(k)
+            spread = torch.maximum(spread, f.abs())
             motion = torch.maximum(motion, r.abs())
+            if plain.levels is None:
+                residual[k] = plain.encode(f)
+            elif fine is not None:
+                fine[k] = f
         codec = Codec(spec.precision, spread)
-        residual = torch.empty(len(times), xyz.shape[0], CHANNELS, dtype=codec.dtype, device=xyz.device)
-        for k, d in iter_field_offsets(field, xyz, times, scales=scales):
-            residual[k] = codec.encode(d - base - line(k))
+        if fine is not None:
+            for k in range(len(times)):
+                residual[k] = codec.encode(fine[k])
+            del fine
+        elif plain.levels is not None:
+            for k, d in iter_field_offsets(field, xyz, times, scales=scales):
+                residual[k] = codec.encode(d - base - line(k))
         whole = cls(spec, base, anchors, residual, torch.arange(xyz.shape[0], device=xyz.device), None, {}, codec)
         err = midpoint_errors(spec, field, xyz, base, whole.interpolate_moving, midpoint_samples, scales)
         off = {o: int((err[o] > spec.tolerance).sum()) for o in ORDERS}
