@@ -304,7 +304,10 @@ class TimeTable:
         limit = scratch_limit(xyz.device) if scratch_bytes is None else scratch_bytes
         fine: Optional[Tensor] = None
         if plain.levels is not None and len(times) * n * CHANNELS * 4 <= limit:
-            fine = torch.empty(len(times), n, CHANNELS, device=xyz.device)
+            try:
+                fine = torch.empty(len(times), n, CHANNELS, device=xyz.device)
+            except torch.OutOfMemoryError:  # another process took the room since: two passes, the same table
+                fine = None
         spread = torch.zeros(n, CHANNELS, device=xyz.device)  # largest fine residual
         motion = torch.zeros_like(spread)  # largest offset from the base
         for k, d in iter_field_offsets(field, xyz, times, scales=scales):
