@@ -50,6 +50,8 @@ def test_training_records_the_table_and_a_loaded_model_renders_the_recorded_chan
     assert intervals in (14, 28, 56, 112, 224, 448) and info["keys"] == intervals + 4
     assert info["gaussians"] > 0 and info["mb"] > 0 and info["build_s"] >= 0
     ladder = table.get("intervals_tried_db", {})
+    if ladder:  # each rung tried was built once for its measurement, and how long that took is recorded
+        assert set(table["build_s"]) == set(ladder) and all(0 <= v < math.inf for v in table["build_s"].values())
     if ladder:  # denser tables were tried only while the sparser missed the margin
         margin = 0.02 * trained["trainer"].pipeline.model.config.time_table_margin
         rungs = sorted(ladder, key=lambda k: int(k.split()[0]))  # "<intervals>", or "<intervals> int8"

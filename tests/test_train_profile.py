@@ -88,6 +88,7 @@ def test_profile_of_a_short_cpu_training(tmp_path):
     assert 0 <= result["seconds_before_first_step"] < result["train_seconds"]
     # The finished model's render choice runs in the last step's callback and is timed apart from the steps.
     assert 0 < result["render_choice_seconds"] < seconds[2] - seconds[1]
+    assert "time_table" in result["render_choice_record"]["tried_db"]  # what it measured comes with it
 
 
 def test_model_overrides_are_literals_of_known_settings():

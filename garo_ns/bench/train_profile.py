@@ -464,6 +464,23 @@ def write_docs(doc: Path, results: Sequence[Path]) -> bool:
     return new != text
 
 
+def render_choice_record(model: Any) -> Optional[Dict[str, Any]]:
+    """What the finished model's render choice measured (garo_ns.render.switches): each approximate switch's change,
+    and for the time table the rungs tried, their changes and build seconds and the table taken (None: no record)."""
+    record = getattr(getattr(model, "switches", None), "record", None)
+    if not record:
+        return None
+    table = record.get("time_table") or {}
+    info = table.get("info") or {}
+    return {
+        "tried_db": dict(record.get("tried", {})),
+        "table_rungs_db": table.get("intervals_tried_db"),
+        "table_rungs_build_s": table.get("build_s"),
+        "table_taken": {k: info.get(k) for k in ("keys", "mb", "build_s", "network", "gaussians")} if info else None,
+        "table_off": table.get("off"),
+    }
+
+
 def model_overrides(pairs: Sequence[str]) -> Dict[str, Any]:
     """`NAME=VALUE` pairs as model settings (VALUE read as a Python literal, else kept as a string); an unknown
     NAME is refused before anything trains."""
@@ -553,6 +570,7 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
             k: getattr(settings, k) for k in ("plain_steps", "phase_steps", "profiler_steps", "timeline_every")
         },
         "render_choice_seconds": profiler.render_choice_seconds,
+        "render_choice_record": render_choice_record(trainer.pipeline.model),
         "seconds_before_first_step": None if profiler.run_start is None else profiler.run_start - start,
         "timeline": profiler.timeline,
         "model_settings": overrides,

@@ -431,11 +431,13 @@ class SwitchDecision:
 
             targets = guard.targets(model)
             ladder: Dict[str, float] = {}
+            build_s: Dict[str, float] = {}  # each rung's build: most of what the choice costs at the end of training
             if cfg.time_table is None and len(specs) > 1:  # the fewest keys within the margin, else the best
                 probe = measure_on_views(render, targets)
                 for candidate in specs:
                     self._measuring = spec = candidate
                     ladder[rung_name(candidate, cfg)] = probe(FrameSettings(time_table=True))
+                    build_s[rung_name(candidate, cfg)] = float((model.frame.table_info or {}).get("build_s", math.nan))
                     if ladder[rung_name(candidate, cfg)] <= cfg.switch_bound_db * cfg.time_table_margin:
                         break
                 else:
@@ -445,7 +447,7 @@ class SwitchDecision:
             built = model.frame.table_info
             if self.record is not None and cfg.time_table is None:
                 entry = {"spec": built["spec"], "info": built} if spec and built else {"off": why}
-                self.record[TABLE] = {**entry, "intervals_tried_db": ladder} if ladder else entry
+                self.record[TABLE] = {**entry, "intervals_tried_db": ladder, "build_s": build_s} if ladder else entry
             return line
         except Exception as err:
             self.record = None
