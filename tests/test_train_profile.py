@@ -199,3 +199,22 @@ def test_the_committed_train_speed_is_its_files_summary():
             for side in ("before", "after")
         }
         assert summary(sides["before"], sides["after"]) == {k: data[k] for k in ("gpus", "methods")}
+
+
+def test_the_harness_runs_the_loop_work_of_ns_train_only_when_asked(tmp_path):
+    from garo_ns.bench.train_profile import loop_work
+    from garo_ns.config import METHODS
+    from garo_ns.tools.train import make_config
+
+    own = METHODS["garo-deform"].config
+    runs = {}
+    for as_ns_train in (False, True):
+        config = make_config("garo-deform", tmp_path, tmp_path / "out")
+        config.max_num_iterations = 40_000
+        loop_work(config, "garo-deform", as_ns_train)
+        runs[as_ns_train] = config
+    assert runs[False].steps_per_save == 40_000 and runs[False].steps_per_eval_image > 40_000
+    assert not runs[False].logging.local_writer.enable
+    for name in ("steps_per_eval_image", "steps_per_eval_all_images", "steps_per_save"):
+        assert getattr(runs[True], name) == getattr(own, name) < 10**9, name
+    assert runs[True].logging.local_writer.enable == own.logging.local_writer.enable

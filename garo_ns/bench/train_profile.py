@@ -464,6 +464,21 @@ def write_docs(doc: Path, results: Sequence[Path]) -> bool:
     return new != text
 
 
+def loop_work(config: Any, method: str, as_ns_train: bool) -> None:
+    """Set what the training loop does besides training: with `as_ns_train`, the method's own eval images,
+    checkpoints and console log, as `ns-train` runs them (the viewer aside); else one checkpoint, at the end (the
+    harness's config already evaluates nothing and writes TensorBoard only)."""
+    if not as_ns_train:
+        config.steps_per_save = config.max_num_iterations
+        return
+    from garo_ns.config import METHODS
+
+    own = METHODS[method].config
+    for name in ("steps_per_eval_image", "steps_per_eval_all_images", "steps_per_save"):
+        setattr(config, name, getattr(own, name))
+    config.logging.local_writer.enable = own.logging.local_writer.enable
+
+
 def render_choice_record(model: Any) -> Optional[Dict[str, Any]]:
     """What the finished model's render choice measured (garo_ns.render.switches): each approximate switch's change,
     and for the time table the rungs tried, their changes and build seconds and the table taken (None: no record)."""
@@ -526,6 +541,12 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
     parser.add_argument(
         "--set", nargs="+", default=[], metavar="NAME=VALUE", help="model settings, e.g. deform_cuda_graph=True"
     )
+    parser.add_argument(
+        "--as-ns-train",
+        action="store_true",
+        help="keep the method's own eval images, checkpoints and console log (as `ns-train` runs them; the viewer "
+        "aside). Without it the run writes TensorBoard only, evaluates nothing and saves once, at the end",
+    )
     args = parser.parse_args(argv)
     overrides = model_overrides(args.set)
 
@@ -543,7 +564,7 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         setattr(config.pipeline.model, name, value)
     if args.steps:
         config.max_num_iterations = args.steps
-    config.steps_per_save = config.max_num_iterations
+    loop_work(config, args.method, args.as_ns_train)
     config.save_config()
     seed_everything(config.machine.seed)
     trainer = config.setup(local_rank=0, world_size=1)
@@ -574,6 +595,7 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         "seconds_before_first_step": None if profiler.run_start is None else profiler.run_start - start,
         "timeline": profiler.timeline,
         "model_settings": overrides,
+        "as_ns_train": bool(args.as_ns_train),
         "gaussians_final": int(trainer.pipeline.model.num_points),
     }
     args.output.parent.mkdir(parents=True, exist_ok=True)
