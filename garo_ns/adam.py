@@ -12,6 +12,14 @@ devices or dtypes) goes through torch's own step.
 `install_grouped_step` goes one further for a training run: nerfstudio's loop steps (and zeroes) the eight optimizers
 one after another, each through the grad scaler and torch's per-call wrapper; installed on the run's `Optimizers`, a
 step is one `_foreach_add_` over every group's counter and one fused update per group, with the same numbers.
+
+`AdamGraph` goes further still once the parameters stop moving (after densification): the grouped step, and the
+zeroing of the gradients, replay one CUDA graph. A graph reads fixed addresses, so while it is in use each gradient
+lives in a buffer of the graph's own that backward accumulates into (autograd adds into an existing gradient in place)
+and the graph zeroes after the update, and each group's learning rate is a device scalar written only when the
+scheduler changes it. The updates are those of the grouped step, bit for bit, except that on CUDA the fused kernel
+reads a device learning rate in fp32 where it takes a Python float in fp64: a rate that is not an fp32 number moves
+each step by a relative 6e-8 (tests/test_adam.py).
 """
 
 from __future__ import annotations
@@ -106,12 +114,149 @@ def apply(work: Sequence[Work]) -> None:
         )
 
 
-def install_grouped_step(optimizers: Any) -> bool:
+class AdamGraph:
+    """`apply` as one CUDA graph (on a CPU, the same calls eagerly) for work whose parameters and optimizer states have
+    stayed where they are for `stable_steps` steps: captured then, and dropped as soon as any of them moves (a
+    densification or compaction step, a loaded checkpoint) or a gradient is replaced (see the module docstring)."""
+
+    def __init__(self, stable_steps: int = 100) -> None:
+        self.stable_steps = max(int(stable_steps), 1)
+        self.key: Optional[Tuple[Any, ...]] = None
+        self.same = 0  # steps the key has held
+        self.run: Optional[Callable[[], None]] = None
+        self.pairs: List[Tuple[Tensor, Tensor]] = []  # (parameter, the gradient buffer the graph reads)
+        self.groups: List[dict] = []
+        self.lrs: List[Tensor] = []
+        self.lr_values: List[float] = []
+        self.versions: List[int] = []  # each buffer's version after the last update: backward's adds bump it
+        self.captures = 0
+        self.replays = 0
+
+    @staticmethod
+    def key_of(work: Sequence[Work]) -> Optional[Tuple[Any, ...]]:
+        """Where everything the update reads and writes lives, and the constants it bakes in (None: a state not
+        made yet)."""
+        key: List[Any] = []
+        for group, params, states in work:
+            beta1, beta2 = group["betas"]
+            key.append((id(group), float(beta1), float(beta2), float(group["eps"]), float(group["weight_decay"])))
+            for p, state in zip(params, states):
+                if not state:
+                    return None
+                key.append((p.data_ptr(), p.shape, p.device, p.dtype, state["exp_avg"].data_ptr()))
+                key.append((state["exp_avg_sq"].data_ptr(), state["step"].data_ptr()))
+        return tuple(key)
+
+    def held(self) -> set:
+        """ids of the parameters whose gradient is the graph's buffer (a zero-grad leaves those: the graph zeroes
+        them after each update)."""
+        return {id(p) for p, buf in self.pairs if p.grad is buf} if self.run is not None else set()
+
+    def settle(self) -> None:
+        """Before a step's work is gathered: a parameter whose buffer backward did not add into since the last update
+        had no gradient this step, which nerfstudio's loop leaves as None (no update at all, not a zero one), so it
+        gets None again and the graph is dropped."""
+        if self.run is None:
+            return
+        untouched = [p for (p, buf), v in zip(self.pairs, self.versions) if p.grad is buf and buf._version == v]
+        if untouched:
+            for p in untouched:
+                p.grad = None
+            self.release()
+            self.key = None
+
+    def release(self) -> None:
+        """Drop the graph and its buffers; gradients go back to nerfstudio's None between steps."""
+        self.run, self.pairs, self.groups, self.lrs, self.lr_values, self.versions = None, [], [], [], [], []
+
+    def step(self, work: Sequence[Work]) -> bool:
+        """Do `apply(work)` here and return True, or return False for the caller to (not yet stable, or moved)."""
+        key = self.key_of(work) if work else None
+        if key is None or key != self.key:
+            self.release()
+            self.key, self.same = key, 1
+            return False
+        if self.run is None:
+            self.same += 1
+            if self.same < self.stable_steps:
+                return False
+            self._capture(work)
+        elif not all(p.grad is buf for p, buf in self.pairs):  # a gradient replaced: the graph would miss it
+            self.release()
+            self.key = None
+            return False
+        for i, group in enumerate(self.groups):
+            lr = float(group["lr"])
+            if lr != self.lr_values[i]:
+                self.lrs[i].fill_(lr)
+                self.lr_values[i] = lr
+        assert self.run is not None
+        self.run()
+        self.versions = [buf._version for _, buf in self.pairs]  # a replay bumps none: only backward's adds do
+        self.replays += 1
+        return True
+
+    def _capture(self, work: Sequence[Work]) -> None:
+        device = work[0][1][0].device
+        self.pairs = []
+        for _, params, _ in work:
+            for p in params:  # the graph's own buffers: a gradient autograd made may alias another graph's output
+                buf = p.grad.detach().clone()
+                p.grad = buf
+                self.pairs.append((p, buf))
+        self.groups = [group for group, _, _ in work]
+        self.lr_values = [float(group["lr"]) for group in self.groups]
+        # CUDA's fused kernel reads an fp32 learning rate (a Python float reaches it in fp64): the graph's updates
+        # round the rate to fp32, a relative 6e-8 of each step. The CPU kernel reads fp64: its updates are the same.
+        dtype = torch.float32 if device.type == "cuda" else torch.float64
+        self.lrs = [torch.tensor(lr, dtype=dtype, device=device) for lr in self.lr_values]
+        steps = [s["step"] for _, _, states in work for s in states]
+        grads = [buf for _, buf in self.pairs]
+        calls = []
+        for (group, params, states), lr in zip(work, self.lrs):
+            beta1, beta2 = group["betas"]
+            calls.append(
+                (
+                    list(params),
+                    [p.grad for p in params],
+                    [s["exp_avg"] for s in states],
+                    [s["exp_avg_sq"] for s in states],
+                    [s["step"] for s in states],
+                    dict(
+                        lr=lr,
+                        beta1=float(beta1),
+                        beta2=float(beta2),
+                        weight_decay=float(group["weight_decay"]),
+                        eps=float(group["eps"]),
+                    ),
+                )
+            )
+
+        def body() -> None:
+            torch._foreach_add_(steps, 1)
+            for params, param_grads, exp_avgs, exp_avg_sqs, group_steps, consts in calls:
+                torch._fused_adam_(
+                    params, param_grads, exp_avgs, exp_avg_sqs, [], group_steps, amsgrad=False, maximize=False, **consts
+                )
+            torch._foreach_zero_(grads)
+
+        if device.type == "cuda":
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph):
+                body()
+            self.run = graph.replay
+        else:
+            self.run = body
+        self.captures += 1
+
+
+def install_grouped_step(optimizers: Any, graph: Optional[AdamGraph] = None) -> bool:
     """Give a nerfstudio `Optimizers` a step and a zero-grad over all its groups at once where every optimizer is a
     `LeanAdam` without gradient clipping: the counters of all groups in one kernel and none of the per-optimizer
     calls around the updates (nerfstudio steps each group's optimizer through the grad scaler in turn). Anything
     the lean path does not cover at a step (a scaler that scales, an optimizer `work` refuses) takes nerfstudio's
-    own path for that step. Returns whether it was installed."""
+    own path for that step. With `graph` (an `AdamGraph`), a stable step replays its graph. Returns whether it was
+    installed."""
     named = optimizers.optimizers
     if getattr(optimizers, "_grouped_step", False) or not named:
         return False
@@ -122,21 +267,29 @@ def install_grouped_step(optimizers: Any) -> bool:
     own_step = optimizers.optimizer_scaler_step_some
 
     def optimizer_scaler_step_some(grad_scaler: Any, param_groups: List[str]) -> None:
+        if graph is not None:
+            graph.settle()
         work: List[Work] = []
         for name in param_groups:
             items = None if grad_scaler.is_enabled() else named[name].work()
             if items is None:
+                if graph is not None:
+                    graph.release()
                 return own_step(grad_scaler, param_groups)
             work.extend(items)
-        apply(work)
+        if graph is None or not graph.step(work):
+            apply(work)
 
     def zero_grad_some(param_groups: List[str]) -> None:
+        held = graph.held() if graph is not None else set()
         for name in param_groups:  # torch's zero_grad(set_to_none=True), without its per-call profiler mark
             for group in named[name].param_groups:
                 for p in group["params"]:
-                    p.grad = None
+                    if id(p) not in held:  # the graph's buffers were zeroed by its last update
+                        p.grad = None
 
     optimizers.optimizer_scaler_step_some = optimizer_scaler_step_some
     optimizers.zero_grad_some = zero_grad_some
     optimizers._grouped_step = True
+    optimizers.adam_graph = graph
     return True

@@ -24,7 +24,7 @@ from torch import Tensor
 from torch.nn import Parameter
 
 from garo_ns import checkpoints
-from garo_ns.adam import install_grouped_step
+from garo_ns.adam import AdamGraph, install_grouped_step
 from garo_ns.compaction.guard import TrainingViewGuard
 from garo_ns.compaction.schedule import CompactionSettings, last_training_step
 from garo_ns.compaction.training import fixed_ratio_round, run_round
@@ -145,7 +145,8 @@ class GaroModel(SplatfactoModel):
             logging = getattr(trainer.config, "logging", None)  # a trainer of nerfstudio's has one; stand-ins may not
             self._metrics_every = max(int(getattr(logging, "steps_per_log", 1)), 1)
         if attributes.optimizers is not None:
-            install_grouped_step(attributes.optimizers)  # CUDA runs: all groups' Adam updates at once (garo_ns.adam)
+            graph = AdamGraph() if self.config.adam_cuda_graph else None  # replayed once the parameters settle
+            install_grouped_step(attributes.optimizers, graph)  # CUDA runs: all groups' Adam updates at once
         if getattr(attributes.pipeline, "datamanager", None) is not None:
             reuse_step_cameras(attributes.pipeline.datamanager)  # one device camera per view, not one per step
         before, after = TrainingCallbackLocation.BEFORE_TRAIN_ITERATION, TrainingCallbackLocation.AFTER_TRAIN_ITERATION

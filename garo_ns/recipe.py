@@ -64,6 +64,11 @@ class D3dgsRecipe(SplatfactoModelConfig):
     (garo_ns.losses.ImageLoss). With `deform_cuda_graph`, a 40k jumpingjacks run took 362 s instead of 556 s
     (benchmarks/results/train_profile_graphs_*); the same kernels, so the same numbers
     (tests/test_training_graphs.py)."""
+    adam_cuda_graph: bool = False
+    """Training on CUDA: once the parameters and optimizer states have stayed where they are for 100 steps (after
+    densification; again after each compaction round), every group's Adam update and the gradients' zeroing replay one
+    CUDA graph (garo_ns.adam.AdamGraph) instead of about 1 ms of host time a step in launches. The same updates, but
+    for each learning rate rounded to fp32 on the device (tests/test_adam.py). Off until timed on a GPU."""
     train_lean_raster: bool = True
     """Training on CUDA: rasterize through gsplat's kernels behind two autograd nodes (garo_ns.render.train_raster)
     instead of gsplat's `rasterization` wrapper: the same kernels, values and gradients (tests/test_train_raster.py,

@@ -228,3 +228,90 @@ def test_a_cuda_run_steps_its_optimizers_grouped():
                 p.grad = gr.clone()
             o.optimizer_scaler_step_some(_Scaler(), list("abc"))
     assert _same(params, ref_params) and not _same(params, [p.cuda() for p in _params()])
+
+
+def _backward_loop(opts, params, steps, seed=1, skip=None, edit=None, fp32_rates=False):
+    """nerfstudio's loop with gradients from a backward pass (autograd adds into an existing gradient in place), a
+    float learning-rate schedule on every group, `skip(i, k)`: parameter k gets no gradient at step i, `edit(i)`: a
+    change after step i's update (as densification's)."""
+    g = torch.Generator().manual_seed(seed)
+    for i in range(steps):
+        opts.zero_grad_some(list("abc"))
+        targets = [torch.randn(p.shape, generator=g).to(p.device) for p in params]
+        used = [k for k in range(len(params)) if not (skip and skip(i, k))]
+        loss = sum(((params[k] - targets[k]) ** 2).sum() for k in used)
+        loss.backward()
+        for name in "abc":
+            group = opts.optimizers[name].param_groups[0]
+            group["lr"] *= 0.97
+            if fp32_rates:  # rates that are fp32 numbers, as CUDA's kernel reads a device rate
+                group["lr"] = torch.tensor(group["lr"], dtype=torch.float32).item()
+        opts.optimizer_scaler_step_some(_Scaler(), list("abc"))
+        if edit is not None:
+            edit(i, opts, params)
+
+
+def _graphed_pair(device="cpu", stable_steps=4):
+    ref, ref_params = _nerfstudio_optimizers(lean=True, device=device)
+    graphed, params = _nerfstudio_optimizers(lean=True, device=device)
+    graph = adam.AdamGraph(stable_steps=stable_steps)
+    assert adam.install_grouped_step(ref) and adam.install_grouped_step(graphed, graph)
+    return (ref, ref_params), (graphed, params), graph
+
+
+def _same_states(a, b):
+    for name in "abc":
+        s, t = (o.optimizers[name].state_dict()["state"][0] for o in (a, b))
+        assert all(torch.equal(s[k], t[k]) for k in s), name
+
+
+def test_the_graphed_step_is_bitwise_the_grouped_step():
+    """Once stable, the step runs the graph's calls (eagerly on a CPU): tensor learning rates, gradients kept in the
+    graph's buffers and zeroed by it; the parameters and states are those of the step without it, bit for bit."""
+    (ref, ref_params), (graphed, params), graph = _graphed_pair()
+    _backward_loop(ref, ref_params, 20)
+    _backward_loop(graphed, params, 20)
+    assert graph.captures == 1 and graph.replays == 16  # states from step 1 on: stable for 4 steps at step 5
+    assert _same(ref_params, params) and not _same(params, _params())
+    _same_states(ref, graphed)
+    graphed.zero_grad_some(list("abc"))  # the graph's buffers stay, zeroed by its last update
+    assert all(p.grad is not None and not p.grad.any() for p in params)
+
+
+@pytest.mark.parametrize("change", ["no_gradient", "moved_state", "replaced_gradient"])
+def test_the_graph_steps_aside_where_the_step_would_differ(change):
+    """A parameter without a gradient at a step (no update at all, not a zero one), a state that moved (as
+    densification moves them) or a gradient replaced: that step is the grouped step's, and the graph is captured anew
+    once things are stable again; the numbers stay those of the step without it."""
+    (ref, ref_params), (graphed, params), graph = _graphed_pair()
+    skip = (lambda i, k: i == 9 and k == 1) if change == "no_gradient" else None
+
+    def edit(i, opts, ps):
+        if change == "moved_state" and i == 9:
+            state = opts.optimizers["b"].state[ps[1]]
+            state["exp_avg"] = state["exp_avg"].clone()
+        if change == "replaced_gradient" and i == 9:
+            ps[2].grad = torch.zeros_like(ps[2])  # a new tensor where the graph's buffer was
+
+    _backward_loop(ref, ref_params, 20, skip=skip, edit=edit)
+    _backward_loop(graphed, params, 20, skip=skip, edit=edit)
+    assert _same(ref_params, params)
+    _same_states(ref, graphed)
+    assert graph.captures == 2
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA: the graph is captured on CUDA")
+def test_the_adam_cuda_graph_replays_the_grouped_step_bitwise():
+    """On CUDA, bit for bit where the learning rates are fp32 numbers; otherwise within their rounding to fp32."""
+    skip = lambda i, k: i == 12 and k == 0  # noqa: E731
+    for fp32_rates in (True, False):
+        (ref, ref_params), (graphed, params), graph = _graphed_pair(device="cuda")
+        _backward_loop(ref, ref_params, 30, skip=skip, fp32_rates=fp32_rates)
+        _backward_loop(graphed, params, 30, skip=skip, fp32_rates=fp32_rates)
+        assert graph.captures == 2 and isinstance(graph.run.__self__, torch.cuda.CUDAGraph)
+        if fp32_rates:
+            assert _same(ref_params, params)
+            _same_states(ref, graphed)
+        else:
+            for p, q in zip(ref_params, params):  # the rates' rounding to fp32: a few ulps after 30 steps
+                assert torch.allclose(p, q, rtol=5e-7, atol=1e-7)

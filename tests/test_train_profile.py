@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
+import torch
 
 from garo_ns.bench.train_profile import PHASES, Mark, StepMarks, markdown_table, phase_times, summarise_window
 
@@ -218,3 +219,18 @@ def test_the_harness_runs_the_loop_work_of_ns_train_only_when_asked(tmp_path):
     for name in ("steps_per_eval_image", "steps_per_eval_all_images", "steps_per_save"):
         assert getattr(runs[True], name) == getattr(own, name) < 10**9, name
     assert runs[True].logging.local_writer.enable == own.logging.local_writer.enable
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA: the Adam graph is used on CUDA runs")
+def test_a_cuda_run_replays_its_adam_graph_once_the_gaussians_settle(tmp_path):
+    from garo_ns.bench.train_profile import main
+    from garo_ns.tools.scene import SceneSpec, generate_scene
+
+    scene = generate_scene(tmp_path / "scene", SceneSpec(resolution=32, n_train=12, n_val=2, n_test=2))
+    args = ["--scene", str(scene), "--quick", "--steps", "600", "--windows", "100000", "--device", "cuda"]
+    args += ["--score", "--split", "val", "--set", "adam_cuda_graph=True", "--work-dir", str(tmp_path / "runs")]
+    result = main(args + ["--output", str(tmp_path / "profile.json")])
+    counts = result["adam_graph"]
+    # Densification stops at 60% of the steps: stable 100 steps later, replayed from then on.
+    assert counts["captures"] >= 1 and 100 <= counts["replays"] <= 600 - 360 - 100 + 1
+    assert result["score"]["psnr"] > 10

@@ -479,6 +479,12 @@ def loop_work(config: Any, method: str, as_ns_train: bool) -> None:
     config.logging.local_writer.enable = own.logging.local_writer.enable
 
 
+def adam_graph_counts(optimizers: Any) -> Optional[Dict[str, int]]:
+    """How often the run's Adam graph (`adam_cuda_graph`) was captured and replayed (None: not in use)."""
+    graph = getattr(optimizers, "adam_graph", None)
+    return None if graph is None else {"captures": graph.captures, "replays": graph.replays}
+
+
 def render_choice_record(model: Any) -> Optional[Dict[str, Any]]:
     """What the finished model's render choice measured (garo_ns.render.switches): each approximate switch's change,
     and for the time table the rungs tried, their changes and build seconds and the table taken (None: no record)."""
@@ -596,6 +602,7 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         "timeline": profiler.timeline,
         "model_settings": overrides,
         "as_ns_train": bool(args.as_ns_train),
+        "adam_graph": adam_graph_counts(trainer.optimizers),
         "gaussians_final": int(trainer.pipeline.model.num_points),
     }
     args.output.parent.mkdir(parents=True, exist_ok=True)
