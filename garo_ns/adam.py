@@ -169,6 +169,7 @@ class AdamGraph:
         """Drop the graph and its buffers; gradients go back to nerfstudio's None between steps."""
         self.run, self.pairs, self.groups, self.lrs, self.lr_values, self.versions = None, [], [], [], [], []
 
+    @torch.no_grad()
     def step(self, work: Sequence[Work]) -> bool:
         """Do `apply(work)` here and return True, or return False for the caller to (not yet stable, or moved)."""
         key = self.key_of(work) if work else None

@@ -310,13 +310,16 @@ def test_training_metrics_are_computed_on_the_trainers_log_steps_only(scene_dir,
     assert logged == [0, 3, 6]  # the steps the trainer writes metrics on (step_check with run_at_zero)
     model.eval()  # outside training: always
     assert model._metrics_every == 3 and "psnr" in model.get_metrics_dict(*_outputs_and_batch(trainer))
-    assert model.train_splats.enabled and not model.train_splats.bf16  # the recipe: graphed, fp32/TF32 products
+    assert model.train_splats.enabled and model.train_splats.bf16  # garo-deform's recipe: graphed, bf16 products
+    from garo_ns.config import METHODS
 
-    config.pipeline.model.deform_train_bf16 = True
+    assert not METHODS["deform-splatfacto"].config.pipeline.model.deform_train_bf16  # fp32 until its own A/B
+
+    config.pipeline.model.deform_train_bf16 = False
     config.pipeline.model.deform_cuda_graph = False
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
-    assert trainer.pipeline.model.train_splats.bf16 and not trainer.pipeline.model.train_splats.enabled
+    assert not trainer.pipeline.model.train_splats.bf16 and not trainer.pipeline.model.train_splats.enabled
 
 
 def _outputs_and_batch(trainer):
