@@ -7,7 +7,21 @@ from typing import Any, Mapping, Tuple
 
 
 class GaroError(Exception):
-    """An error whose message is the whole story: no traceback is shown for it."""
+    """An error whose message is the whole story: no traceback is shown for it. The message is one line: a control
+    character from the input it names (a newline in a file name) is shown escaped."""
+
+    def __init__(self, *args: Any) -> None:
+        if len(args) == 1 and isinstance(args[0], str):
+            args = (one_line(args[0]),)
+        super().__init__(*args)
+
+
+def one_line(text: str) -> str:
+    """`text` with each unprintable character (newline, tab, ...) written as its escape; the rest as it is (a
+    non-ASCII letter in a path stays readable)."""
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
 class GaroInputError(GaroError, ValueError):

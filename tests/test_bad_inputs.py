@@ -746,3 +746,13 @@ def test_mutated_frames_are_refused_with_one_line_naming_the_frame(tmp_path):
         check()
     finally:
         (scene / "transforms_train.json").write_text(original)
+
+
+def test_an_error_naming_input_with_a_newline_stays_one_line():
+    """A file name with a newline (or any control character) in it is named escaped, so the error stays one line;
+    a non-ASCII letter stays as it is."""
+    from garo_ns.errors import GaroInputError, one_line
+
+    err = GaroInputError("frame 0: image listed but missing: scene/a\nb\t\u00e9.png")
+    assert str(err) == "frame 0: image listed but missing: scene/a\\nb\\t\u00e9.png"
+    assert one_line("plain path/\u00e9t\u00e9.png") == "plain path/\u00e9t\u00e9.png"
