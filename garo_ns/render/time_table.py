@@ -222,14 +222,15 @@ def midpoint_errors(
 
 
 def scratch_limit(device: torch.device) -> int:
-    """Bytes a table build may hold beside the table for every key's fp32 fine residuals: half of what the GPU
-    has free (the driver's free memory and torch's cached blocks), or 1 GiB on a CPU."""
+    """Bytes a table build may hold beside the table for every key's fp32 fine residuals: a quarter of what the GPU
+    has free (the driver's free memory and torch's cached blocks), or 1 GiB on a CPU. A quarter, not more: the
+    build runs at the end of a training run, where other runs may share the GPU and still need to allocate."""
     device = torch.device(device)
     if device.type != "cuda":
         return 1 << 30
     free, _ = torch.cuda.mem_get_info(device)
     cached = torch.cuda.memory_reserved(device) - torch.cuda.memory_allocated(device)
-    return int(0.5 * (free + cached))
+    return int(0.25 * (free + cached))
 
 
 def anchor_lines(anchors: Tensor, anchor_keys: Sequence[int]) -> Callable[[int], Tensor]:
