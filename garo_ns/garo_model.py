@@ -40,6 +40,7 @@ from garo_ns.render.frame import Canonical, FramePath, FrameSettings, Splats, ac
 from garo_ns.render.outputs import camera_outputs
 from garo_ns.render.switches import RenderSettings, SwitchDecision
 from garo_ns.render.view import HostCameras, RenderView, camera_numbers, camera_view
+from garo_ns.ssim import SSIM
 from garo_ns.static import StaticSettings, classification_due, classify, sample_times, static_fraction
 from garo_ns.train_graphs import GraphedSplats
 from garo_ns.training_data import adopt_training_data, reuse_step_cameras
@@ -85,7 +86,9 @@ class GaroModel(SplatfactoModel):
         self.camera_optimizer = cfg.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu")
         self.psnr, self.ssim, lpips = metric_modules()
         self.loss_watch = NonFiniteWatch()
-        self.image_loss = ImageLoss(self.ssim, cfg.ssim_lambda, cfg.loss_cuda_graph)
+        # The loss's own SSIM (a module, so its window moves with the model): fused kernels where they run.
+        self.loss_ssim = SSIM(data_range=1.0, fused=cfg.fused_ssim)
+        self.image_loss = ImageLoss(self.loss_ssim, cfg.ssim_lambda, cfg.loss_cuda_graph)
         self.train_splats = GraphedSplats(lambda: self.deformation, cfg.deform_cuda_graph, cfg.deform_train_bf16)
         # The dataset's cameras on the host: a training step reads its camera's numbers there (garo_ns.training_data).
         self.step_cameras: Optional[HostCameras] = None

@@ -64,6 +64,10 @@ class D3dgsRecipe(SplatfactoModelConfig):
     (garo_ns.losses.ImageLoss). With `deform_cuda_graph`, a 40k jumpingjacks run took 362 s instead of 556 s
     (benchmarks/results/train_profile_graphs_*); the same kernels, so the same numbers
     (tests/test_training_graphs.py)."""
+    fused_ssim: bool = True
+    """Training on CUDA: the loss's SSIM, forward and backward, as two Triton kernels (garo_ns.fused_ssim) instead of
+    grouped convolutions and some forty elementwise kernels that each read and write whole image maps. The same
+    values to fp32 rounding (tests/test_fused_ssim.py); the scores' SSIM stays the convolutions'."""
     adam_cuda_graph: bool = False
     """Training on CUDA: once the parameters and optimizer states have stayed where they are for 100 steps (after
     densification; again after each compaction round), every group's Adam update and the gradients' zeroing replay one

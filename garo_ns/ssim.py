@@ -4,7 +4,8 @@ The definition is pytorch_msssim's (11-tap Gaussian window of sigma 1.5 applied 
 borders, K = (0.01, 0.03), the mean of the map over channels and pixels). pytorch_msssim blurs each of its five
 maps (x, y, x^2, y^2, xy) with two convolutions of their own and copies its window to the device on every call, a
 host wait in every training step; here the five maps are stacked and blurred by two grouped convolutions with the
-window kept on the device.
+window kept on the device. With `fused`, on CUDA (Triton), forward and backward are two kernels instead
+(garo_ns.fused_ssim): the same values to fp32 rounding.
 """
 
 from __future__ import annotations
@@ -12,6 +13,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+
+from garo_ns import fused_ssim
 
 
 def gaussian_window(size: int = 11, sigma: float = 1.5) -> Tensor:
@@ -25,11 +28,15 @@ class SSIM(nn.Module):
     """Mean SSIM of two image batches [B, C, H, W] with values in [0, `data_range`] (a scalar tensor).
 
     Images smaller than the window along an axis are not blurred along it (pytorch_msssim warns and does the same).
+    `fused`: where `garo_ns.fused_ssim` can run (CUDA with Triton), through its two kernels.
     """
 
-    def __init__(self, data_range: float = 1.0, win_size: int = 11, win_sigma: float = 1.5) -> None:
+    def __init__(
+        self, data_range: float = 1.0, win_size: int = 11, win_sigma: float = 1.5, fused: bool = False
+    ) -> None:
         super().__init__()
         self.data_range = float(data_range)
+        self.fused = bool(fused)
         # Not saved with the model: fixed by the two numbers, and older checkpoints have no such entry.
         self.register_buffer("window", gaussian_window(win_size, win_sigma), persistent=False)
 
@@ -48,6 +55,8 @@ class SSIM(nn.Module):
         if x.shape != y.shape or x.dim() != 4:
             shapes = f"{tuple(x.shape)} and {tuple(y.shape)}"
             raise ValueError(f"SSIM takes two [B, C, H, W] batches of one shape, got {shapes}")
+        if self.fused and fused_ssim.available(x):
+            return fused_ssim.fused_ssim(x, y, self.window, self.data_range)
         c = x.shape[1]
         c1 = (0.01 * self.data_range) ** 2
         c2 = (0.03 * self.data_range) ** 2
