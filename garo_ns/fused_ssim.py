@@ -1,13 +1,13 @@
-"""SSIM's forward and backward as two Triton kernels (CUDA; Triton's interpreter runs them on the CPU in the tests).
+"""SSIM's forward and backward in four Triton kernels (CUDA; Triton's interpreter runs them on the CPU in the tests).
 
 The definition is `garo_ns.ssim.SSIM`'s (pytorch_msssim's: an 11-tap Gaussian window along height then width, valid
-borders, the mean of the map). The grouped convolutions there write each of the five blurred maps to memory, then
-some twenty elementwise kernels read them back, and the backward does it all again in reverse: about 1.6 ms of a
-training step on an H100 at 800x800 (benchmarks/results/train_profile_bf16_*), for what is a local stencil.
+borders, the mean of the map). There, grouped convolutions write the five blurred maps, then some twenty elementwise
+kernels read and write whole maps, and the backward does it all again in reverse: about 1.2 ms of device time for
+one 800x800 loss on an H100 (benchmarks/results/loss_speed_H100.json).
 
-Forward: a program takes a tile of output pixels of one image plane, blurs x, y, x^2, y^2 and xy from the input
-(every tap a load that the cache serves), forms the SSIM map and writes it (torch takes its mean) with the map's
-partial derivatives with respect to the five blurred values. Those are all the backward needs: with
+Forward, two kernels: the first blurs x, y, x^2, y^2 and xy along the height from the inputs (the five products
+formed on the fly); the second blurs those along the width, forms the SSIM map (torch takes its mean) and writes
+the map's partial derivatives with respect to the five blurred values, all the backward needs. With
 S = (a1 / b1)(a2 / b2), a1 = 2 mx my + C1, b1 = mx^2 + my^2 + C1, a2 = 2 (Exy - mx my) + C2,
 b2 = (Exx - mx^2) + (Eyy - my^2) + C2,
 
@@ -15,12 +15,13 @@ b2 = (Exx - mx^2) + (Eyy - my^2) + C2,
     dS/dExx = dS/dEyy = -S / b2,    dS/dExy = 2 a1 / (b1 b2),
 
 and the gradient of the mean at an input pixel q is the window's transpose applied to them:
-dy(q) = (B^T dmy)(q) + 2 y(q) (B^T dE)(q) + x(q) (B^T dExy)(q), over the M values of the map. Backward: a program
-takes a tile of input pixels and gathers the three (four, when x needs a gradient too) maps over the window.
+dy(q) = (B^T dmy)(q) + 2 y(q) (B^T dE)(q) + x(q) (B^T dExy)(q), over the M values of the map. Backward, two
+kernels: the transposed blur along the width, then along the height with the products by x and y.
 
-Summation order differs from the convolutions', so values agree with `SSIM` to fp32 rounding (tests/test_fused_ssim.py).
-Triton is imported when a kernel is first needed; without it (or off CUDA outside the interpreter) `SSIM` blurs
-with its convolutions.
+A blur along one axis at a time takes 11 loads a value where the whole window would take 121 (a first version
+that did so was slower than the convolutions: 1.50 against 1.22 ms). Summation order differs from the
+convolutions', so values agree with `SSIM` to fp32 rounding (tests/test_fused_ssim.py). Triton is imported when a
+kernel is first needed; without it (or off CUDA outside the interpreter) `SSIM` blurs with its convolutions.
 """
 
 from __future__ import annotations
@@ -33,9 +34,9 @@ from typing import Any, Optional, Tuple
 import torch
 from torch import Tensor
 
-# A tile of 16 x 32 output pixels, 4 warps: every tap of the window is one [16, 32] load per input map.
-BLOCK_H = 16
-BLOCK_W = 32
+# A tile of 8 x 64 pixels, 4 warps: rows of 64 contiguous values for the loads along the width.
+BLOCK_H = 8
+BLOCK_W = 64
 
 
 def interpreting() -> bool:
@@ -56,86 +57,80 @@ def available(x: Tensor) -> bool:
 
 
 @functools.lru_cache(maxsize=None)
-def _kernels(interpret: bool) -> Tuple[Any, Any]:
-    """The two jitted kernels (built once per interpreter setting: Triton reads it when a kernel is decorated)."""
+def _kernels(interpret: bool) -> Tuple[Any, Any, Any, Any]:
+    """The four jitted kernels (built once per interpreter setting: Triton reads it when a kernel is decorated).
+
+    They call Triton's builtins only (tl.full, not tl.zeros; no tl.sum): its interpreter cannot run the library's
+    jitted helpers once Triton was imported without it."""
     del interpret  # the cache key
     import triton
     import triton.language as tl
 
     @triton.jit
-    def forward_kernel(
-        x_ptr,
-        y_ptr,
-        win_ptr,
-        map_ptr,
-        dmx_ptr,
-        dmy_ptr,
-        de_ptr,
-        dexy_ptr,
-        channels,
-        sxb,
-        sxc,
-        sxh,
-        sxw,
-        syb,
-        syc,
-        syh,
-        syw,
-        out_h,
-        out_w,
-        c1,
-        c2,
-        KH: tl.constexpr,
-        KW: tl.constexpr,
-        WANT_DMX: tl.constexpr,
-        BH: tl.constexpr,
-        BW: tl.constexpr,
-    ):
-        tile_h = tl.program_id(0)
-        tile_w = tl.program_id(1)
+    def blur_height(
+        x_ptr, y_ptr, win_ptr, v_ptr, channels, sxb, sxc, sxh, sxw, syb, syc, syh, syw, planes, out_h, width,
+        KH: tl.constexpr, BH: tl.constexpr, BW: tl.constexpr,
+    ):  # fmt: skip
+        # v[k, plane, h, w] = sum_i win[i] f_k(x, y)[h + i, w] for f = (x, y, x^2, y^2, xy); h < out_h.
         plane = tl.program_id(2)
         b = plane // channels
         c = plane % channels
-        rows = tile_h * BH + tl.arange(0, BH)
-        cols = tile_w * BW + tl.arange(0, BW)
-        inside = (rows[:, None] < out_h) & (cols[None, :] < out_w)
-        x_base = x_ptr + b * sxb + c * sxc
-        y_base = y_ptr + b * syb + c * syc
+        rows = tl.program_id(0) * BH + tl.arange(0, BH)
+        cols = tl.program_id(1) * BW + tl.arange(0, BW)
+        inside = (rows[:, None] < out_h) & (cols[None, :] < width)  # every tap of an inside pixel is in the image
+        px = x_ptr + b * sxb + c * sxc + rows[:, None] * sxh + cols[None, :] * sxw
+        py = y_ptr + b * syb + c * syc + rows[:, None] * syh + cols[None, :] * syw
         mx = tl.full((BH, BW), 0.0, tl.float32)
         my = tl.full((BH, BW), 0.0, tl.float32)
         exx = tl.full((BH, BW), 0.0, tl.float32)
         eyy = tl.full((BH, BW), 0.0, tl.float32)
         exy = tl.full((BH, BW), 0.0, tl.float32)
-        # Height inside, width outside: the convolutions' order (height first, then width).
+        for i in tl.static_range(KH):
+            if KH > 1:
+                wi = tl.load(win_ptr + i)
+            else:
+                wi = 1.0
+            xv = tl.load(px + i * sxh, mask=inside, other=0.0).to(tl.float32)
+            yv = tl.load(py + i * syh, mask=inside, other=0.0).to(tl.float32)
+            mx += wi * xv
+            my += wi * yv
+            exx += wi * (xv * xv)
+            eyy += wi * (yv * yv)
+            exy += wi * (xv * yv)
+        n = planes * out_h * width
+        at = plane * out_h * width + rows[:, None] * width + cols[None, :]
+        tl.store(v_ptr + at, mx, mask=inside)
+        tl.store(v_ptr + n + at, my, mask=inside)
+        tl.store(v_ptr + 2 * n + at, exx, mask=inside)
+        tl.store(v_ptr + 3 * n + at, eyy, mask=inside)
+        tl.store(v_ptr + 4 * n + at, exy, mask=inside)
+
+    @triton.jit
+    def blur_width_ssim(
+        v_ptr, win_ptr, map_ptr, dmx_ptr, dmy_ptr, de_ptr, dexy_ptr, planes, out_h, width, out_w, c1, c2,
+        KW: tl.constexpr, WANT_DMX: tl.constexpr, BH: tl.constexpr, BW: tl.constexpr,
+    ):  # fmt: skip
+        plane = tl.program_id(2)
+        rows = tl.program_id(0) * BH + tl.arange(0, BH)
+        cols = tl.program_id(1) * BW + tl.arange(0, BW)
+        inside = (rows[:, None] < out_h) & (cols[None, :] < out_w)
+        n = planes * out_h * width
+        pv = v_ptr + plane * out_h * width + rows[:, None] * width + cols[None, :]
+        mx = tl.full((BH, BW), 0.0, tl.float32)
+        my = tl.full((BH, BW), 0.0, tl.float32)
+        exx = tl.full((BH, BW), 0.0, tl.float32)
+        eyy = tl.full((BH, BW), 0.0, tl.float32)
+        exy = tl.full((BH, BW), 0.0, tl.float32)
         for j in tl.static_range(KW):
             if KW > 1:
                 wj = tl.load(win_ptr + j)
             else:
                 wj = 1.0
-            hx = tl.full((BH, BW), 0.0, tl.float32)
-            hy = tl.full((BH, BW), 0.0, tl.float32)
-            hxx = tl.full((BH, BW), 0.0, tl.float32)
-            hyy = tl.full((BH, BW), 0.0, tl.float32)
-            hxy = tl.full((BH, BW), 0.0, tl.float32)
-            for i in tl.static_range(KH):
-                if KH > 1:
-                    wi = tl.load(win_ptr + i)
-                else:
-                    wi = 1.0
-                r = rows[:, None] + i
-                q = cols[None, :] + j
-                xv = tl.load(x_base + r * sxh + q * sxw, mask=inside, other=0.0).to(tl.float32)
-                yv = tl.load(y_base + r * syh + q * syw, mask=inside, other=0.0).to(tl.float32)
-                hx += wi * xv
-                hy += wi * yv
-                hxx += wi * (xv * xv)
-                hyy += wi * (yv * yv)
-                hxy += wi * (xv * yv)
-            mx += wj * hx
-            my += wj * hy
-            exx += wj * hxx
-            eyy += wj * hyy
-            exy += wj * hxy
+            mx += wj * tl.load(pv + j, mask=inside, other=0.0)
+            my += wj * tl.load(pv + n + j, mask=inside, other=0.0)
+            exx += wj * tl.load(pv + 2 * n + j, mask=inside, other=0.0)
+            eyy += wj * tl.load(pv + 3 * n + j, mask=inside, other=0.0)
+            exy += wj * tl.load(pv + 4 * n + j, mask=inside, other=0.0)
         mxx = mx * mx
         myy = my * my
         mxy = mx * my
@@ -146,83 +141,83 @@ def _kernels(interpret: bool) -> Tuple[Any, Any]:
         s = (a1 / b1) * (a2 / b2)
         inv = 1.0 / (b1 * b2)
         spread = 1.0 / b1 - 1.0 / b2
-        out = plane * out_h * out_w + rows[:, None] * out_w + cols[None, :]
-        # The map itself, summed by torch (a few MB): the kernels call Triton's builtins only, as its interpreter
-        # cannot run the library's jitted helpers (tl.sum, tl.zeros) once Triton was imported without it.
-        tl.store(map_ptr + out, s, mask=inside)
-        tl.store(dmy_ptr + out, 2.0 * mx * (a2 - a1) * inv - 2.0 * my * s * spread, mask=inside)
+        at = plane * out_h * out_w + rows[:, None] * out_w + cols[None, :]
+        tl.store(map_ptr + at, s, mask=inside)
+        tl.store(dmy_ptr + at, 2.0 * mx * (a2 - a1) * inv - 2.0 * my * s * spread, mask=inside)
         if WANT_DMX:
-            tl.store(dmx_ptr + out, 2.0 * my * (a2 - a1) * inv - 2.0 * mx * s * spread, mask=inside)
-        tl.store(de_ptr + out, -s / b2, mask=inside)
-        tl.store(dexy_ptr + out, 2.0 * a1 * inv, mask=inside)
+            tl.store(dmx_ptr + at, 2.0 * my * (a2 - a1) * inv - 2.0 * mx * s * spread, mask=inside)
+        tl.store(de_ptr + at, -s / b2, mask=inside)
+        tl.store(dexy_ptr + at, 2.0 * a1 * inv, mask=inside)
 
     @triton.jit
-    def backward_kernel(
-        x_ptr,
-        y_ptr,
-        win_ptr,
-        dmx_ptr,
-        dmy_ptr,
-        de_ptr,
-        dexy_ptr,
-        gx_ptr,
-        gy_ptr,
-        scale_ptr,
-        channels,
-        sxb,
-        sxc,
-        sxh,
-        sxw,
-        syb,
-        syc,
-        syh,
-        syw,
-        height,
-        width,
-        out_h,
-        out_w,
-        KH: tl.constexpr,
-        KW: tl.constexpr,
-        WANT_GX: tl.constexpr,
-        WANT_GY: tl.constexpr,
-        BH: tl.constexpr,
+    def unblur_width(
+        dmx_ptr, dmy_ptr, de_ptr, dexy_ptr, win_ptr, u_ptr, planes, out_h, out_w, width,
+        KW: tl.constexpr, WANT_GX: tl.constexpr, WANT_GY: tl.constexpr, MX_SLOT: tl.constexpr, BH: tl.constexpr,
         BW: tl.constexpr,
-    ):
-        tile_h = tl.program_id(0)
-        tile_w = tl.program_id(1)
+    ):  # fmt: skip
+        # u[k, plane, h, w] = sum_j win[j] d_k[h, w - j] over the map's columns; slots e, exy, my (if wanted), mx.
         plane = tl.program_id(2)
-        b = plane // channels
-        c = plane % channels
-        rows = tile_h * BH + tl.arange(0, BH)
-        cols = tile_w * BW + tl.arange(0, BW)
-        inside = (rows[:, None] < height) & (cols[None, :] < width)
-        base = plane * out_h * out_w
-        g_mx = tl.full((BH, BW), 0.0, tl.float32)
-        g_my = tl.full((BH, BW), 0.0, tl.float32)
+        rows = tl.program_id(0) * BH + tl.arange(0, BH)
+        cols = tl.program_id(1) * BW + tl.arange(0, BW)
+        inside = (rows[:, None] < out_h) & (cols[None, :] < width)
+        base = plane * out_h * out_w + rows[:, None] * out_w + cols[None, :]
         g_e = tl.full((BH, BW), 0.0, tl.float32)
         g_exy = tl.full((BH, BW), 0.0, tl.float32)
+        g_my = tl.full((BH, BW), 0.0, tl.float32)
+        g_mx = tl.full((BH, BW), 0.0, tl.float32)
         for j in tl.static_range(KW):
             if KW > 1:
                 wj = tl.load(win_ptr + j)
             else:
                 wj = 1.0
-            q = cols[None, :] - j
-            for i in tl.static_range(KH):
-                if KH > 1:
-                    wi = tl.load(win_ptr + i)
-                else:
-                    wi = 1.0
-                r = rows[:, None] - i
-                # Output pixel (r, q) took this input pixel at tap (i, j).
-                hit = inside & (r >= 0) & (r < out_h) & (q >= 0) & (q < out_w)
-                at = base + r * out_w + q
-                w = wi * wj
-                if WANT_GY:
-                    g_my += w * tl.load(dmy_ptr + at, mask=hit, other=0.0)
-                if WANT_GX:
-                    g_mx += w * tl.load(dmx_ptr + at, mask=hit, other=0.0)
-                g_e += w * tl.load(de_ptr + at, mask=hit, other=0.0)
-                g_exy += w * tl.load(dexy_ptr + at, mask=hit, other=0.0)
+            hit = inside & (cols[None, :] >= j) & (cols[None, :] - j < out_w)
+            g_e += wj * tl.load(de_ptr + base - j, mask=hit, other=0.0)
+            g_exy += wj * tl.load(dexy_ptr + base - j, mask=hit, other=0.0)
+            if WANT_GY:
+                g_my += wj * tl.load(dmy_ptr + base - j, mask=hit, other=0.0)
+            if WANT_GX:
+                g_mx += wj * tl.load(dmx_ptr + base - j, mask=hit, other=0.0)
+        n = planes * out_h * width
+        at = plane * out_h * width + rows[:, None] * width + cols[None, :]
+        tl.store(u_ptr + at, g_e, mask=inside)
+        tl.store(u_ptr + n + at, g_exy, mask=inside)
+        if WANT_GY:
+            tl.store(u_ptr + 2 * n + at, g_my, mask=inside)
+        if WANT_GX:
+            tl.store(u_ptr + MX_SLOT * n + at, g_mx, mask=inside)
+
+    @triton.jit
+    def unblur_height_grad(
+        u_ptr, x_ptr, y_ptr, win_ptr, gx_ptr, gy_ptr, scale_ptr, channels, sxb, sxc, sxh, sxw, syb, syc, syh, syw,
+        planes, height, width, out_h,
+        KH: tl.constexpr, WANT_GX: tl.constexpr, WANT_GY: tl.constexpr, MX_SLOT: tl.constexpr, BH: tl.constexpr,
+        BW: tl.constexpr,
+    ):  # fmt: skip
+        plane = tl.program_id(2)
+        b = plane // channels
+        c = plane % channels
+        rows = tl.program_id(0) * BH + tl.arange(0, BH)
+        cols = tl.program_id(1) * BW + tl.arange(0, BW)
+        inside = (rows[:, None] < height) & (cols[None, :] < width)
+        n = planes * out_h * width
+        base = plane * out_h * width + rows[:, None] * width + cols[None, :]
+        g_e = tl.full((BH, BW), 0.0, tl.float32)
+        g_exy = tl.full((BH, BW), 0.0, tl.float32)
+        g_my = tl.full((BH, BW), 0.0, tl.float32)
+        g_mx = tl.full((BH, BW), 0.0, tl.float32)
+        for i in tl.static_range(KH):
+            if KH > 1:
+                wi = tl.load(win_ptr + i)
+            else:
+                wi = 1.0
+            hit = inside & (rows[:, None] >= i) & (rows[:, None] - i < out_h)
+            at = base - i * width
+            g_e += wi * tl.load(u_ptr + at, mask=hit, other=0.0)
+            g_exy += wi * tl.load(u_ptr + n + at, mask=hit, other=0.0)
+            if WANT_GY:
+                g_my += wi * tl.load(u_ptr + 2 * n + at, mask=hit, other=0.0)
+            if WANT_GX:
+                g_mx += wi * tl.load(u_ptr + MX_SLOT * n + at, mask=hit, other=0.0)
         scale = tl.load(scale_ptr)
         xv = tl.load(x_ptr + b * sxb + c * sxc + rows[:, None] * sxh + cols[None, :] * sxw, mask=inside, other=0.0)
         yv = tl.load(y_ptr + b * syb + c * syc + rows[:, None] * syh + cols[None, :] * syw, mask=inside, other=0.0)
@@ -234,7 +229,7 @@ def _kernels(interpret: bool) -> Tuple[Any, Any]:
         if WANT_GX:
             tl.store(gx_ptr + at_in, scale * (g_mx + 2.0 * xv * g_e + yv * g_exy), mask=inside)
 
-    return forward_kernel, backward_kernel
+    return blur_height, blur_width_ssim, unblur_width, unblur_height_grad
 
 
 def _taps(size: int, length: int) -> int:
@@ -242,33 +237,40 @@ def _taps(size: int, length: int) -> int:
     return size if length >= size else 1
 
 
+def _grid(rows: int, cols: int, planes: int) -> Tuple[int, int, int]:
+    return (-(-rows // BLOCK_H), -(-cols // BLOCK_W), planes)
+
+
 class _FusedSSIM(torch.autograd.Function):
     @staticmethod
     def forward(ctx: Any, x: Tensor, y: Tensor, window: Tensor, c1: float, c2: float) -> Tensor:
-        forward_kernel, _ = _kernels(interpreting())
+        blur_height, blur_width_ssim, _, _ = _kernels(interpreting())
         bsz, channels, height, width = x.shape
         kh, kw = _taps(window.numel(), height), _taps(window.numel(), width)
         out_h, out_w = height - kh + 1, width - kw + 1
         planes = bsz * channels
-        grid = (-(-out_h // BLOCK_H), -(-out_w // BLOCK_W), planes)
         f32 = dict(device=x.device, dtype=torch.float32)
+        win = window.to(**f32).contiguous()
+        blurred = torch.empty(5, planes, out_h, width, **f32)
+        blur_height[_grid(out_h, width, planes)](
+            x, y, win, blurred, channels, *x.stride(), *y.stride(), planes, out_h, width,
+            KH=kh, BH=BLOCK_H, BW=BLOCK_W,
+        )  # fmt: skip
         want_dmx = bool(ctx.needs_input_grad[0])
         ssim_map, dmy, de, dexy = (torch.empty(planes, out_h, out_w, **f32) for _ in range(4))
         dmx = torch.empty(planes, out_h, out_w, **f32) if want_dmx else dmy  # a placeholder pointer when unused
-        win = window.to(**f32).contiguous()
-        forward_kernel[grid](
-            x, y, win, ssim_map, dmx, dmy, de, dexy, channels, *x.stride(), *y.stride(), out_h, out_w, c1, c2,
-            KH=kh, KW=kw, WANT_DMX=want_dmx, BH=BLOCK_H, BW=BLOCK_W,
+        blur_width_ssim[_grid(out_h, out_w, planes)](
+            blurred, win, ssim_map, dmx, dmy, de, dexy, planes, out_h, width, out_w, c1, c2,
+            KW=kw, WANT_DMX=want_dmx, BH=BLOCK_H, BW=BLOCK_W,
         )  # fmt: skip
         ctx.save_for_backward(x, y, win, dmx, dmy, de, dexy)
         ctx.taps = (kh, kw)
-        count = planes * out_h * out_w
-        ctx.count = count
+        ctx.count = ssim_map.numel()
         return ssim_map.mean().to(x.dtype)
 
     @staticmethod
     def backward(ctx: Any, grad: Tensor) -> Tuple[Optional[Tensor], ...]:
-        _, backward_kernel = _kernels(interpreting())
+        _, _, unblur_width, unblur_height_grad = _kernels(interpreting())
         x, y, win, dmx, dmy, de, dexy = ctx.saved_tensors
         want_gx, want_gy = bool(ctx.needs_input_grad[0]), bool(ctx.needs_input_grad[1])
         if not (want_gx or want_gy):
@@ -276,16 +278,20 @@ class _FusedSSIM(torch.autograd.Function):
         bsz, channels, height, width = x.shape
         kh, kw = ctx.taps
         out_h, out_w = height - kh + 1, width - kw + 1
+        planes = bsz * channels
         f32 = dict(device=x.device, dtype=torch.float32)
-        gx = torch.empty(bsz, channels, height, width, **f32) if want_gx else dmy
-        gy = torch.empty(bsz, channels, height, width, **f32) if want_gy else dmy
+        spread = torch.empty(2 + want_gx + want_gy, planes, out_h, width, **f32)
+        unblur_width[_grid(out_h, width, planes)](
+            dmx, dmy, de, dexy, win, spread, planes, out_h, out_w, width,
+            KW=kw, WANT_GX=want_gx, WANT_GY=want_gy, MX_SLOT=2 + want_gy, BH=BLOCK_H, BW=BLOCK_W,
+        )  # fmt: skip
+        gx = torch.empty(bsz, channels, height, width, **f32) if want_gx else spread
+        gy = torch.empty(bsz, channels, height, width, **f32) if want_gy else spread
         # The incoming gradient stays on the device (no host read): the kernel loads it.
         scale = (grad.to(torch.float32) / ctx.count).reshape(1)
-        grid = (-(-height // BLOCK_H), -(-width // BLOCK_W), bsz * channels)
-        backward_kernel[grid](
-            x, y, win, dmx, dmy, de, dexy, gx, gy, scale, channels, *x.stride(), *y.stride(),
-            height, width, out_h, out_w,
-            KH=kh, KW=kw, WANT_GX=want_gx, WANT_GY=want_gy, BH=BLOCK_H, BW=BLOCK_W,
+        unblur_height_grad[_grid(height, width, planes)](
+            spread, x, y, win, gx, gy, scale, channels, *x.stride(), *y.stride(), planes, height, width, out_h,
+            KH=kh, WANT_GX=want_gx, WANT_GY=want_gy, MX_SLOT=2 + want_gy, BH=BLOCK_H, BW=BLOCK_W,
         )  # fmt: skip
         return (
             gx.to(x.dtype) if want_gx else None,
