@@ -49,6 +49,8 @@ from garo_ns.redundancy.select import least_contributing, select_redundant
 Params = Union[Dict[str, torch.nn.Parameter], torch.nn.ParameterDict]
 # State key of the compaction's summary (what each round did and why it stopped; it travels with checkpoints).
 COMPACT_SUMMARY = "compact"
+# The info key under which a step's gradient-norm sums pass from the activity record to the densification record.
+_STEP_SUMS = "garo_step_sums"
 
 
 @dataclass
@@ -122,12 +124,17 @@ class GaroStrategy(DefaultStrategy):
         packed: bool = False,
     ) -> None:
         """GARO's activity and (at GARO steps) pruning, then gsplat's densification step."""
+        sums = None
         if self.mode != "off" and step < self.garo_schedule()[1]:
-            self.update_activity(params, state, info, packed)
+            sums = self.update_activity(params, state, info, packed)
         if self.is_garo_step(step):
             keep = self.prune_redundant(params, optimizers, state, step, info)
             if keep is not None:
                 info = restrict_info(info, keep, packed)
+                sums = None  # they count the Gaussians before the removal
+        if sums is not None and not packed:
+            # The densification record adds the same sums: computed once a step (a shallow copy carries them).
+            info = {**info, _STEP_SUMS: sums}
         if step == 0 and not self.reset_at_start and self.refine_start_iter >= 0 and self.refine_stop_iter > 0:
             # Step 0 never refines (refine_start_iter >= 0), so gsplat's step would only update the
             # gradient record and reset the opacities: do the first alone.
@@ -141,17 +148,15 @@ class GaroStrategy(DefaultStrategy):
         on a scratch state, so the normalisation exists once."""
         if getattr(info["means2d"], "absgrad" if self.absgrad else "grad", None) is None:
             raise ValueError("info['means2d'] has no gradient: call retain_grad() before backward")
+        if not packed:
+            return self._norm_sums(info)
         scratch: Dict[str, Any] = {"grad2d": None, "count": None, "radii": None}
         self._update_state(params, scratch, info, packed)
         return scratch["grad2d"], scratch["count"]
 
-    def _update_state(self, params: Params, state: Dict[str, Any], info: Dict[str, Any], packed: bool = False) -> None:
-        """gsplat's densification record (gradient-norm sums, visibility counts, largest screen radius) with the
-        same normalisation, computed densely over [C, N] for unpacked renders: gsplat selects the visible
-        Gaussians with boolean indexing, which waits for the GPU three times every training step."""
-        if packed:
-            super()._update_state(params, state, info, packed)
-            return
+    def _norm_sums(self, info: Dict[str, Any]) -> Tuple[Tensor, Tensor]:
+        """Unpacked renders: the gradient norms in [-1, 1] screen units summed over the cameras that see each
+        Gaussian, and how many do ([N] each), dense over [C, N] as gsplat normalises them."""
         for key in ("width", "height", "n_cameras", "radii", self.key_for_gradient):
             if key not in info:
                 raise KeyError(f"info['{key}'] is required by the densification record")
@@ -161,26 +166,42 @@ class GaroStrategy(DefaultStrategy):
         gy = raw[..., 1] * (info["height"] / 2.0 * info["n_cameras"])
         visible = info["radii"] > 0  # [C, N]
         norms = torch.where(visible, torch.hypot(gx, gy), torch.zeros_like(gx))
-        n, dev = len(params["means"]), raw.device
+        return norms.sum(0), visible.sum(0).to(torch.float32)
+
+    def _update_state(self, params: Params, state: Dict[str, Any], info: Dict[str, Any], packed: bool = False) -> None:
+        """gsplat's densification record (gradient-norm sums, visibility counts, largest screen radius) with the
+        same normalisation, computed densely over [C, N] for unpacked renders: gsplat selects the visible
+        Gaussians with boolean indexing, which waits for the GPU three times every training step."""
+        if packed:
+            super()._update_state(params, state, info, packed)
+            return
+        sums, counts = info[_STEP_SUMS] if _STEP_SUMS in info else self._norm_sums(info)
+        n, dev = len(params["means"]), sums.device
         for key in ("grad2d", "count"):
             if state[key] is None:
                 state[key] = torch.zeros(n, device=dev)
-        state["grad2d"] += norms.sum(0)
-        state["count"] += visible.sum(0).to(state["count"].dtype)
+        state["grad2d"] += sums
+        state["count"] += counts.to(state["count"].dtype)
         if self.refine_scale2d_stop_iter > 0:
             if state["radii"] is None:
                 state["radii"] = torch.zeros(n, device=dev)
+            visible = info["radii"] > 0
             screen = torch.where(visible, info["radii"] / float(max(info["width"], info["height"])), 0.0)
             state["radii"] = torch.maximum(state["radii"], screen.amax(0))
 
-    def update_activity(self, params: Params, state: Dict[str, Any], info: Dict[str, Any], packed: bool) -> None:
-        """Add this iteration's gradient norms of the visible Gaussians to the activity record."""
+    def update_activity(
+        self, params: Params, state: Dict[str, Any], info: Dict[str, Any], packed: bool
+    ) -> Tuple[Tensor, Tensor]:
+        """Add this iteration's gradient norms of the visible Gaussians to the activity record; returns the
+        iteration's sums and counts (`gradient_norms`)."""
         n = len(params["means"])
         dev = params["means"].device
         if state["garo_grad"] is None or state["garo_grad"].shape[0] != n:
             state["garo_grad"] = torch.zeros(n, device=dev)
             state["garo_count"] = torch.zeros(n, device=dev)
-        record(state["garo_grad"], state["garo_count"], *self.gradient_norms(params, info, packed))
+        sums = self.gradient_norms(params, info, packed)
+        record(state["garo_grad"], state["garo_count"], *sums)
+        return sums
 
     def prune_redundant(
         self,

@@ -448,6 +448,30 @@ def test_the_dense_densification_record_is_gsplats(cameras, scale2d):
         assert s_ours["radii"] is None
 
 
+def test_a_step_computes_the_gradient_norms_once_for_both_records(monkeypatch):
+    """Activity and densification records of a training step from one computation of the norms: the same as the
+    densification record alone (gsplat's) and the activity record fed by `gradient_norms`."""
+    n, cameras = 40, 2
+    params = {"means": torch.zeros(n, 3)}
+    strategy = GaroStrategy()
+    state = strategy.initialize_state()
+    calls = []
+    computed = GaroStrategy._norm_sums
+    monkeypatch.setattr(GaroStrategy, "_norm_sums", lambda self, info: calls.append(1) or computed(self, info))
+    want = {"grad2d": None, "count": None, "radii": None}
+    sums, counts = torch.zeros(n), torch.zeros(n)
+    for step, seed in ((1, 0), (2, 1)):  # before refinement starts: only the records change
+        info = _info(cameras, n, seed)
+        strategy.step_post_backward(params, {}, state, step, info)
+        DefaultStrategy()._update_state(params, want, info)
+        record(sums, counts, *computed(strategy, info))
+    assert len(calls) == 2
+    assert torch.allclose(state["grad2d"], want["grad2d"], rtol=1e-6, atol=0)
+    assert torch.equal(state["count"], want["count"])
+    assert torch.equal(state["garo_grad"], sums) and torch.equal(state["garo_count"], counts)
+    assert "garo_step_sums" not in info  # the caller's info is left as it was
+
+
 def test_the_record_reads_absgrad_when_asked_and_names_a_missing_key():
     n = 20
     info = _info(1, n)
