@@ -148,7 +148,10 @@ class GaroModel(SplatfactoModel):
             logging = getattr(trainer.config, "logging", None)  # a trainer of nerfstudio's has one; stand-ins may not
             self._metrics_every = max(int(getattr(logging, "steps_per_log", 1)), 1)
         if attributes.optimizers is not None:
-            graph = AdamGraph() if self.config.adam_cuda_graph else None  # replayed once the parameters settle
+            # Replayed once the parameters settle: for longer than densification's interval, as a graph captured on
+            # the 100th step after a refinement would be dropped by the next one (144 such in a 40k run).
+            settle = max(100, self.config.refine_every + 1)
+            graph = AdamGraph(stable_steps=settle) if self.config.adam_cuda_graph else None
             install_grouped_step(attributes.optimizers, graph)  # CUDA runs: all groups' Adam updates at once
         if getattr(attributes.pipeline, "datamanager", None) is not None:
             reuse_step_cameras(attributes.pipeline.datamanager)  # one device camera per view, not one per step
