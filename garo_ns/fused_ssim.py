@@ -19,9 +19,10 @@ dy(q) = (B^T dmy)(q) + 2 y(q) (B^T dE)(q) + x(q) (B^T dExy)(q), over the M value
 kernels: the transposed blur along the width, then along the height with the products by x and y.
 
 A blur along one axis at a time takes 11 loads a value where the whole window would take 121 (a first version
-that did so was slower than the convolutions: 1.50 against 1.22 ms). Summation order differs from the
-convolutions', so values agree with `SSIM` to fp32 rounding (tests/test_fused_ssim.py). Triton is imported when a
-kernel is first needed; without it (or off CUDA outside the interpreter) `SSIM` blurs with its convolutions.
+that did so was slower than the convolutions: 1.52 against 1.22 ms graphed, loss_speed_window_H100.json). The
+summation order differs from the convolutions', so values agree with `SSIM` to fp32 rounding
+(tests/test_fused_ssim.py). Triton is imported when a kernel is first needed; without it (or off CUDA outside the
+interpreter) `SSIM` blurs with its convolutions.
 """
 
 from __future__ import annotations
