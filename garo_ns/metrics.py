@@ -11,6 +11,9 @@ import torch
 from torch import Tensor
 
 ALEXNET_FILE = "alexnet-owt-7be5be79.pth"
+# AlexNet's strided first layer and two poolings leave nothing of an image under 31 pixels a side (torch raises
+# "Output size is too small"): LPIPS is left out below this, as where its weights are missing.
+LPIPS_MIN_SIDE = 32
 _warned = False
 
 
@@ -39,6 +42,11 @@ def make_lpips() -> Optional[torch.nn.Module]:
     return LearnedPerceptualImagePatchSimilarity(net_type="alex", normalize=True)
 
 
+def lpips_fits(image: Tensor) -> bool:
+    """Whether LPIPS's AlexNet can take an image [..., H, W, 3] (each side at least `LPIPS_MIN_SIDE` pixels)."""
+    return min(int(image.shape[-3]), int(image.shape[-2])) >= LPIPS_MIN_SIDE
+
+
 def metric_modules() -> Tuple[torch.nn.Module, torch.nn.Module, Optional[torch.nn.Module]]:
     """PSNR and SSIM as splatfacto scores them (data range 1), and LPIPS where `make_lpips` can."""
     from torchmetrics.image import PeakSignalNoiseRatio
@@ -54,6 +62,6 @@ def image_metrics(
     """PSNR, SSIM and (where available) LPIPS of one render `pred` against `gt`, both [H, W, 3]."""
     gt_b, pred_b = torch.moveaxis(gt, -1, 0)[None], torch.moveaxis(pred, -1, 0)[None]
     metrics = {"psnr": float(psnr(gt_b, pred_b).item()), "ssim": float(ssim(gt_b, pred_b))}
-    if lpips is not None:
+    if lpips is not None and lpips_fits(pred):
         metrics["lpips"] = float(lpips.to(pred.device)(gt_b.clamp(0, 1), pred_b.clamp(0, 1)))
     return metrics

@@ -231,6 +231,7 @@ def test_a_cuda_run_replays_its_adam_graph_once_the_gaussians_settle(tmp_path):
     args += ["--score", "--split", "val", "--set", "adam_cuda_graph=True", "--work-dir", str(tmp_path / "runs")]
     result = main(args + ["--output", str(tmp_path / "profile.json")])
     counts = result["adam_graph"]
-    # Densification stops at 60% of the steps: stable 100 steps later, replayed from then on.
-    assert counts["captures"] >= 1 and 100 <= counts["replays"] <= 600 - 360 - 100 + 1
+    # Densification stops at 60% of the steps (360), its last refinement at 340 (every 20 steps): stable 100 steps
+    # later, replayed from then on (160 replays on an H100).
+    assert counts["captures"] >= 1 and 100 <= counts["replays"] <= 600 - 340 - 100 + 1
     assert result["score"]["psnr"] > 10

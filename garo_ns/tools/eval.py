@@ -23,7 +23,7 @@ from garo_ns.compaction.report import summary_for_json
 from garo_ns.config import METHODS as METHOD_SPECS
 from garo_ns.data.dnerf import read_split, split_cameras
 from garo_ns.errors import GaroInputError
-from garo_ns.metrics import make_lpips
+from garo_ns.metrics import lpips_fits, make_lpips
 
 compat.install()
 
@@ -96,7 +96,7 @@ def load_split(data: Path, split: str, background: torch.Tensor) -> Tuple[Camera
 
 @torch.no_grad()
 def evaluate(pipeline: Any, data: Path, split: str) -> Dict[str, Any]:
-    """Render every frame of `split` and average PSNR, SSIM and (if available) LPIPS."""
+    """Render every frame of `split` and average PSNR, SSIM and (if available, and the images take it) LPIPS."""
     model = pipeline.model
     model.eval()
     cameras, images = load_split(data, split, model.background_color)
@@ -110,7 +110,7 @@ def evaluate(pipeline: Any, data: Path, split: str) -> Dict[str, Any]:
         psnrs.append(float(-10.0 * torch.log10(mse.clamp_min(1e-12))))
         p, g = pred.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None]
         ssims.append(float(model.ssim(g, p)))
-        if lpips is not None:
+        if lpips is not None and lpips_fits(pred):
             lpipss.append(float(lpips.to(pred.device)(g, p)))
     bg = model.background_color.tolist()
     return {
