@@ -65,14 +65,17 @@ class D3dgsRecipe(SplatfactoModelConfig):
     (benchmarks/results/train_profile_graphs_*); the same kernels, so the same numbers
     (tests/test_training_graphs.py)."""
     fused_ssim: bool = True
-    """Training on CUDA: the loss's SSIM, forward and backward, as two Triton kernels (garo_ns.fused_ssim) instead of
-    grouped convolutions and some forty elementwise kernels that each read and write whole image maps. The same
+    """Training on CUDA: the loss's SSIM, forward and backward, in four Triton kernels (garo_ns.fused_ssim) instead of
+    grouped convolutions and some forty elementwise kernels that each read and write whole image maps: 0.33 ms
+    instead of 1.22 for an 800x800 loss on an H100, both graphed (benchmarks/results/loss_speed_H100.json). The same
     values to fp32 rounding (tests/test_fused_ssim.py); the scores' SSIM stays the convolutions'."""
     adam_cuda_graph: bool = False
-    """Training on CUDA: once the parameters and optimizer states have stayed where they are for 100 steps (after
-    densification; again after each compaction round), every group's Adam update and the gradients' zeroing replay one
-    CUDA graph (garo_ns.adam.AdamGraph) instead of about 1 ms of host time a step in launches. The same updates, but
-    for each learning rate rounded to fp32 on the device (tests/test_adam.py). Off until timed on a GPU."""
+    """Training on CUDA: once the parameters and optimizer states have stayed where they are for longer than
+    densification's interval (after densification; again after each compaction round), every group's Adam update
+    and the gradients' zeroing replay one CUDA graph (garo_ns.adam.AdamGraph) instead of about 1 ms of host time a
+    step in launches. The same updates, but for each learning rate rounded to fp32 on the device (tests/test_adam.py).
+    Off: 40k runs alone on an H100 took 324 / 317 / 336 s with it against 327 / 325 / 321 without (mutant, standup,
+    jumpingjacks; benchmarks/results/train_profile_adamgraph_*), no gain beyond two runs' spread."""
     train_lean_raster: bool = True
     """Training on CUDA: rasterize through gsplat's kernels behind two autograd nodes (garo_ns.render.train_raster)
     instead of gsplat's `rasterization` wrapper: the same kernels, values and gradients (tests/test_train_raster.py,
