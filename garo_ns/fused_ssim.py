@@ -304,7 +304,7 @@ class _FusedSSIM(torch.autograd.Function):
 
 
 def fused_ssim(x: Tensor, y: Tensor, window: Tensor, data_range: float = 1.0) -> Tensor:
-    """Mean SSIM of two [B, C, H, W] batches of one shape with the 1-D `window`, through the two kernels
+    """Mean SSIM of two [B, C, H, W] batches of one shape with the 1-D `window`, through the four kernels
     (`available(x)` must hold). Gradients flow to whichever of x and y requires them."""
     if x.shape != y.shape or x.dim() != 4:
         raise ValueError(f"SSIM takes two [B, C, H, W] batches of one shape, got {tuple(x.shape)} and {tuple(y.shape)}")

@@ -144,8 +144,8 @@ class GaroStrategy(DefaultStrategy):
 
     def gradient_norms(self, params: Params, info: Dict[str, Any], packed: bool = False) -> Tuple[Tensor, Tensor]:
         """This iteration's NDC view-space gradient norm of each Gaussian, summed over the cameras
-        that see it, and how many saw it ([N] each): the densification update (`_update_state`) run
-        on a scratch state, so the normalisation exists once."""
+        that see it, and how many saw it ([N] each), normalised as the densification record is (`_norm_sums`;
+        packed renders: gsplat's update run on a scratch state)."""
         if getattr(info["means2d"], "absgrad" if self.absgrad else "grad", None) is None:
             raise ValueError("info['means2d'] has no gradient: call retain_grad() before backward")
         if not packed:
