@@ -25,6 +25,7 @@ from torch.nn import Parameter
 
 from garo_ns import checkpoints
 from garo_ns.adam import AdamGraph, install_grouped_step
+from garo_ns.collector import TrainingCollector
 from garo_ns.compaction.guard import TrainingViewGuard
 from garo_ns.compaction.schedule import CompactionSettings, last_training_step
 from garo_ns.compaction.training import fixed_ratio_round, run_round
@@ -90,6 +91,7 @@ class GaroModel(SplatfactoModel):
         self.loss_ssim = SSIM(data_range=1.0, fused=cfg.fused_ssim)
         self.image_loss = ImageLoss(self.loss_ssim, cfg.ssim_lambda, cfg.loss_cuda_graph)
         self.train_splats = GraphedSplats(lambda: self.deformation, cfg.deform_cuda_graph, cfg.deform_train_bf16)
+        self.collector = TrainingCollector(cfg.gc_threshold)  # Python's collector paced to training (set on step 1)
         # The dataset's cameras on the host: a training step reads its camera's numbers there (garo_ns.training_data).
         self.step_cameras: Optional[HostCameras] = None
         self._lpips = [lpips]  # out of the module tree: LPIPS may be absent, checkpoints must not need it
@@ -159,9 +161,11 @@ class GaroModel(SplatfactoModel):
         return [
             TrainingCallback([before], self.step_cb, args=[attributes.optimizers]),
             TrainingCallback([after], self.after_iteration),
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN], lambda step: self.collector.stop()),
         ]
 
     def step_cb(self, optimizers: Optimizers, step: int) -> None:
+        self.collector.start()  # from the first step on (a no-op after it); given back after the last
         self.step = step
         self.optimizers = optimizers.optimizers
 

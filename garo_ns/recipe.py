@@ -76,6 +76,10 @@ class D3dgsRecipe(SplatfactoModelConfig):
     step in launches. The same updates, but for each learning rate rounded to fp32 on the device (tests/test_adam.py).
     Off: 40k runs alone on an H100 took 324 / 317 / 336 s with it against 327 / 325 / 321 without (mutant, standup,
     jumpingjacks; benchmarks/results/train_profile_adamgraph_*), no gain beyond two runs' spread."""
+    gc_threshold: int = 20_000
+    """While training, Python's garbage collector scans its youngest generation every this many net allocations
+    of containers instead of every 700 (garo_ns.collector): a step allocates thousands, so at 700 the collector
+    ran two or three times a step, 0.75 s of a 59 s CPU demo run against 0.03 s at 20,000. 0: Python's own."""
     train_lean_raster: bool = True
     """Training on CUDA: rasterize through gsplat's kernels behind two autograd nodes (garo_ns.render.train_raster)
     instead of gsplat's `rasterization` wrapper: the same kernels, values and gradients (tests/test_train_raster.py,

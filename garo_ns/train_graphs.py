@@ -13,6 +13,7 @@ gradients, or when the setting is off, it runs eagerly.
 
 from __future__ import annotations
 
+from time import perf_counter
 from typing import Any, Callable, Optional, Tuple, Union
 
 import torch
@@ -72,6 +73,10 @@ class GraphedSplats:
         self.key: Optional[Tuple[Any, ...]] = None
         self.graphed: Optional[Callable[..., Tuple[Tensor, ...]]] = None
         self.captures = 0
+        self.capture_s = 0.0  # wall seconds in captures, warm-up runs included (make_graphed_callables synchronises)
+        # One memory pool for every capture: a new count of Gaussians (every refinement while densifying) captures
+        # into the memory its dropped predecessor held, instead of allocating a pool of its own each time.
+        self._pool: Optional[Any] = None
 
     def __call__(self, canonical: Canonical, time: Union[float, Tensor], scale_offset: ScaleOffset) -> Splats:
         field = self.field()
@@ -89,7 +94,15 @@ class GraphedSplats:
         if key != self.key:
             self.graphed = None  # the old graph's memory first
             samples = tuple(x.detach().clone().requires_grad_(x.requires_grad) for x in canonical) + (t.clone(),)
-            self.graphed = torch.cuda.make_graphed_callables(_SplatsCall(run, scale_offset), samples)
+            if self._pool is None:
+                self._pool = torch.cuda.graph_pool_handle()
+            # Warm-up runs before a capture initialise what the first capture needs (libraries' handles and
+            # workspaces): three before the first, as torch advises; later captures of the same code need one.
+            warmup = 3 if self.captures == 0 else 1
+            call = _SplatsCall(run, scale_offset)
+            start = perf_counter()
+            self.graphed = torch.cuda.make_graphed_callables(call, samples, num_warmup_iters=warmup, pool=self._pool)
+            self.capture_s += perf_counter() - start
             self.key = key
             self.captures += 1
         assert self.graphed is not None

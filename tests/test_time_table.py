@@ -104,6 +104,43 @@ def test_the_build_picks_the_order_that_keeps_more_gaussians_tabled_and_the_rest
     assert torch.allclose(means[strict.network], exact[strict.network], atol=1e-6)
 
 
+@pytest.mark.parametrize("precision", ["fp32", "int16"])
+@pytest.mark.parametrize("intervals, tolerance", [(16, 2e-3), (8, 1e-3)])  # cubic, none on the network; some on it
+def test_a_preview_renders_halfway_as_its_table_does_less_the_keys_rounding(precision, intervals, tolerance):
+    field = _field(amp=0.05)
+    field.amp[:4] = 3.0  # a few Gaussians the linear order cannot follow at this spacing: the network or cubic
+    xyz = _xyz()
+    spec = _spec(intervals, tolerance=tolerance, precision=precision)
+    built, preview = TimeTable.build(spec, field, xyz), TimeTable.preview(spec, field, xyz)
+    assert preview.is_preview and not built.is_preview
+    assert preview.spec == built.spec and preview.info["network_by_order"] == built.info["network_by_order"]
+    assert torch.equal(preview.network, built.network)
+    # A halfway frame reads four keys, each stored to within half of its step (int16: the Gaussian's largest fine
+    # residual / 32767; fp32: exact), with Catmull-Rom's weights' magnitudes summing to at most 1.25.
+    step = built.codec.scale if built.codec.scale is not None else torch.zeros(64, 10)
+    for t in (0.1, 0.37, 0.8):
+        gap = (built.offsets_halfway(field, xyz, t) - preview.offsets_halfway(field, xyz, t)).abs()
+        assert bool((gap <= 1.25 * 0.5 * step + 1e-6).all()), t
+    if precision == "int16":
+        assert float(gap.max()) > 0  # the rounding is there, and the preview leaves it out
+
+
+def test_a_preview_costs_the_same_few_field_passes_however_many_keys_its_table_has():
+    xyz = _xyz()
+    calls = {}
+    for intervals in (200, 2000):
+        field = _field()
+        preview = TimeTable.preview(_spec(intervals), field, xyz)
+        calls[intervals] = field.calls
+        built_field = _field()
+        TimeTable.build(_spec(intervals), built_field, xyz)
+        assert built_field.calls > intervals  # a build samples every key
+    # The middle of the range, 64 midpoints and the four keys around each.
+    assert calls[200] == calls[2000] <= 1 + 64 * 5
+    with pytest.raises(RuntimeError, match="halfway frames only"):
+        preview.offsets_at(0.5)
+
+
 def test_fp16_residuals_cost_what_their_resolution_predicts():
     field = _field(amp=0.5)
     xyz = _xyz()

@@ -49,18 +49,20 @@ def test_training_records_the_table_and_a_loaded_model_renders_the_recorded_chan
     intervals = info["spec"]["intervals"]
     assert intervals in (14, 28, 56, 112, 224, 448) and info["keys"] == intervals + 4
     assert info["gaussians"] > 0 and info["mb"] > 0 and info["build_s"] >= 0
-    ladder = table.get("intervals_tried_db", {})
-    if ladder:  # each rung tried was built once for its measurement, and how long that took is recorded
-        assert set(table["build_s"]) == set(ladder) and all(0 <= v < math.inf for v in table["build_s"].values())
-    if ladder:  # denser tables were tried only while the sparser missed the margin
+    previews, ladder = table.get("intervals_previewed_db", {}), table.get("intervals_tried_db", {})
+    if previews or ladder:  # a rung previewed is built only if its preview came within the margin
         margin = 0.02 * trained["trainer"].pipeline.model.config.time_table_margin
-        rungs = sorted(ladder, key=lambda k: int(k.split()[0]))  # "<intervals>", or "<intervals> int8"
-        losses = [ladder[k] for k in rungs]
+        assert set(table["build_s"]) == set(ladder) and set(table["preview_s"]) == set(previews)
+        assert all(0 <= v < math.inf for v in [*table["build_s"].values(), *table["preview_s"].values()])
+        assert all(previews[k] <= margin for k in set(ladder) & set(previews))
+        rungs = sorted(set(previews) | set(ladder), key=lambda k: int(k.split()[0]))  # "<intervals>" [+ " int8"]
+        # Denser tables were tried only while the sparser missed the margin, as previewed or as built.
+        losses = [{**previews, **ladder}[k] for k in rungs]
         assert all(v > margin for v in losses[:-1])
         if losses[-1] <= margin:
             assert int(rungs[-1].split()[0]) == intervals
         else:
-            assert ladder[str(intervals)] == min(losses)
+            assert losses[[int(k.split()[0]) for k in rungs].index(intervals)] == min(losses)
     model, guard = _load(trained)
     line = [x for x in capsys.readouterr().out.splitlines() if x.startswith("Render switches:")][0]
     assert f"time_table {record['tried'][TABLE]:.4f} dB" in line
@@ -116,3 +118,29 @@ def test_a_table_over_the_bound_or_the_budget_stays_off_and_says_why(trained):
     assert "time_table inf dB" in line
     assert "memory budget" in model.switches.record[TABLE]["off"]
     assert not model.render_settings().time_table
+
+
+@pytest.mark.slow
+def test_the_ladder_builds_a_dense_table_only_where_its_preview_comes_within_the_margin(trained):
+    model, guard = _load(trained)
+    model.train_times = torch.linspace(0, 1, 8)  # the scene's 8 training times (a loaded model has none)
+    model.config.time_table_keys_per_frame, model.config.time_table_max_keys_per_frame = 32, 128
+    # 7 gaps: 224 intervals (built: fewer field passes than a preview), 448 and 896 (previewed first).
+    model.config.switch_bound_db = 1e-9  # no table comes within: the least change is taken
+    model.switches.measure_on_training_views(model, guard, model.step)
+    table = model.switches.record[TABLE]
+    previews, built = table["intervals_previewed_db"], table["intervals_tried_db"]
+    assert set(built) == {"224"} and set(previews) == {"448", "896"}  # no preview within the margin: none built
+    losses = {**previews, **built}
+    assert table["info"]["spec"]["intervals"] == int(min(losses, key=losses.get))
+    assert model.switches.record["tried"][TABLE] < math.inf  # the table taken was built and measured as built
+    # A margin between the sparsest rung and the next's preview: that rung is built and taken, the densest untried.
+    margin = model.config.time_table_margin
+    model.config.switch_bound_db = 0.5 * (built["224"] + previews["448"]) / margin
+    assert previews["448"] < built["224"]
+    model.switches.measure_on_training_views(model, guard, model.step)
+    table = model.switches.record[TABLE]
+    assert set(table["intervals_tried_db"]) == {"224", "448"} and set(table["intervals_previewed_db"]) == {"448"}
+    assert table["info"]["spec"]["intervals"] == 448
+    # The built table's change is its preview's plus the int16 keys' rounding: close to it.
+    assert table["intervals_tried_db"]["448"] == pytest.approx(previews["448"], rel=0.05, abs=1e-5)

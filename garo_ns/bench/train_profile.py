@@ -485,6 +485,15 @@ def adam_graph_counts(optimizers: Any) -> Optional[Dict[str, int]]:
     return None if graph is None else {"captures": graph.captures, "replays": graph.replays}
 
 
+def splats_graph_counts(model: Any) -> Optional[Dict[str, float]]:
+    """How often the run's training graph of the Gaussians (`deform_cuda_graph`) was captured, one capture per new
+    count of Gaussians, and the wall seconds those captures took, warm-up runs included (None: no such graph)."""
+    graph = getattr(model, "train_splats", None)
+    if graph is None or not getattr(graph, "enabled", False):
+        return None
+    return {"captures": int(graph.captures), "capture_s": float(graph.capture_s)}
+
+
 def render_choice_record(model: Any) -> Optional[Dict[str, Any]]:
     """What the finished model's render choice measured (garo_ns.render.switches): each approximate switch's change,
     and for the time table the rungs tried, their changes and build seconds and the table taken (None: no record)."""
@@ -497,6 +506,8 @@ def render_choice_record(model: Any) -> Optional[Dict[str, Any]]:
         "tried_db": dict(record.get("tried", {})),
         "table_rungs_db": table.get("intervals_tried_db"),
         "table_rungs_build_s": table.get("build_s"),
+        "table_rungs_previewed_db": table.get("intervals_previewed_db"),
+        "table_rungs_preview_s": table.get("preview_s"),
         "table_taken": {k: info.get(k) for k in ("keys", "mb", "build_s", "network", "gaussians")} if info else None,
         "table_off": table.get("off"),
     }
@@ -603,6 +614,7 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         "model_settings": overrides,
         "as_ns_train": bool(args.as_ns_train),
         "adam_graph": adam_graph_counts(trainer.optimizers),
+        "splats_graph": splats_graph_counts(trainer.pipeline.model),
         "gaussians_final": int(trainer.pipeline.model.num_points),
     }
     args.output.parent.mkdir(parents=True, exist_ok=True)

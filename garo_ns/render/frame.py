@@ -121,6 +121,8 @@ class FramePath:
         self.table_info: Optional[Dict[str, Any]] = None  # the last table built (or why it failed)
         # Set while the render switches are measured: the table's frames put each time halfway between keys.
         self.halfway = False
+        # Set while they preview a table (TimeTable.preview): what a table would render halfway, without its keys.
+        self.preview = False
         self.scale_offset: ScaleOffset = "log"  # the model's deform_scale_offset
 
     def splats(
@@ -187,17 +189,20 @@ class FramePath:
 
     def time_table(self, field: DeformationField, canonical: Canonical, spec: TableSpec) -> Optional[TimeTable]:
         """The table of `spec` for these parameters, built on first use (and again when they change); None
-        when it cannot be built (out of memory, ...): the reason is in `table_info` and the network renders."""
-        key = (spec, versions(list(canonical) + list(field.parameters())), self.scale_offset)
+        when it cannot be built (out of memory, ...): the reason is in `table_info` and the network renders. While
+        `preview` is set, the table's `TimeTable.preview` instead (halfway frames only)."""
+        key = (spec, versions(list(canonical) + list(field.parameters())), self.scale_offset, self.preview)
         if self._table is None or self._table[0] != key:
             self._table, self._table_rows = None, None  # the old table's memory first
             start = perf_counter()
             try:
-                built: Optional[TimeTable] = TimeTable.build(
+                make = TimeTable.preview if self.preview else TimeTable.build
+                built: Optional[TimeTable] = make(
                     spec, field, canonical.means.detach(), scales=(canonical.log_scales.detach(), self.scale_offset)
                 )
                 self.table_info = {**built.info, "build_s": perf_counter() - start}  # type: ignore[union-attr]
-                self._table_rows = table_rows(canonical, built)  # type: ignore[arg-type]
+                # A preview renders halfway frames only (the reference path): no frame rows for it.
+                self._table_rows = None if self.preview else table_rows(canonical, built)  # type: ignore[arg-type]
             except (RuntimeError, MemoryError) as err:  # torch's out-of-memory is a RuntimeError
                 built, self.table_info = None, {"error": f"{type(err).__name__}: {err}"[:300]}
             self._table = (key, built)

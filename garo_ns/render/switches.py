@@ -24,7 +24,7 @@ from torch import Tensor
 
 from garo_ns.render.backend import Backend, resolve_backend
 from garo_ns.render.frame import FrameSettings
-from garo_ns.render.time_table import TableSpec, spec_for
+from garo_ns.render.time_table import TableSpec, TimeTable, spec_for
 
 EXACT = ("cuda_graph", "lean_raster")
 """Switches that change no pixel: on by default outside training wherever CUDA runs."""
@@ -430,24 +430,43 @@ class SwitchDecision:
                 return guard.render(model, i, switches)
 
             targets = guard.targets(model)
-            ladder: Dict[str, float] = {}
-            build_s: Dict[str, float] = {}  # each rung's build: most of what the choice costs at the end of training
+            ladder: Dict[str, float] = {}  # the rungs built, each measured as built
+            build_s: Dict[str, float] = {}  # each built rung's build: most of what the choice costs
+            previews: Dict[str, float] = {}  # every rung tried, measured as its preview
+            preview_s: Dict[str, float] = {}
             if cfg.time_table is None and len(specs) > 1:  # the fewest keys within the margin, else the best
                 probe = measure_on_views(render, targets)
+                margin = cfg.switch_bound_db * cfg.time_table_margin
                 for candidate in specs:
                     self._measuring = spec = candidate
-                    ladder[rung_name(candidate, cfg)] = probe(FrameSettings(time_table=True))
-                    build_s[rung_name(candidate, cfg)] = float((model.frame.table_info or {}).get("build_s", math.nan))
-                    if ladder[rung_name(candidate, cfg)] <= cfg.switch_bound_db * cfg.time_table_margin:
+                    name = rung_name(candidate, cfg)
+                    # A rung's preview is its table less the keys' storage rounding: where it samples the field
+                    # fewer times than the build, a table whose preview misses the margin is not built (the
+                    # rounding only adds to its change).
+                    if TimeTable.field_passes(candidate, preview=True) < TimeTable.field_passes(candidate):
+                        model.frame.preview = True
+                        try:
+                            previews[name] = probe(FrameSettings(time_table=True))
+                        finally:
+                            model.frame.preview = False
+                        preview_s[name] = float((model.frame.table_info or {}).get("build_s", math.nan))
+                        if previews[name] > margin:
+                            continue
+                    ladder[name] = probe(FrameSettings(time_table=True))
+                    build_s[name] = float((model.frame.table_info or {}).get("build_s", math.nan))
+                    if ladder[name] <= margin:
                         break
-                else:
-                    best = min(specs, key=lambda s: ladder[rung_name(s, cfg)])
+                else:  # none within the margin: the least change, as built where built, else as previewed
+                    measured = {**previews, **ladder}
+                    best = min(specs, key=lambda s: measured[rung_name(s, cfg)])
                     self._measuring = spec = best
             line = self.measure(cfg, model.device, render, targets, step)
             built = model.frame.table_info
             if self.record is not None and cfg.time_table is None:
                 entry = {"spec": built["spec"], "info": built} if spec and built else {"off": why}
-                self.record[TABLE] = {**entry, "intervals_tried_db": ladder, "build_s": build_s} if ladder else entry
+                rungs = {"intervals_tried_db": ladder, "build_s": build_s}
+                rungs.update(intervals_previewed_db=previews, preview_s=preview_s)
+                self.record[TABLE] = {**entry, **rungs} if previews or ladder else entry
             return line
         except Exception as err:
             self.record = None

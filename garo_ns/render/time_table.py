@@ -361,6 +361,55 @@ class TimeTable:
         table.info["mb"] = table.nbytes() / 2**20
         return table
 
+    @classmethod
+    @torch.no_grad()
+    def preview(
+        cls, spec: TableSpec, field: Any, xyz: Tensor, midpoint_samples: int = 64, scales: Scales = None
+    ) -> "TimeTable":
+        """What a table of `spec` renders halfway between two keys (`offsets_halfway`), without its keys: the order
+        and the Gaussians left to the network chosen as `build` chooses them, from the keys around the sampled
+        midpoints alone, and the residuals unrounded (fp32 whatever `spec.precision`: storage rounding only adds to
+        what the keys' spacing leaves). A few hundred of the field's passes where `build` makes one per key (a
+        dense table takes thousands): the render switches preview a ladder of tables with it and build only a
+        table whose preview comes within their margin (garo_ns.render.switches). It serves halfway frames only."""
+        times = spec.key_times().tolist()
+        base = field_offsets(field, xyz, [0.5 * (spec.t_lo + spec.t_hi)], scales=scales)[0]
+        around: Dict[str, Any] = {"segment": None, "keys": None}
+
+        def interp(order: Order, i: int, f: float) -> Tensor:
+            # The four keys around segment i (what either order reads), sampled once for both orders.
+            if around["segment"] != i:
+                around["keys"] = field_offsets(field, xyz, times[i - 1 : i + 3], scales=scales) - base
+                around["segment"] = i
+            return interpolate(around["keys"], order, 1, f)
+
+        err = midpoint_errors(spec, field, xyz, base, interp, midpoint_samples, scales)
+        off = {o: int((err[o] > spec.tolerance).sum()) for o in ORDERS}
+        order: Order = min(ORDERS, key=lambda o: (off[o], o != spec.order))
+        spec = TableSpec(**{**spec.to_dict(), "order": order})
+        network = torch.nonzero(err[order] > spec.tolerance).squeeze(-1)
+        n = xyz.shape[0]
+        empty = torch.empty(0, n, CHANNELS, device=xyz.device)
+        info = {"spec": spec.to_dict(), "keys": len(times), "gaussians": int(n), "network": int(network.numel())}
+        info.update(preview=True, network_by_order=off)
+        table = cls(spec, base, empty, empty, torch.arange(n, device=xyz.device), network, info, Codec("fp32"))
+        table.scales = scales
+        return table
+
+    @staticmethod
+    def field_passes(spec: TableSpec, midpoint_samples: int = 64, preview: bool = False) -> int:
+        """How many times the field is sampled at (each over every Gaussian) to `build` a table of `spec` (with room
+        for its residuals: one pass over the keys), or to `preview` it."""
+        midpoints = min(midpoint_samples, spec.intervals + 1)
+        if preview:
+            return 1 + 5 * midpoints  # the middle; per midpoint its truth and the four keys around it
+        return 1 + len(spec.anchor_keys()) + spec.intervals + 2 * PAD + midpoints
+
+    @property
+    def is_preview(self) -> bool:
+        """Whether this is a `preview` (no keys: it renders halfway frames only)."""
+        return bool(self.info.get("preview"))
+
     def nbytes(self) -> int:
         parts = (self.base, self.anchors, self.residual, self.moving, self.network) + (
             (self.codec.scale,) if self.codec.scale is not None else ()
@@ -469,6 +518,8 @@ class TimeTable:
 
     def offsets_at(self, time: float) -> Tensor:
         """Every Gaussian's table offsets [N, 10] at `time` (the network's Gaussians included, as tabled)."""
+        if self.is_preview:
+            raise RuntimeError("a time table's preview holds no keys: it renders halfway frames only")
         i, f = self.spec.segment(time)
         out = self.base.clone()
         if self.moving.numel():
