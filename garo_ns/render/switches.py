@@ -175,7 +175,9 @@ class RenderSettings:
     switch_bound_db (else it takes the table that changed them least, judged against the whole bound): the
     training views are a sample, and a test view can change more (mutant's compacted model at 40k: 0.021 dB on a
     test view against 0.0104 on the training views, 4 keys per frame). More keys cost memory, not frame time: a
-    frame reads two keys whatever their number (benchmarks/results/time_table_orders_jumpingjacks_H200.json)."""
+    frame reads two keys whatever their number (benchmarks/results/time_table_orders_jumpingjacks_H200.json). A rung
+    whose build samples the field more often than its preview (`TimeTable.preview`: only the keys around the measured
+    views and midpoints) is previewed first, and built only if its preview comes within the margin."""
     time_table_budget_mb: float = 6144.0
     """Largest time table in MB (int16: 20 bytes per moving Gaussian and key, so 32 keys per frame of 200
     frames take 4.4 GB at 34k Gaussians). At the end of training a model that would need more gets fewer
