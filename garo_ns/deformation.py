@@ -9,7 +9,7 @@ first passes the time encoding through a small network of its own (one hidden la
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, List, Literal, Optional, Tuple
+from typing import Callable, Dict, List, Literal, Optional, Tuple
 
 import torch
 from torch import Tensor, nn
@@ -130,6 +130,45 @@ class DeformationField(nn.Module):
         # One time (a scalar) is encoded once and broadcast: the time network runs on one row.
         t_enc = t_enc.expand(xyz.shape[0], -1) if t_enc.shape[0] == 1 else t_enc
         return torch.cat([positional_encoding(xyz, self.pos_freqs, self.pos_bands), t_enc.to(xyz.dtype)], dim=-1)
+
+    def time_sampler(self, xyz: Tensor) -> Callable[[Tensor], Tuple[Tensor, Tensor, Tensor]]:
+        """For fixed canonical positions `xyz` [N, 3], a function of times [T] that returns the offsets at every
+        time ([T * N, 3], [T * N, 4], [T * N, 3], time-major): `forward(xyz.repeat(T, 1), times.repeat_interleave(N))`
+        up to the order of its sums. The positions' share of the two layers that read the encoding (the first and the
+        one after the skip) is computed once here, so sampling a time costs the hidden products alone, without the
+        position encoding, the time network per row or the concatenations. For time tables (thousands of times)."""
+        pos_dim = 3 * (1 + 2 * self.pos_freqs)
+        x_enc = positional_encoding(xyz, self.pos_freqs, self.pos_bands)
+        first = self.layers[0]
+        skip = self.layers[self.skip + 1] if self.skip + 1 < len(self.layers) else None
+        in_dim = first.in_features
+
+        def position_share(layer: nn.Linear) -> Tensor:
+            return torch.addmm(layer.bias, x_enc, layer.weight[:, :pos_dim].t())
+
+        fixed_first = position_share(first)
+        fixed_skip = position_share(skip) if skip is not None else None
+
+        def sample(times: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
+            t = times.to(dtype=xyz.dtype, device=xyz.device).reshape(-1, 1)
+            t_enc = positional_encoding(t, self.time_freqs, self.time_bands)
+            if self.time_net is not None:
+                t_enc = self.time_net(t_enc)
+
+            def layer_in(fixed: Tensor, weight: Tensor) -> Tensor:  # [T * N, width]: position share + time share
+                return (fixed[None] + (t_enc @ weight.t())[:, None]).flatten(0, 1)
+
+            h = torch.relu(layer_in(fixed_first, first.weight[:, pos_dim:]))
+            for i, layer in enumerate(self.layers[1:], start=1):
+                if layer is skip:
+                    assert fixed_skip is not None
+                    timed = layer_in(fixed_skip, layer.weight[:, pos_dim:in_dim])
+                    h = torch.relu(torch.addmm(timed, h, layer.weight[:, in_dim:].t()))
+                else:
+                    h = torch.relu(layer(h))
+            return self.d_xyz(h), self.d_rot(h), self.d_scale(h)
+
+        return sample
 
     def hidden(self, xyz: Tensor, time: Tensor | float) -> List[Tensor]:
         """The ReLU output of every hidden layer [N, width] (before the skip concatenation)."""

@@ -38,6 +38,23 @@ def test_hidden_matches_forward():
     torch.testing.assert_close(field.d_xyz(hidden[-1]), field(xyz, 0.7)[0])
 
 
+@pytest.mark.parametrize(
+    "shape", [dict(time_net=30), dict(time_net=0), dict(depth=2, skip=0, width=16), dict(depth=3, skip=5)]
+)
+def test_the_time_sampler_is_the_field_at_each_time(shape):
+    """Sampling fixed positions at many times with the positions' share of the encoding's layers made once gives
+    the field's offsets at each time, time-major, up to the order of the sums (fp32)."""
+    torch.manual_seed(0)
+    field = DeformationField(**shape)
+    xyz, times = torch.randn(500, 3), torch.tensor([0.1, 0.5, 0.93])
+    with torch.no_grad():
+        got = field.time_sampler(xyz)(times)
+        want = field(xyz.repeat(3, 1), times.repeat_interleave(500)[:, None])
+    for a, b in zip(got, want):
+        assert a.shape == b.shape
+        assert float((a - b).abs().max()) <= 2e-6 * float(b.abs().max())
+
+
 def test_health_of_a_live_field_and_of_a_collapsed_one():
     field = small_field()
     xyz, times = points(), torch.linspace(0, 1, 8)

@@ -411,26 +411,38 @@ def test_a_tabled_frame_replayed_as_a_cuda_graph_is_the_eager_frame():
 
 def test_a_field_that_takes_a_time_per_row_is_sampled_several_times_per_call():
     """A table's keys on a model of some 10^4 Gaussians are thousands of small field calls: the deformation field
-    takes one time per row, so the keys are sampled several at a time, with the offsets (and so the table) those
-    calls one time at a time give, in the same order."""
+    takes one time per row, so the keys are sampled several at a time (from SAMPLER_TIMES times on through its
+    time sampler, the positions' share of the encoding's layers made once), with the offsets (and so the table)
+    those calls one time at a time give, in the same order."""
     from garo_ns.deformation import DeformationField
-    from garo_ns.render.time_table import field_offsets, iter_field_offsets
+    from garo_ns.render.time_table import SAMPLER_TIMES, field_offsets, iter_field_offsets
 
     torch.manual_seed(0)
     field = DeformationField(pos_freqs=4, time_freqs=3, depth=3, width=32, skip=1).eval()
-    calls = []
+    calls, sampled = [], []
     field.register_forward_hook(lambda module, args, out: calls.append(args[0].shape[0]))
+    make_sampler = field.time_sampler
+
+    def counting_sampler(xyz):
+        sample = make_sampler(xyz)
+        return lambda t: (sampled.append(t.numel() * xyz.shape[0]), sample(t))[1]
+
+    field.time_sampler = counting_sampler
     xyz = torch.rand(300, 3) * 2 - 1
     scales = (torch.randn(300, 3) - 3.0, "log")
     times = torch.rand(40, generator=torch.Generator().manual_seed(1)).tolist()
     batched = field_offsets(field, xyz, times, chunk=3000, scales=scales)
-    assert calls == [3000] * 4  # ten times per call
+    assert sampled == [3000] * 4 and calls == []  # ten times per call, through the sampler
     assert [k for k, _ in iter_field_offsets(field, xyz, times, chunk=3000)] == list(range(40))
+    few = times[: SAMPLER_TIMES - 1]
+    repeated = field_offsets(field, xyz, few, chunk=3000, scales=scales)  # too few times for the sampler
+    assert calls == [300 * len(few)]
     calls.clear()
     field.times_per_row = False  # as a stand-in field that takes one time per call
     single = field_offsets(field, xyz, times, chunk=3000, scales=scales)
     assert calls == [300] * 40
     assert torch.allclose(batched, single, rtol=1e-5, atol=1e-6)
+    assert torch.allclose(repeated, single[: len(few)], rtol=1e-5, atol=1e-6)
 
     spec = _spec(60, precision="int16", tolerance=1.0)
     table = TimeTable.build(spec, field, xyz, scales=scales)

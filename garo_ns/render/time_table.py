@@ -164,6 +164,11 @@ def field_offsets(
     return out
 
 
+SAMPLER_TIMES = 8
+"""Times from which `iter_field_offsets` samples a field through its `time_sampler` (the positions' share of the
+encoding's layers made once): below it, making that share costs about what it saves."""
+
+
 def iter_field_offsets(
     field: Any, xyz: Tensor, times: Sequence[float], chunk: int = 1 << 18, scales: Scales = None
 ) -> Iterator[Tuple[int, Tensor]]:
@@ -171,9 +176,13 @@ def iter_field_offsets(
     a few times' offsets at once rather than all of them. A field that takes one time per row
     (`times_per_row`, e.g. garo_ns.deformation.DeformationField) gets several times in one call of up to `chunk`
     rows: a table's keys on a model of some 10^4 Gaussians are thousands of small calls otherwise, bound by
-    their launches."""
+    their launches. One with a `time_sampler` (DeformationField) is sampled through it from SAMPLER_TIMES times on:
+    the same offsets up to the order of sums, without the position encoding's share of each call."""
     n = xyz.shape[0]
     per_call = max(1, chunk // max(n, 1)) if getattr(field, "times_per_row", False) else 1
+    if hasattr(field, "time_sampler") and per_call > 1 and len(times) >= SAMPLER_TIMES:
+        yield from _sampled_offsets(field, xyz, times, per_call, scales)
+        return
     with torch.no_grad():
         for k0 in range(0, len(times), per_call):
             group = [float(t) for t in times[k0 : k0 + per_call]]
@@ -190,6 +199,24 @@ def iter_field_offsets(
             d = torch.cat(field(xyz.repeat(len(group), 1), t), dim=-1).float()
             if scales is not None:
                 d = as_log_offsets(d, scales[0].repeat(len(group), 1), scales[1])  # type: ignore[arg-type]
+            for j, block in enumerate(d.view(len(group), n, CHANNELS)):
+                yield k0 + j, block
+
+
+def _sampled_offsets(
+    field: Any, xyz: Tensor, times: Sequence[float], per_call: int, scales: Scales
+) -> Iterator[Tuple[int, Tensor]]:
+    """`iter_field_offsets` through the field's `time_sampler`, `per_call` times a call."""
+    n = xyz.shape[0]
+    with torch.no_grad():
+        sample = field.time_sampler(xyz)
+        repeated = scales[0].repeat(per_call, 1) if scales is not None else None
+        for k0 in range(0, len(times), per_call):
+            group = torch.tensor([float(t) for t in times[k0 : k0 + per_call]], device=xyz.device)
+            d = torch.cat(sample(group), dim=-1).float()
+            if scales is not None:
+                assert repeated is not None
+                d = as_log_offsets(d, repeated[: d.shape[0]], scales[1])  # type: ignore[arg-type]
             for j, block in enumerate(d.view(len(group), n, CHANNELS)):
                 yield k0 + j, block
 
