@@ -3,10 +3,11 @@ allocations of containers instead of CPython's 700.
 
 A training step allocates a few thousand Python containers (autograd nodes, tensor wrappers, the loop's dicts),
 most freed by reference counting within the step. At the default threshold the collector runs two or three times a
-step and scans what the step still holds each time: on the CPU demo scene (600 steps, a 2-core machine) 0.75 s of a
-59 s run went to 1,398 young and 127 middle collections, and 0.03 s to 7 collections at a threshold of 20,000. On a
-GPU the loop's host time is what a step waits on after densification (docs/benchmarks.md), so the same scans cost
-wall time there. What only the collector frees (reference cycles) waits a few steps longer.
+step and scans what the step still holds each time. A small effect, measured: 600 CPU steps on a synthetic scene
+spent 0.53 and 0.58 s of their 51 and 56 s in 1,519 collections at CPython's threshold, 0.03 s in 211 at 20,000
+(benchmarks/results/collector_cpu.json, `python benchmarks/collector_cpu.py`); the three 40k runs alone on an H100
+with it moved by no more than two runs' spread (docs/benchmarks.md). What only the collector frees (reference
+cycles) waits a few steps longer.
 """
 
 from __future__ import annotations

@@ -78,8 +78,9 @@ class D3dgsRecipe(SplatfactoModelConfig):
     jumpingjacks; benchmarks/results/train_profile_adamgraph_*), no gain beyond two runs' spread."""
     gc_threshold: int = 20_000
     """While training, Python's garbage collector scans its youngest generation every this many net allocations
-    of containers instead of every 700 (garo_ns.collector): a step allocates thousands, so at 700 the collector
-    ran two or three times a step, 0.75 s of a 59 s CPU demo run against 0.03 s at 20,000. 0: Python's own."""
+    of containers instead of every 700 (garo_ns.collector): a step allocates thousands, so at 700 it runs two or three
+    times a step. 600 CPU steps spent 0.53 to 0.58 s in collections at 700, 0.03 s at 20,000
+    (benchmarks/results/collector_cpu.json); no gain beyond the spread on an H100. 0: Python's own."""
     train_lean_raster: bool = True
     """Training on CUDA: rasterize through gsplat's kernels behind two autograd nodes (garo_ns.render.train_raster)
     instead of gsplat's `rasterization` wrapper: the same kernels, values and gradients (tests/test_train_raster.py,
