@@ -12,6 +12,12 @@
 #                                                      result $W/results/NAME.json, log $W/NAME.log
 #                                                      AFTER=JOB before it: start once job JOB has ended (a
 #                                                      second wave on the same GPUs, queued in the same call)
+#   bash benchmarks/device_run.sh scene SCENE          copy .scenes/SCENE to /tmp (a call that carries only it)
+#   bash benchmarks/device_run.sh profile NAME SCENE [train_profile args...]
+#                                                      python -m garo_ns.bench.train_profile --score on /tmp/SCENE in
+#                                                      the background once the scene is there, result
+#                                                      $W/results/NAME.json; AFTER=JOB queues it behind job JOB (runs
+#                                                      alone on the GPU, one after another)
 #   bash benchmarks/device_run.sh extra NAME CMD...    any other command in the background (parity, ...)
 #   bash benchmarks/device_run.sh wait SECONDS         poll until every launched job ended or SECONDS passed,
 #                                                      then collect (what has landed comes back in every call)
@@ -65,7 +71,7 @@ export PYTHONPATH=$W/src:${PYTHONPATH:-}
 case $phase in
 setup)
   scene=$1
-  cp -r .scenes/$scene /tmp/$scene
+  cp -r .scenes/$scene /tmp/$scene && touch /tmp/$scene.ready
   start_mps
   cd $W/src
   nvidia-smi --query-gpu=index,name,memory.total --format=csv
@@ -113,6 +119,18 @@ launch)
       --output $W/results/$name.json --work-dir $W/$name > $W/$name.log 2>&1; echo \$? > $W/jobs/$name.done" \
       > /dev/null 2>&1 &
   touch $W/jobs/$name.job; sleep 2; echo "launched $name on GPUs $gpus${AFTER:+ (starts when $AFTER has ended)}" ;;
+scene)
+  cp -r .scenes/$1 /tmp/$1 && touch /tmp/$1.ready && echo "/tmp/$1 ready" ;;
+profile)
+  name=$1; scene=$2; shift 2
+  cd $W/src
+  # Waits for the scene's copy (a later call may carry it) and for AFTER's job, so that a queue of runs can be
+  # launched in the first call.
+  after=${AFTER:+while [ ! -e $W/jobs/$AFTER.done ]; do sleep 5; done;}
+  setsid nohup bash -c "$after while [ ! -e /tmp/$scene.ready ]; do sleep 2; done; \
+      python3 -m garo_ns.bench.train_profile --scene /tmp/$scene --score $* --work-dir $W/$name \
+      --output $W/results/$name.json > $W/$name.log 2>&1; echo \$? > $W/jobs/$name.done" > /dev/null 2>&1 &
+  touch $W/jobs/$name.job; sleep 2; echo "launched $name${AFTER:+ (starts when $AFTER has ended)}" ;;
 extra)
   name=$1; shift
   cd $W/src
