@@ -180,13 +180,12 @@ def iter_field_offsets(
     the same offsets up to the order of sums, without the position encoding's share of each call."""
     n = xyz.shape[0]
     per_call = max(1, chunk // max(n, 1)) if getattr(field, "times_per_row", False) else 1
-    if hasattr(field, "time_sampler") and per_call > 1 and len(times) >= SAMPLER_TIMES:
-        yield from _sampled_offsets(field, xyz, times, per_call, scales)
-        return
     with torch.no_grad():
+        sampled = hasattr(field, "time_sampler") and per_call > 1 and len(times) >= SAMPLER_TIMES
+        sample = field.time_sampler(xyz) if sampled else None
         for k0 in range(0, len(times), per_call):
             group = [float(t) for t in times[k0 : k0 + per_call]]
-            if len(group) == 1:
+            if len(group) == 1 and sample is None:
                 d = torch.empty(n, CHANNELS, device=xyz.device)
                 for s in range(0, n, chunk):
                     part = torch.cat(field(xyz[s : s + chunk], group[0]), dim=-1).float()
@@ -195,28 +194,13 @@ def iter_field_offsets(
                     d[s : s + chunk] = part
                 yield k0, d
                 continue
-            t = torch.tensor(group, dtype=xyz.dtype, device=xyz.device).repeat_interleave(n)[:, None]
-            d = torch.cat(field(xyz.repeat(len(group), 1), t), dim=-1).float()
+            t = torch.tensor(group, dtype=xyz.dtype, device=xyz.device)
+            if sample is not None:
+                d = torch.cat(sample(t), dim=-1).float()
+            else:
+                d = torch.cat(field(xyz.repeat(len(group), 1), t.repeat_interleave(n)[:, None]), dim=-1).float()
             if scales is not None:
                 d = as_log_offsets(d, scales[0].repeat(len(group), 1), scales[1])  # type: ignore[arg-type]
-            for j, block in enumerate(d.view(len(group), n, CHANNELS)):
-                yield k0 + j, block
-
-
-def _sampled_offsets(
-    field: Any, xyz: Tensor, times: Sequence[float], per_call: int, scales: Scales
-) -> Iterator[Tuple[int, Tensor]]:
-    """`iter_field_offsets` through the field's `time_sampler`, `per_call` times a call."""
-    n = xyz.shape[0]
-    with torch.no_grad():
-        sample = field.time_sampler(xyz)
-        repeated = scales[0].repeat(per_call, 1) if scales is not None else None
-        for k0 in range(0, len(times), per_call):
-            group = torch.tensor([float(t) for t in times[k0 : k0 + per_call]], device=xyz.device)
-            d = torch.cat(sample(group), dim=-1).float()
-            if scales is not None:
-                assert repeated is not None
-                d = as_log_offsets(d, repeated[: d.shape[0]], scales[1])  # type: ignore[arg-type]
             for j, block in enumerate(d.view(len(group), n, CHANNELS)):
                 yield k0 + j, block
 
