@@ -71,7 +71,7 @@ def test_the_graphed_splats_are_the_composed_gaussians_forward_and_backward(scal
     torch.manual_seed(0)
     field = DeformationField(time_net=30).cuda().train()
     graphed = GraphedSplats(lambda: field, enabled=True)
-    kept = None
+    kept = ()
     for n, seed in ((4000, 0), (4000, 1), (4000, 2), (6000, 3), (3000, 4)):
         canonical = _canonical(n, seed)
         t = 0.1 + 0.2 * seed
@@ -86,7 +86,7 @@ def test_the_graphed_splats_are_the_composed_gaussians_forward_and_backward(scal
             assert torch.allclose(a, b, rtol=1e-5, atol=1e-6)
         for a, b in zip(got, want_grads):
             assert torch.allclose(a, b, rtol=1e-4, atol=1e-6 * float(b.abs().max().clamp_min(1.0)))
-        if kept is None:
+        if seed == 2:  # the 4000-Gaussian graph's last replay (a replay rewrites its graph's outputs in place)
             kept = (out[0], out[0].detach().clone())
     # Later captures share the first one's memory pool: an output of a dropped graph still held keeps its values.
     assert torch.equal(kept[0], kept[1])
