@@ -29,6 +29,8 @@ from typing import Any, Callable, Iterable, List, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
+from garo_ns.collector import collector_paused
+
 
 class LeanAdam(torch.optim.Adam):
     """`torch.optim.Adam(fused=True)` whose step skips the host bookkeeping (see the module docstring)."""
@@ -243,7 +245,7 @@ class AdamGraph:
 
         if device.type == "cuda":
             graph = torch.cuda.CUDAGraph()
-            with torch.cuda.graph(graph):
+            with collector_paused(), torch.cuda.graph(graph):
                 body()
             self.run = graph.replay
         else:

@@ -8,12 +8,18 @@ spent 0.53 and 0.58 s of their 51 and 56 s in 1,519 collections at CPython's thr
 (benchmarks/results/collector_cpu.json, `python benchmarks/collector_cpu.py`); the three 40k runs alone on an H100
 with it moved by no more than two runs' spread (docs/benchmarks.md). What only the collector frees (reference
 cycles) waits a few steps longer.
+
+`collector_paused` keeps the collector out of a CUDA graph's capture: a dropped graph lives in reference cycles
+(torch's graphed callables are autograd Function classes holding their graphs), so only a collection frees it, and
+a graph freed while another is being captured invalidates that capture (a `deform-splatfacto` run crashed so at a
+new count of Gaussians, with a dozen dropped graphs collected at once).
 """
 
 from __future__ import annotations
 
 import gc
-from typing import Optional, Tuple
+from contextlib import contextmanager
+from typing import Iterator, Optional, Tuple
 
 DEFAULT_THRESHOLD = 20_000
 
@@ -38,3 +44,16 @@ class TrainingCollector:
         if self.saved is not None:
             gc.set_threshold(*self.saved)
             self.saved = None
+
+
+@contextmanager
+def collector_paused() -> Iterator[None]:
+    """No collection while the body runs (a CUDA graph's capture: see the module docstring); the collector is
+    enabled afterwards only if it was before."""
+    was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was_enabled:
+            gc.enable()

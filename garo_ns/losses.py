@@ -13,6 +13,7 @@ from typing import Any, Callable, Dict, Optional, Tuple
 import torch
 from torch import Tensor
 
+from garo_ns.collector import collector_paused
 from garo_ns.errors import GaroTrainingError
 from garo_ns.ssim import SSIM
 
@@ -54,7 +55,8 @@ class ImageLoss:
         key = (tuple(pred.shape), pred.dtype, pred.device, tuple(gt.shape), gt.dtype)
         if key not in self.graphs:
             samples = (gt.detach().clone(), pred.detach().clone().requires_grad_(True))
-            self.graphs[key] = torch.cuda.make_graphed_callables(self.eager, samples)
+            with collector_paused():
+                self.graphs[key] = torch.cuda.make_graphed_callables(self.eager, samples)
         return self.graphs[key](gt.detach(), pred)
 
 

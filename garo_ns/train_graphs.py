@@ -19,6 +19,7 @@ from typing import Any, Callable, Optional, Tuple, Union
 import torch
 from torch import Tensor, nn
 
+from garo_ns.collector import collector_paused
 from garo_ns.deformation import ScaleOffset
 from garo_ns.render.frame import Canonical, Splats, activate, compose
 
@@ -101,7 +102,9 @@ class GraphedSplats:
             warmup = 3 if self.captures == 0 else 1
             call = _SplatsCall(run, scale_offset)
             start = perf_counter()
-            self.graphed = torch.cuda.make_graphed_callables(call, samples, num_warmup_iters=warmup, pool=self._pool)
+            with collector_paused():
+                graphed = torch.cuda.make_graphed_callables(call, samples, num_warmup_iters=warmup, pool=self._pool)
+            self.graphed = graphed
             self.capture_s += perf_counter() - start
             self.key = key
             self.captures += 1

@@ -6,7 +6,7 @@ import gc
 
 import pytest
 
-from garo_ns.collector import TrainingCollector
+from garo_ns.collector import TrainingCollector, collector_paused
 
 
 @pytest.fixture
@@ -33,6 +33,24 @@ def test_a_threshold_of_zero_leaves_the_collector_as_it_is_and_a_negative_one_is
     assert gc.get_threshold() == thresholds and off.saved is None
     with pytest.raises(ValueError, match=">= 0"):
         TrainingCollector(-1)
+
+
+def test_the_collector_is_paused_inside_and_back_as_it_was_after():
+    was = gc.isenabled()
+    try:
+        gc.enable()
+        with collector_paused():
+            assert not gc.isenabled()
+        assert gc.isenabled()
+        with pytest.raises(RuntimeError), collector_paused():
+            raise RuntimeError("a capture that fails")
+        assert gc.isenabled()  # given back on an error too
+        gc.disable()
+        with collector_paused():
+            pass
+        assert not gc.isenabled()  # a collector that was off stays off
+    finally:
+        gc.enable() if was else gc.disable()
 
 
 @pytest.mark.slow

@@ -4,6 +4,9 @@ them)."""
 
 from __future__ import annotations
 
+import gc
+from contextlib import contextmanager
+
 import pytest
 import torch
 
@@ -137,3 +140,44 @@ def test_the_bf16_step_graph_replays_the_eager_bf16_step():
             for p in field.parameters():
                 p.add_(0.01 * torch.randn_like(p))
     assert graphed.captures == 1
+
+
+@contextmanager
+def _collections_seen():
+    """Python's collector run at (nearly) every allocation; yields, per collection, whether a CUDA graph was being
+    captured on the current stream when it ran."""
+    seen = []
+
+    def watch(phase, info):
+        if phase == "start":
+            seen.append(torch.cuda.is_current_stream_capturing())
+
+    saved = gc.get_threshold()
+    gc.callbacks.append(watch)
+    gc.set_threshold(1)
+    try:
+        yield seen
+    finally:
+        gc.set_threshold(*saved)
+        gc.callbacks.remove(watch)
+
+
+def test_no_collection_runs_inside_a_capture():
+    """A dropped graph is freed only by a collection, and one freed during another capture invalidates that capture
+    (a training run crashed so): every capture here runs with the collector paused."""
+    from garo_ns.deformation import DeformationField
+    from garo_ns.render.graphs import capture
+    from garo_ns.train_graphs import GraphedSplats
+
+    field = DeformationField(time_net=30).cuda().train()
+    graphed = GraphedSplats(lambda: field, enabled=True)
+    loss = ImageLoss(SSIM().cuda(), 0.2, graphed=True)
+    with _collections_seen() as seen:
+        for n in (3000, 3100, 3200):  # each new count drops the previous graph
+            out = graphed(_canonical(n, n), 0.3, "log")
+            torch.autograd.grad(out[0].sum(), field.parameters(), allow_unused=True)
+        gt, pred = _images((32, 32, 3), 0)
+        loss(gt, pred).backward()
+        capture(lambda x: 2 * x, (torch.ones(4, device="cuda"),), torch.device("cuda"), 1)
+    assert graphed.captures == 3 and len(seen) > 10  # the collector did run, often
+    assert not any(seen)

@@ -15,6 +15,8 @@ from typing import Any, Callable, Hashable, Optional, Tuple
 import torch
 from torch import Tensor
 
+from garo_ns.collector import collector_paused
+
 
 class TimeGraph:
     """A CUDA graph of `fn(time)` for one `key`; captured again whenever the key changes.
@@ -117,7 +119,7 @@ def capture(
             fn(*args)
     torch.cuda.current_stream(device).wait_stream(stream)
     graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph):
+    with collector_paused(), torch.cuda.graph(graph):
         outputs = fn(*args)
     return graph, outputs
 
