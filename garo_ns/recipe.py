@@ -91,7 +91,10 @@ class D3dgsRecipe(SplatfactoModelConfig):
     (garo_ns.render.tiles) instead of through gsplat's `isect_tiles`, which reads their size on the host and so makes
     every step wait for the GPU before the host can queue the rest of it. The same lists whenever the capacity holds
     them (1.5 times the largest total seen, measured again when the count of Gaussians changes; a step over it loses
-    its farthest entries and is counted). Off until timed on a GPU."""
+    its farthest entries and is counted). Off: timed at 40k on three scenes it was slower, 313 to 340 s against 256
+    to 268 (benchmarks/results/train_profile_tiles_*_H200.json): building and sorting the padded lists in torch
+    costs the GPU about 1 ms more a step than gsplat's kernels, and the host more launches than the wait saved.
+    The lists' fixed size is what a graph of the whole rasterization would need."""
     scene_extent: Optional[float] = None
     """Scene extent for densification thresholds; None takes the dataparser's camera extent."""
 
