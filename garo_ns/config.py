@@ -105,8 +105,8 @@ def trainer_config(method_name: str, garo_mode: str) -> TrainerConfig:
 
 def with_bf16_training(config: TrainerConfig) -> TrainerConfig:
     """`config` with the deformation MLP's training products in bf16 (`deform_train_bf16`): measured at 40k on
-    jumpingjacks, mutant and standup for `garo-deform` only (docs/benchmarks.md, "Training speed"); the other methods
-    keep fp32 until their own A/B."""
+    jumpingjacks, mutant and standup for `garo-deform` and `deform-splatfacto` (docs/benchmarks.md, "bf16
+    training"); the other methods keep fp32 until their own A/B."""
     config.pipeline.model.deform_train_bf16 = True
     return config
 
@@ -117,7 +117,7 @@ garo_deform = MethodSpecification(
 )
 
 deform_splatfacto = MethodSpecification(
-    config=trainer_config("deform-splatfacto", "off"),
+    config=with_bf16_training(trainer_config("deform-splatfacto", "off")),
     description="Deformable 3D Gaussians (D-3DGS recipe) without GARO: the baseline.",
 )
 

@@ -320,9 +320,9 @@ class DeformationSettings:
     deform_train_bf16: bool = False
     """Training on CUDA: the deformation MLP's forward (and so its backward) under bf16 autocast, its weights kept
     in fp32 and its offsets returned in fp32 (garo_ns.train_graphs.Bf16Field); the CPU stays fp32. On a fresh field
-    the offsets differ from fp32 by about 0.3% of their norm (tests/test_training_step.py). `garo-deform` turns it
-    on: 40k steps alone on an H100 took 321 / 327 / 325 s on jumpingjacks / mutant / standup, test PSNR -0.03 dB on
-    average against fp32 runs (benchmarks/results/train_profile_bf16_*). Off elsewhere until their own A/B."""
+    the offsets differ from fp32 by about 0.3% of their norm (tests/test_training_step.py). `garo-deform` and
+    `deform-splatfacto` turn it on, each after a 40k A/B on jumpingjacks, mutant and standup against fp32 runs (test
+    PSNR -0.03 and +0.04 dB on average; benchmarks/results/train_profile_bf16_*). Off elsewhere until their own A/B."""
 
     def make_deformation(self) -> DeformationField:
         """The deformation field these settings describe (untrained)."""
