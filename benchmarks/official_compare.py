@@ -8,7 +8,8 @@
 
 (every 40k `deform-splatfacto` run of ours on the H100: one run's baseline strays by tenths of a dB.)
 
-`--ours` are result files of `python -m garo_ns.bench.benchmark` (variant `deform-splatfacto`);
+`--ours` are result files of `python -m garo_ns.bench.benchmark` (variant `deform-splatfacto`) or of
+`python -m garo_ns.bench.train_profile --method deform-splatfacto --score`;
 `--official` are what `benchmarks/official_score.py` wrote for the official code's runs. A pair is
 reported only when both arms ran the same number of steps on the same split with the same
 background on the same GPU model: anything else is refused with the reason, never averaged in. A scene
@@ -42,8 +43,34 @@ def scene_name(path_or_name: str) -> str:
     return Path(str(path_or_name).rstrip("/")).name
 
 
+# train_profile scores the test split by default, and has since it first scored (66bc3d9); D-NeRF's recipe trains on
+# black. Its files before 44c004f do not record either: their arms say so (`assumed`).
+PROFILE_DEFAULTS = {"split": "test", "background": "black"}
+
+
+def profile_arm(result: Dict[str, Any], variant: str = BASELINE) -> Dict[str, Any]:
+    """Our side of a pair from a garo_ns.bench.train_profile result (`--score`)."""
+    scene = scene_name(result.get("scene", "?"))
+    if result.get("method") != variant:
+        raise PairMismatch(f"{scene}: a profile of {result.get('method')!r}, not '{variant}'")
+    score = result.get("score") or {}
+    if score.get("psnr") is None:
+        raise PairMismatch(f"{scene}: the profile was not scored (--score)")
+    env = result.get("environment") or {}
+    arm = {k: score.get(k) for k in ("psnr", "ssim", "lpips", "num_gaussians")}
+    arm.update(fps=None, iterations=result.get("steps"), gpu=env.get("gpu"), git_commit=env.get("git_commit"))
+    arm.update(shortened=False, model_settings=result.get("model_settings") or {})
+    assumed = [k for k in PROFILE_DEFAULTS if k not in score]
+    arm.update({k: score.get(k, PROFILE_DEFAULTS[k]) for k in PROFILE_DEFAULTS})
+    if assumed:
+        arm["assumed"] = assumed
+    return arm
+
+
 def our_arm(result: Dict[str, Any], variant: str = BASELINE) -> Dict[str, Any]:
-    """Our side of a pair from a garo_ns.bench.benchmark result."""
+    """Our side of a pair from a garo_ns.bench.benchmark result, or from a train_profile one (`profile_arm`)."""
+    if "variants" not in result and "score" in result:
+        return profile_arm(result, variant)
     row = (result.get("variants") or {}).get(variant)
     if row is None or "psnr" not in row:
         raise PairMismatch(f"{scene_name(result.get('scene', '?'))}: no scored '{variant}' arm in our result")
@@ -64,6 +91,10 @@ def mean_arm(runs: List[Dict[str, Any]]) -> Dict[str, Any]:
     if len(runs) > 1:
         arm["fps"] = None  # timings of different holds are not averaged
     arm["runs"] = [{k: r.get(k) for k in ("psnr", "lpips", "git_commit", "source")} for r in runs]
+    assumed = sorted({k for r in runs for k in r.get("assumed", [])})  # any run's unrecorded split or background
+    arm.pop("assumed", None)
+    if assumed:
+        arm["assumed"] = assumed
     return arm
 
 
@@ -165,6 +196,12 @@ def markdown(summary: Dict[str, Any]) -> str:
             lines.append(
                 f"\n{r['scene']}: the mean of {len(o['runs'])} run(s) of ours ({each(o)} dB) against "
                 f"{len(t['runs'])} of the official code ({each(t)} dB)."
+            )
+    for r in summary["rows"]:
+        if r["ours"].get("assumed"):
+            lines.append(
+                f"\n{r['scene']}: our runs' {' and '.join(r['ours']['assumed'])} are train_profile's defaults, which "
+                "its files from before 44c004f do not record."
             )
     for reason in summary["refused"]:
         lines.append(f"\nRefused: {reason}")

@@ -78,3 +78,27 @@ def test_runs_of_a_scene_are_compared_as_means_on_the_same_gpu_model():
     out = official_compare.compare(runs, [official(iterations=20_000, psnr=30.0), official()])
     assert out["rows"][0]["official"]["psnr"] == pytest.approx(37.6) and out["refused"] == []
     assert "| jumpingjacks (test) | 40,000 | 37.20 / 37.60 |" in official_compare.markdown(out)
+
+
+def profile(method="deform-splatfacto", split=None, psnr=37.45, gpu="H200", **score):
+    """A train_profile result (`--score`); `split=None`: a file from before train_profile recorded it."""
+    score = {"psnr": psnr, "ssim": 0.99, "lpips": 0.011, "num_gaussians": 90_000, **score}
+    if split is not None:
+        score.update(split=split, background="black")
+    env = {"gpu": gpu, "git_commit": "abc"}
+    return {"scene": "jumpingjacks", "method": method, "steps": 40_000, "environment": env, "score": score}
+
+
+def test_a_train_profile_run_pairs_as_ours_and_says_what_it_assumed():
+    out = official_compare.compare([profile(split="test"), ours()], official())
+    (row,) = out["rows"]
+    assert [r["psnr"] for r in row["ours"]["runs"]] == [37.45, 37.5]  # the profile and the benchmark run, averaged
+    assert row["ours"]["psnr"] == pytest.approx(37.475) and "assumed" not in row["ours"]
+    old = official_compare.compare([profile()], official())["rows"][0]["ours"]
+    assert old["split"] == "test" and old["background"] == "black" and sorted(old["assumed"]) == ["background", "split"]
+    assert "background and split are train_profile's defaults" in official_compare.markdown(
+        official_compare.compare([profile()], official())
+    )
+    assert official_compare.compare([profile(split="val")], official())["rows"] == []  # a recorded split is held to
+    refused = official_compare.compare([profile(method="garo-deform"), profile(psnr=None)], official())["refused"]
+    assert any("garo-deform" in r for r in refused) and any("not scored" in r for r in refused)

@@ -640,7 +640,8 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         model = trainer.pipeline.model
         model.eval()
         scores = evaluate(trainer.pipeline, args.scene, args.split)
-        result["score"] = {k: scores.get(k) for k in ("psnr", "ssim", "lpips", "num_gaussians") if k in scores}
+        kept = ("psnr", "ssim", "lpips", "num_gaussians", "split", "background", "n_images")
+        result["score"] = {k: scores.get(k) for k in kept if k in scores}
         args.output.write_text(json.dumps(result, indent=2) + "\n")
     if args.export_dir is not None:
         record = {
