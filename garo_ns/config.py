@@ -12,7 +12,8 @@ the dataparser):
 `garo-compact` is `garo-deform` followed by compaction after densification (garo_ns.compaction):
 rounds of removing the least important Gaussians, with fine-tuning in between, each measured on training
 views before it removes, within `--pipeline.model.compact-round-bound-db` per round and
-`--pipeline.model.compact-budget-db` in all.
+`--pipeline.model.compact-budget-db` in all. Its deformation MLP trains in fp32: bf16 products
+(`with_bf16_training`) are on for the two methods whose 40k A/B measured them.
 """
 
 from __future__ import annotations
