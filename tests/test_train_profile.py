@@ -66,7 +66,8 @@ def test_profile_of_a_short_cpu_training(tmp_path):
     scene = generate_scene(tmp_path / "scene", SceneSpec(resolution=24, n_train=10, n_val=2, n_test=2))
     out = tmp_path / "profile.json"
     args = ["--scene", str(scene), "--quick", "--steps", "24", "--windows", "2", "14", "40", "--device", "cpu"]
-    args += ["--plain-steps", "2", "--phase-steps", "3", "--score", "--split", "val", "--timeline-every", "8"]
+    args += ["--plain-steps", "2", "--phase-steps", "3", "--host-op-steps", "2", "--score", "--split", "val"]
+    args += ["--timeline-every", "8"]
     args += ["--set", "deform_cuda_graph=True", "loss_cuda_graph=True"]  # on the CPU: the eager path
     main(args + ["--work-dir", str(tmp_path / "runs"), "--output", str(out)])
     result = json.loads(out.read_text())
@@ -80,7 +81,15 @@ def test_profile_of_a_short_cpu_training(tmp_path):
     assert inside <= late["host_ms"]["step"] + 1e-6
     assert late["plain_ms_per_step"] > 0 and result["steps_per_second"] > 0
     assert "| rasterization_backward |" in out.with_suffix(".md").read_text()
+    # The host's pass: on a CPU no launches, and its costliest operations named with their calls per step.
+    host = late["host_ops"]
+    assert host["launches_per_step"] == 0 and host["ms_per_step"] > 0
+    top = host["top_host_ops"]
+    assert 0 < len(top) <= 12 and all(op["calls_per_step"] > 0 and op["self_ms_per_step"] >= 0 for op in top)
+    assert [op["self_ms_per_step"] for op in top] == sorted((op["self_ms_per_step"] for op in top), reverse=True)
+    assert sum(op["self_ms_per_step"] for op in top) <= host["ms_per_step"]  # own times: within the steps' wall
     assert result["score"]["psnr"] > 10  # the scored model renders the scene, not noise
+    assert result["score"]["split"] == "val" and result["score"]["background"] == "black"
     assert result["model_settings"] == {"deform_cuda_graph": True, "loss_cuda_graph": True}
     timeline = result["timeline"]
     assert [row["step"] for row in timeline] == [8, 16, 24]
@@ -235,3 +244,20 @@ def test_a_cuda_run_replays_its_adam_graph_once_the_gaussians_settle(tmp_path):
     # later, replayed from then on (160 replays on an H100).
     assert counts["captures"] >= 1 and 100 <= counts["replays"] <= 600 - 340 - 100 + 1
     assert result["score"]["psnr"] > 10
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA: kernel launches")
+def test_a_cuda_runs_host_pass_counts_its_launches(tmp_path):
+    from garo_ns.bench.train_profile import main
+    from garo_ns.tools.scene import SceneSpec, generate_scene
+
+    scene = generate_scene(tmp_path / "scene", SceneSpec(resolution=32, n_train=12, n_val=2, n_test=2))
+    args = ["--scene", str(scene), "--quick", "--steps", "200", "--windows", "180", "--device", "cuda"]
+    args += ["--plain-steps", "2", "--phase-steps", "2", "--profiler-steps", "2", "--host-op-steps", "2"]
+    result = main(args + ["--work-dir", str(tmp_path / "runs"), "--output", str(tmp_path / "profile.json")])
+    (window,) = result["windows"]
+    host = window["host_ops"]
+    # A step launches kernels (and graphs) by the dozen; the kernels themselves are not host operations.
+    assert host["launches_per_step"] > 10 and "cudaLaunchKernel" in host["runtime_calls_per_step"]
+    assert all(not op["name"].startswith("cuda") for op in host["top_host_ops"])
+    assert 0 < window["gpu_kernel_share"] <= 1

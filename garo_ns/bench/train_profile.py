@@ -15,8 +15,10 @@ Device milliseconds are the time between a phase's two marks on the GPU's timeli
 the time the Python thread spent there: where the host time of a step exceeds its device time, the GPU
 waits for the loop. On CUDA the window also counts the host synchronisations (torch's sync debug mode:
 each `.item()`, `.cpu()`, `nonzero` ...) with the lines that cause most of them, and a short profiler
-pass gives the share of the step's wall time the GPU spends in kernels. On a CPU the marks are host
-clocks and both columns agree, so the same code runs in the tests.
+pass gives the share of the step's wall time the GPU spends in kernels. A last pass records the host's side
+(`host_ops`): per step, the CUDA runtime calls (kernel and graph launches, copies, waits) and the host operations
+that take the most of the Python thread's time, which is where a host-bound step can be cut. On a CPU the marks
+are host clocks and both columns agree, so the same code runs in the tests.
 
     python -m garo_ns.bench.train_profile --scene data/dnerf/jumpingjacks --method garo-deform \
         --windows 2000 10000 30000 --output train_profile.json
@@ -26,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import time
 import warnings
 from collections import Counter
@@ -234,6 +237,10 @@ class ProfileSettings:
     """Steps timed phase by phase, right after the plain ones."""
     profiler_steps: int = 10
     """On CUDA, steps under torch's profiler after those, for the GPU's busy share (0: none)."""
+    host_op_steps: int = 10
+    """Steps under torch's profiler recording the host too, last: each step's CUDA runtime calls and its costliest
+    host operations (`host_ops`; 0: none). Apart from the busy share's pass, whose timing the host events would
+    slow."""
     timeline_every: int = 1000
     """Every this many steps, the run's elapsed seconds and Gaussian count (0: none): where a whole run's time goes
     (the windows are a few steps each; the densification phase, evaluations and checkpoints fall between them)."""
@@ -287,6 +294,35 @@ class SyncCounter:
                 self.sources[f"{Path(w.filename).name}:{w.lineno}"] += 1
 
 
+# CUDA runtime and driver calls as the profiler names them on the host (cudaLaunchKernel, cuLaunchKernelEx,
+# cudaGraphLaunch, cudaMemcpyAsync, cudaStreamSynchronize ...).
+RUNTIME_CALL = re.compile(r"^cu(da)?[A-Z]")
+
+
+def host_op_summary(prof: Any, steps: int, top: int = 12) -> Dict[str, Any]:
+    """Per step, from a finished torch profiler that recorded the host: `launches_per_step` (kernel and graph
+    launches), `runtime_calls_per_step` (every CUDA runtime call by name) and `top_host_ops` (the `top` host
+    operations by their own time: name, calls and milliseconds per step)."""
+    runtime: Dict[str, float] = {}
+    ops: List[Tuple[float, str, int]] = []
+    for e in prof.key_averages():
+        if getattr(e, "device_type", None) not in (None, torch.autograd.DeviceType.CPU):
+            continue  # the kernels themselves: the GPU's side
+        if RUNTIME_CALL.match(e.key):
+            runtime[e.key] = e.count / steps
+        else:
+            ops.append((float(e.self_cpu_time_total), e.key, int(e.count)))
+    ops.sort(key=lambda o: -o[0])
+    return {
+        "launches_per_step": sum(v for k, v in runtime.items() if "Launch" in k),
+        "runtime_calls_per_step": dict(sorted(runtime.items(), key=lambda kv: -kv[1])),
+        "top_host_ops": [
+            {"name": name, "calls_per_step": count / steps, "self_ms_per_step": us / 1e3 / steps}
+            for us, name, count in ops[:top]
+        ],
+    }
+
+
 def kernel_share(prof: Any, wall_ms: float) -> Optional[float]:
     """Share of `wall_ms` the GPU spent in kernels, from a finished torch profiler."""
     total_us = 0.0
@@ -306,15 +342,14 @@ class TrainProfiler:
         self.cuda = self.instrument.cuda
         self.windows: List[Dict[str, Any]] = []
         self._plan: Dict[int, Tuple[str, int]] = {}
-        per = settings.plain_steps + settings.phase_steps + (settings.profiler_steps if self.cuda else 0)
+        parts = [("plain", settings.plain_steps), ("phases", settings.phase_steps)]
+        parts += [("profiler", settings.profiler_steps if self.cuda else 0), ("host_ops", settings.host_op_steps)]
         for start in settings.windows:
-            for i in range(per):
-                if i < settings.plain_steps:
-                    self._plan[start + i] = ("plain", start)
-                elif i < settings.plain_steps + settings.phase_steps:
-                    self._plan[start + i] = ("phases", start)
-                else:
-                    self._plan[start + i] = ("profiler", start)
+            step = start
+            for kind, n in parts:
+                for _ in range(n):
+                    self._plan[step] = (kind, start)
+                    step += 1
         self._current: Optional[Dict[str, Any]] = None
         self._t0 = 0.0
         self._sync_counter: Optional[SyncCounter] = None
@@ -365,8 +400,11 @@ class TrainProfiler:
                 if self.cuda:
                     self._sync_counter = SyncCounter()
                     self._sync_counter.start()
-            if kind == "profiler":
-                self._prof = torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA])
+            if kind in ("profiler", "host_ops"):
+                activities = [torch.profiler.ProfilerActivity.CUDA] if self.cuda else []
+                if kind == "host_ops":
+                    activities.append(torch.profiler.ProfilerActivity.CPU)
+                self._prof = torch.profiler.profile(activities=activities)
                 self._prof.__enter__()
         self.instrument.begin_step()
 
@@ -385,9 +423,12 @@ class TrainProfiler:
         _sync(self.cuda)
         wall_ms = (time.perf_counter() - self._t0) * 1e3
         window = self._current if self._current is not None else {}
-        n = {"plain": self.settings.plain_steps, "phases": self.settings.phase_steps}.get(
-            kind, self.settings.profiler_steps
-        )
+        n = {
+            "plain": self.settings.plain_steps,
+            "phases": self.settings.phase_steps,
+            "profiler": self.settings.profiler_steps,
+            "host_ops": self.settings.host_op_steps,
+        }[kind]
         if kind == "plain":
             window["plain_ms_per_step"] = wall_ms / n
         elif kind == "phases":
@@ -404,6 +445,10 @@ class TrainProfiler:
             self._prof.__exit__(None, None, None)
             window["gpu_kernel_share"] = kernel_share(self._prof, wall_ms)
             window["profiled_ms_per_step"] = wall_ms / n
+            self._prof = None
+        elif kind == "host_ops" and self._prof is not None:
+            self._prof.__exit__(None, None, None)
+            window["host_ops"] = {"ms_per_step": wall_ms / n, **host_op_summary(self._prof, n)}
             self._prof = None
 
 
@@ -423,8 +468,9 @@ def markdown_table(result: Dict[str, Any]) -> str:
         ("plain_ms_per_step", "step, plain (wall)"),
         ("host_syncs_per_step", "host syncs per step"),
         ("gpu_kernel_share", "GPU busy share"),
+        ("launches_per_step", "kernel and graph launches per step"),
     ):
-        vals = [w.get(key) for w in windows]
+        vals = [w.get(key, w.get("host_ops", {}).get(key)) for w in windows]
         if any(v is not None for v in vals):
             rows.append(f"| {label} | " + " | ".join("" if v is None else f"{v:.2f}" for v in vals) + " |")
     return "\n".join(rows) + "\n"
@@ -556,6 +602,7 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
     parser.add_argument("--plain-steps", type=int, default=100)
     parser.add_argument("--phase-steps", type=int, default=30)
     parser.add_argument("--profiler-steps", type=int, default=10)
+    parser.add_argument("--host-op-steps", type=int, default=10, help="steps of the host's pass (0: none)")
     parser.add_argument("--timeline-every", type=int, default=1000, help="steps between the run's elapsed-time rows")
     parser.add_argument("--device", choices=("cuda", "cpu"), default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--quick", action="store_true", help="the compressed CPU schedule (tests)")
@@ -595,9 +642,17 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
     seed_everything(config.machine.seed)
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
-    windows = [w for w in args.windows if w + args.plain_steps + args.phase_steps <= config.max_num_iterations]
+    # A window whose steps (every pass of it) pass the run's end is skipped.
+    span = args.plain_steps + args.phase_steps + args.host_op_steps
+    span += args.profiler_steps if args.device == "cuda" else 0
+    windows = [w for w in args.windows if w + span <= config.max_num_iterations]
     settings = ProfileSettings(
-        windows, args.plain_steps, args.phase_steps, args.profiler_steps, timeline_every=args.timeline_every
+        windows,
+        args.plain_steps,
+        args.phase_steps,
+        args.profiler_steps,
+        args.host_op_steps,
+        timeline_every=args.timeline_every,
     )
     profiler = TrainProfiler(trainer, settings)
     start = time.perf_counter()
@@ -614,7 +669,8 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         "steps_per_second": steps / seconds,
         "windows": profiler.windows,
         "settings": {
-            k: getattr(settings, k) for k in ("plain_steps", "phase_steps", "profiler_steps", "timeline_every")
+            k: getattr(settings, k)
+            for k in ("plain_steps", "phase_steps", "profiler_steps", "host_op_steps", "timeline_every")
         },
         "render_choice_seconds": profiler.render_choice_seconds,
         "render_choice_record": render_choice_record(trainer.pipeline.model),
