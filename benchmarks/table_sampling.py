@@ -4,6 +4,8 @@ times. `garo_ns.render.time_table.iter_field_offsets` samples a `DeformationFiel
 encoding made once); before, every group of keys ran the whole field on repeated positions. Both ways here sample
 the D-3DGS field (the recipe's shape: 8 layers of 256, the time network of 30) on `gaussians` random positions at
 `keys` times, `repeats` times each in alternation; wall seconds (median), with the largest difference of the offsets.
+On CUDA a third way samples through the time sampler with TF32 products (`time_table_tf32`,
+`garo_ns.render.time_table.tf32_products`): its speed-up over fp32 and the largest difference it makes.
 
     python benchmarks/table_sampling.py --device cpu --output benchmarks/results/table_sampling_cpu.json
 """
@@ -35,13 +37,14 @@ class WholeField(nn.Module):
         return self.field(xyz, time)
 
 
-def timed(field: Any, xyz: Tensor, times: list) -> Tuple[float, Tensor]:
-    from garo_ns.render.time_table import field_offsets
+def timed(field: Any, xyz: Tensor, times: list, tf32: bool = False) -> Tuple[float, Tensor]:
+    from garo_ns.render.time_table import field_offsets, tf32_products
 
     if xyz.is_cuda:
         torch.cuda.synchronize()
     start = time.perf_counter()
-    out = field_offsets(field, xyz, times)
+    with tf32_products(tf32):
+        out = field_offsets(field, xyz, times)
     if xyz.is_cuda:
         torch.cuda.synchronize()
     return time.perf_counter() - start, out
@@ -66,14 +69,17 @@ def main() -> None:
     field = DeformationField(time_net=30).to(device).eval()
     xyz = (torch.rand(n, 3, device=device) * 2 - 1) * 1.5
     times = torch.linspace(0.0, 1.0, keys).tolist()
-    ways: Dict[str, Any] = {"whole_field": WholeField(field), "time_sampler": field}
+    ways: Dict[str, Tuple[Any, bool]] = {"whole_field": (WholeField(field), False), "time_sampler": (field, False)}
+    if cuda:
+        ways["time_sampler_tf32"] = (field, True)
     seconds: Dict[str, list] = {name: [] for name in ways}
     outs: Dict[str, Tensor] = {}
     with torch.no_grad():
         timed(field, xyz, times[:16])  # warm-up (libraries' handles)
+        timed(field, xyz, times[:16], tf32=cuda)
         for _ in range(args.repeats):
-            for name, way in ways.items():
-                s, outs[name] = timed(way, xyz, times)
+            for name, (way, tf32) in ways.items():
+                s, outs[name] = timed(way, xyz, times, tf32)
                 seconds[name].append(s)
     median = {name: statistics.median(v) for name, v in seconds.items()}
     scale = float(outs["whole_field"].abs().max())
@@ -91,9 +97,13 @@ def main() -> None:
         "max_abs_difference": float((outs["whole_field"] - outs["time_sampler"]).abs().max()),
         "largest_offset": scale,
     }
+    if "time_sampler_tf32" in median:
+        result["speedup_tf32"] = median["time_sampler"] / median["time_sampler_tf32"]
+        result["max_abs_difference_tf32"] = float((outs["time_sampler_tf32"] - outs["time_sampler"]).abs().max())
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(json.dumps(result, indent=2) + "\n")
-    print(json.dumps({k: result[k] for k in ("median_seconds", "ms_per_key", "speedup", "max_abs_difference")}))
+    shown = ("median_seconds", "ms_per_key", "speedup", "max_abs_difference", "speedup_tf32", "max_abs_difference_tf32")
+    print(json.dumps({k: result[k] for k in shown if k in result}))
 
 
 if __name__ == "__main__":

@@ -478,3 +478,75 @@ def test_a_build_with_room_for_its_residuals_runs_the_field_over_the_keys_once_t
     field = _field()
     TimeTable.build(spec, field, _xyz(), scratch_bytes=keys * 64 * 10 * 4 - 1)
     assert field.calls == calls[0]
+
+
+def test_tf32_products_turn_tf32_on_inside_and_give_the_setting_back():
+    from garo_ns.render.time_table import tf32_products
+
+    flag = torch.backends.cuda.matmul
+    was = flag.allow_tf32
+    try:
+        flag.allow_tf32 = False
+        with tf32_products(True):
+            assert flag.allow_tf32
+        assert not flag.allow_tf32
+        with tf32_products(False):
+            assert not flag.allow_tf32
+        with pytest.raises(RuntimeError), tf32_products(True):
+            raise RuntimeError("a build that fails")
+        assert not flag.allow_tf32
+        flag.allow_tf32 = True
+        with tf32_products(False):
+            assert flag.allow_tf32  # a caller's own TF32 is left on
+        assert flag.allow_tf32
+    finally:
+        flag.allow_tf32 = was
+
+
+@pytest.mark.parametrize(
+    "device",
+    [
+        "cpu",
+        pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="TF32 products need CUDA")),
+    ],
+)
+def test_a_frame_builds_its_table_anew_in_tf32_when_asked(device, monkeypatch):
+    """`time_table_tf32` keys the frame's table: turned on, the table is built again, inside TF32 products; on a CPU
+    the same numbers, on CUDA within TF32's rounding of the field's products."""
+    from garo_ns.deformation import DeformationField
+    from garo_ns.render.frame import FramePath
+
+    flags = []
+    build = TimeTable.build.__func__
+
+    def watched(cls, *args, **kwargs):
+        flags.append(torch.backends.cuda.matmul.allow_tf32)
+        return build(cls, *args, **kwargs)
+
+    monkeypatch.setattr(TimeTable, "build", classmethod(watched))
+    was = torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = False
+    try:
+        g = torch.Generator().manual_seed(5)
+        n = 2048
+        field = DeformationField(pos_freqs=4, time_freqs=3, depth=3, width=64, skip=1).to(device).eval()
+        parts = (torch.rand(n, 3, generator=g), torch.randn(n, 4, generator=g), 0.1 * torch.randn(n, 3, generator=g))
+        canonical = Canonical(
+            *(x.to(device) for x in parts),
+            *(torch.zeros(n, k).to(device) for k in (1, 3)),
+            torch.zeros(n, 15, 3).to(device),
+        )
+        spec = _spec(40, tolerance=1.0)
+        frame = FramePath()
+        with torch.no_grad():
+            plain = frame.time_table(field, canonical, spec)
+            assert frame.time_table(field, canonical, spec) is plain  # cached
+            frame.table_tf32 = True
+            tf32 = frame.time_table(field, canonical, spec)
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = was
+    assert tf32 is not plain and flags == [False, True]
+    scale = float(plain.base.abs().max())
+    assert scale > 0
+    difference = float((tf32.base - plain.base).abs().max())
+    assert difference == 0.0 if device == "cpu" else difference <= 1e-2 * scale

@@ -21,7 +21,7 @@ from torch import Tensor
 from garo_ns.deformation import DeformationField, ScaleOffset, log_scale_offset
 from garo_ns.render.backend import Backend, lean_front, rasterize
 from garo_ns.render.graphs import InputGraph, TimeGraph, graphs_available, versions
-from garo_ns.render.time_table import TableSpec, TimeTable
+from garo_ns.render.time_table import TableSpec, TimeTable, tf32_products
 from garo_ns.render.view import RenderView
 
 
@@ -124,6 +124,7 @@ class FramePath:
         # Set while they preview a table (TimeTable.preview): what a table would render halfway, without its keys.
         self.preview = False
         self.scale_offset: ScaleOffset = "log"  # the model's deform_scale_offset
+        self.table_tf32 = False  # the model's time_table_tf32: tables built with TF32 products on CUDA
 
     def splats(
         self,
@@ -191,15 +192,17 @@ class FramePath:
         """The table of `spec` for these parameters, built on first use (and again when they change); None
         when it cannot be built (out of memory, ...): the reason is in `table_info` and the network renders. While
         `preview` is set, the table's `TimeTable.preview` instead (halfway frames only)."""
-        key = (spec, versions(list(canonical) + list(field.parameters())), self.scale_offset, self.preview)
+        params = versions(list(canonical) + list(field.parameters()))
+        key = (spec, params, self.scale_offset, self.preview, self.table_tf32)
         if self._table is None or self._table[0] != key:
             self._table, self._table_rows = None, None  # the old table's memory first
             start = perf_counter()
             try:
                 make = TimeTable.preview if self.preview else TimeTable.build
-                built: Optional[TimeTable] = make(
-                    spec, field, canonical.means.detach(), scales=(canonical.log_scales.detach(), self.scale_offset)
-                )
+                with tf32_products(self.table_tf32):
+                    built: Optional[TimeTable] = make(
+                        spec, field, canonical.means.detach(), scales=(canonical.log_scales.detach(), self.scale_offset)
+                    )
                 self.table_info = {**built.info, "build_s": perf_counter() - start}  # type: ignore[union-attr]
                 # A preview renders halfway frames only (the reference path): no frame rows for it.
                 self._table_rows = None if self.preview else table_rows(canonical, built)  # type: ignore[arg-type]

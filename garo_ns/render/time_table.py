@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import bisect
 import math
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Sequence, Tuple
 
@@ -167,6 +168,19 @@ def field_offsets(
 SAMPLER_TIMES = 8
 """Times from which `iter_field_offsets` samples a field through its `time_sampler` (the positions' share of the
 encoding's layers made once): below it, making that share costs about what it saves."""
+
+
+@contextmanager
+def tf32_products(enabled: bool) -> Iterator[None]:
+    """Inside, when `enabled`, CUDA's fp32 matrix products take TF32 inputs (10-bit mantissas, fp32 sums) on tensor
+    cores; the previous setting is back after. A table's build is mostly the field's products, and its change is
+    measured on the table as built, so a build in TF32 is judged with its own rounding. No effect on a CPU."""
+    was = torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = was or bool(enabled)
+    try:
+        yield
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = was
 
 
 def iter_field_offsets(
