@@ -31,7 +31,7 @@ import sys
 import time
 import zipfile
 from pathlib import Path
-from typing import Any, BinaryIO, Dict, List, Optional, Tuple, Union
+from typing import Any, BinaryIO, Callable, Dict, List, Optional, Tuple, Union
 
 import torch
 from torch import Tensor, nn
@@ -370,20 +370,28 @@ def field_for(state_dict: Dict[str, Any], field: nn.Module, settings: Any) -> nn
     return settings.make_deformation().to(next(field.parameters()).device)
 
 
+# Settings deleted after they were measured (benchmarks/HISTORY.md), each with whether an old value asked for something
+# the model no longer does, and what it does instead.
+DELETED_SETTINGS: Dict[str, Tuple[Callable[[Any], bool], str]] = {
+    "render_precision": (lambda v: v not in (None, "fp32"), "the model renders with the exact fp32 field instead"),
+    "train_tiles_without_wait": (bool, "training builds its tile lists with gsplat's isect_tiles"),
+}
+
+
 def upgrade_render_settings(settings: Any) -> List[str]:
-    """Drop, in place, the deleted `render_precision` setting from model settings an older config.yml holds
-    (the MLP renders in fp32 only), and return a warning when it named another precision (bf16, fp16-fused
-    and tf32 were deleted first, then fp16 with the setting itself: benchmarks/HISTORY.md)."""
+    """Drop, in place, the deleted settings an older config.yml holds (`DELETED_SETTINGS`: nothing may read them),
+    and return a warning for each whose value asked for what the model no longer does (render_precision other than
+    fp32: bf16, fp16-fused and tf32 were deleted first, then fp16 with the setting itself; tile lists built without
+    a host read, slower where timed)."""
     state = vars(settings)
-    if "render_precision" not in state:
-        return []
-    value = state.pop("render_precision")  # not a setting any more: nothing may read it
-    if value is None or value == "fp32":  # auto or fp32: how every model renders now
-        return []
-    return [
-        f"render_precision={value} was deleted (benchmarks/HISTORY.md); "
-        "the model renders with the exact fp32 field instead"
-    ]
+    warnings = []
+    for name, (mattered, instead) in DELETED_SETTINGS.items():
+        if name not in state:
+            continue
+        value = state.pop(name)
+        if mattered(value):
+            warnings.append(f"{name}={value} was deleted (benchmarks/HISTORY.md); {instead}")
+    return warnings
 
 
 def restore_strategy_state(state: Dict[str, Any], saved: Dict[str, Any], device: Union[str, torch.device]) -> None:

@@ -40,7 +40,6 @@ from garo_ns.render.contribution import summed_contribution
 from garo_ns.render.frame import Canonical, FramePath, FrameSettings, Splats, activate, compose, render_splats
 from garo_ns.render.outputs import camera_outputs
 from garo_ns.render.switches import RenderSettings, SwitchDecision
-from garo_ns.render.tiles import TileCapacity
 from garo_ns.render.view import HostCameras, RenderView, camera_numbers, camera_view
 from garo_ns.ssim import SSIM
 from garo_ns.static import StaticSettings, classification_due, classify, sample_times, static_fraction
@@ -93,7 +92,6 @@ class GaroModel(SplatfactoModel):
         self.image_loss = ImageLoss(self.loss_ssim, cfg.ssim_lambda, cfg.loss_cuda_graph)
         self.train_splats = GraphedSplats(lambda: self.deformation, cfg.deform_cuda_graph, cfg.deform_train_bf16)
         self.collector = TrainingCollector(cfg.gc_threshold)  # Python's collector paced to training (set on step 1)
-        self.tile_capacity = TileCapacity()  # the tile lists' capacity, with `train_tiles_without_wait`
         # The dataset's cameras on the host: a training step reads its camera's numbers there (garo_ns.training_data).
         self.step_cameras: Optional[HostCameras] = None
         self._lpips = [lpips]  # out of the module tree: LPIPS may be absent, checkpoints must not need it
@@ -295,10 +293,7 @@ class GaroModel(SplatfactoModel):
         degree = min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
         backend: Backend = self.config.rasterizer
         if self.training:
-            cfg = self.config
-            lists = self.tile_capacity if cfg.train_tiles_without_wait else None
-            lean = cfg.train_lean_raster
-            return render_splats(splats, view, degree, backgrounds, render_mode, backend, lean, tile_lists=lists)
+            return render_splats(splats, view, degree, backgrounds, render_mode, backend, self.config.train_lean_raster)
         lean = bool(self.render_settings().lean_raster)
         return self.frame.rasterize(splats, view, degree, backgrounds, render_mode, backend, lean)
 

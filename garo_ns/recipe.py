@@ -86,15 +86,6 @@ class D3dgsRecipe(SplatfactoModelConfig):
     instead of gsplat's `rasterization` wrapper: the same kernels, values and gradients (tests/test_train_raster.py,
     on an H100 too). At step 2000 of a jumpingjacks run on an H100 the rasterization forward took 0.54 ms of host
     time instead of 0.84 (benchmarks/results/train_profile_short_*_H100.json); the backward was unchanged."""
-    train_tiles_without_wait: bool = False
-    """Training on CUDA with `train_lean_raster`: build the rasterizer's tile lists at a capacity chosen beforehand
-    (garo_ns.render.tiles) instead of through gsplat's `isect_tiles`, which reads their size on the host and so makes
-    every step wait for the GPU before the host can queue the rest of it. The same lists whenever the capacity holds
-    them (1.5 times the largest total seen, measured again when the count of Gaussians changes; a step over it loses
-    its farthest entries and is counted). Off: timed at 40k on three scenes it was slower, 313 to 340 s against 256
-    to 268 (benchmarks/results/train_profile_tiles_*_H200.json): building and sorting the padded lists in torch
-    costs the GPU about 1 ms more a step than gsplat's kernels, and the host more launches than the wait saved.
-    The lists' fixed size is what a graph of the whole rasterization would need."""
     scene_extent: Optional[float] = None
     """Scene extent for densification thresholds; None takes the dataparser's camera extent."""
 

@@ -76,7 +76,8 @@ class GraphedSplats:
         self.captures = 0
         self.capture_s = 0.0  # wall seconds in captures, warm-up runs included (make_graphed_callables synchronises)
         # One memory pool for every capture: a new count of Gaussians (every refinement while densifying) captures
-        # into the memory its dropped predecessor held, instead of allocating a pool of its own each time.
+        # into the memory its dropped predecessors held, once Python's collector has freed them (a dropped graph
+        # lives in a reference cycle: garo_ns.collector), instead of allocating a pool of its own each time.
         self._pool: Optional[Any] = None
 
     def __call__(self, canonical: Canonical, time: Union[float, Tensor], scale_offset: ScaleOffset) -> Splats:
@@ -93,7 +94,7 @@ class GraphedSplats:
         shapes = tuple((x.shape, x.dtype, x.requires_grad) for x in canonical)
         key = (shapes, means.device, id(field), scale_offset, torch.backends.cuda.matmul.allow_tf32)
         if key != self.key:
-            self.graphed = None  # the old graph's memory first
+            self.graphed = None  # our reference to the old graph: the collector frees it (never inside a capture)
             samples = tuple(x.detach().clone().requires_grad_(x.requires_grad) for x in canonical) + (t.clone(),)
             if self._pool is None:
                 self._pool = torch.cuda.graph_pool_handle()

@@ -225,6 +225,25 @@ def test_an_old_config_naming_a_deleted_precision_loads_with_a_warning_and_rende
     assert model.render_settings() == FrameSettings()  # a CPU, no record: the plain fp32 path
 
 
+def test_an_old_config_with_the_deleted_tile_lists_setting_loads_and_says_so_only_if_it_was_on(capsys):
+    from nerfstudio.data.scene_box import SceneBox
+
+    from garo_ns.garo_model import GaroModelConfig
+
+    box = SceneBox(torch.tensor([[-1.5] * 3, [1.5] * 3]))
+    for on in (True, False):
+        config = GaroModelConfig(num_random=50, deform_width=16, deform_depth=2, deform_skip=0)
+        config.train_tiles_without_wait = on  # as a config.yml written while it was a setting holds it
+        config = yaml.load(yaml.dump(config), Loader=yaml.Loader)
+        model = config.setup(scene_box=box, num_train_data=1, metadata={"camera_extent": 4.0})
+        assert not hasattr(model.config, "train_tiles_without_wait")
+        out = capsys.readouterr().out
+        if on:
+            assert "train_tiles_without_wait=True was deleted (benchmarks/HISTORY.md)" in out and "isect_tiles" in out
+        else:
+            assert "train_tiles_without_wait" not in out
+
+
 @pytest.mark.parametrize("value", ["fp32", None])
 def test_an_old_config_naming_fp32_or_auto_loads_silently(value, capsys):
     model = _old_config_model(value)

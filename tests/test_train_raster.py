@@ -19,7 +19,6 @@ import torch
 from garo_ns.render import reference
 from garo_ns.render.backend import gsplat_cuda_available, rasterize
 from garo_ns.render.sh import eval_sh
-from garo_ns.render.tiles import TileCapacity
 from garo_ns.render.train_raster import rasterize_train_lean
 
 WIDTH, HEIGHT = 64, 48
@@ -90,7 +89,7 @@ def _gsplat(p, viewmat, K, sh_degree, mode):
     )
 
 
-def _lean(p, viewmat, K, sh_degree, mode, tile_lists=None):
+def _lean(p, viewmat, K, sh_degree, mode):
     return rasterize_train_lean(
         p["means"],
         p["quats"],
@@ -104,13 +103,7 @@ def _lean(p, viewmat, K, sh_degree, mode, tile_lists=None):
         sh_degree,
         p.get("backgrounds"),
         with_depth=mode == "RGB+ED",
-        tile_lists=tile_lists,
     )
-
-
-def _lean_without_wait(p, viewmat, K, sh_degree, mode):
-    """The lean path with tile lists built at a capacity chosen beforehand (garo_ns.render.tiles)."""
-    return _lean(p, viewmat, K, sh_degree, mode, tile_lists=TileCapacity(step=64))
 
 
 def _step(fn, params, viewmat, K, sh_degree, mode, weights):
@@ -126,13 +119,13 @@ def _step(fn, params, viewmat, K, sh_degree, mode, weights):
     return render.detach(), alpha.detach(), info, grads
 
 
-def _compare(params, viewmat, K, colour, mode, grad_rtol, grad_atol, lean=_lean):
+def _compare(params, viewmat, K, colour, mode, grad_rtol, grad_atol):
     sh_degree = _sh_degree(colour)
     g = torch.Generator().manual_seed(1)
     weights = (torch.randn(1, HEIGHT, WIDTH, 4, generator=g), torch.randn(1, HEIGHT, WIDTH, 1, generator=g))
     weights = tuple(w.to(viewmat.device) for w in weights)
     ref, ref_alpha, ref_info, ref_grads = _step(_gsplat, params, viewmat, K, sh_degree, mode, weights)
-    got, alpha, info, grads = _step(lean, params, viewmat, K, sh_degree, mode, weights)
+    got, alpha, info, grads = _step(_lean, params, viewmat, K, sh_degree, mode, weights)
 
     assert float(ref_alpha.mean()) > 0.05  # the cloud is in view
     assert got.shape == ref.shape and alpha.shape == ref_alpha.shape
@@ -170,29 +163,6 @@ def test_lean_training_path_matches_gsplat_on_cuda(colour, mode, with_bg):
     params = _scene(3000, colour, with_bg, "cuda")
     viewmat, K = _camera("cuda")
     _compare(params, viewmat, K, colour, mode, grad_rtol=1e-4, grad_atol=1e-5)
-
-
-@cuda_only
-@pytest.mark.parametrize("mode", MODES)
-@pytest.mark.parametrize("colour", ["sh3", "rgb"])
-def test_tile_lists_without_a_host_read_are_gsplats_and_render_as_gsplat_on_cuda(colour, mode):
-    from garo_ns.render.backend import TILE_SIZE
-    from garo_ns.render.tiles import tile_lists
-
-    params = _scene(3000, colour, True, "cuda")
-    viewmat, K = _camera("cuda")
-    _compare(params, viewmat, K, colour, mode, grad_rtol=1e-4, grad_atol=1e-5, lean=_lean_without_wait)
-    # The lists themselves, against gsplat's isect_tiles and isect_offset_encode on the same projection.
-    with torch.no_grad():
-        _, _, info = _lean(params, viewmat, K, _sh_degree(colour), mode)
-    tw, th = info["tile_width"], info["tile_height"]
-    total = info["isect_ids"].numel()
-    ours = tile_lists(info["means2d"].detach(), info["radii"], info["depths"].detach(), TILE_SIZE, tw, th, total + 999)
-    assert int(ours.total) == total
-    assert torch.equal(ours.isect_ids[:total], info["isect_ids"])
-    assert torch.equal(ours.flatten_ids[:total], info["flatten_ids"])
-    assert torch.equal(ours.offsets[:, :th], info["isect_offsets"])
-    assert torch.equal(ours.counts, info["tiles_per_gauss"])
 
 
 @cuda_only
@@ -446,18 +416,6 @@ def test_lean_training_path_matches_gsplat_with_stand_in_kernels(stand_in_kernel
     params = _scene(150, colour, with_bg, "cpu")
     viewmat, K = _camera("cpu")
     _compare(params, viewmat, K, colour, mode, grad_rtol=1e-5, grad_atol=1e-6)
-
-
-def test_tile_lists_without_a_host_read_take_the_same_glue_with_stand_in_kernels(stand_in_kernels):
-    # The stand-ins composite without tile lists: what this checks is that the lists' path hands the kernels
-    # well-formed arguments (an extra row of offsets for the padding) and changes nothing else.
-    params = _scene(150, "sh3", True, "cpu")
-    viewmat, K = _camera("cpu")
-    _compare(params, viewmat, K, "sh3", "RGB+ED", grad_rtol=1e-5, grad_atol=1e-6, lean=_lean_without_wait)
-    with torch.no_grad():
-        _, _, info = _lean_without_wait(params, viewmat, K, 3, "RGB")
-    assert info["isect_offsets"].shape == (1, info["tile_height"] + 1, info["tile_width"])
-    assert info["isect_offsets"].dtype == torch.int32 and info["flatten_ids"].dtype == torch.int32
 
 
 def test_lean_training_path_refuses_what_it_does_not_cover():

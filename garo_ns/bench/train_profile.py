@@ -540,15 +540,6 @@ def splats_graph_counts(model: Any) -> Optional[Dict[str, float]]:
     return {"captures": int(graph.captures), "capture_s": float(graph.capture_s)}
 
 
-def tile_list_counts(model: Any) -> Optional[Dict[str, int]]:
-    """The run's tile lists built without a host read (`train_tiles_without_wait`): the last capacity, the largest
-    total read back and the steps whose total exceeded their capacity (None: gsplat's lists)."""
-    capacity = getattr(model, "tile_capacity", None)
-    if capacity is None or not getattr(getattr(model, "config", None), "train_tiles_without_wait", False):
-        return None
-    return {"capacity": capacity.capacity, "largest": capacity.largest, "overflows": capacity.overflows}
-
-
 def render_choice_record(model: Any) -> Optional[Dict[str, Any]]:
     """What the finished model's render choice measured (garo_ns.render.switches): each approximate switch's change,
     and for the time table the rungs tried, their changes and build seconds and the table taken (None: no record)."""
@@ -680,7 +671,6 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         "as_ns_train": bool(args.as_ns_train),
         "adam_graph": adam_graph_counts(trainer.optimizers),
         "splats_graph": splats_graph_counts(trainer.pipeline.model),
-        "tile_lists": tile_list_counts(trainer.pipeline.model),
         "gaussians_final": int(trainer.pipeline.model.num_points),
     }
     args.output.parent.mkdir(parents=True, exist_ok=True)

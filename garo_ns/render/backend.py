@@ -59,7 +59,6 @@ def rasterize(
     backend: Backend = "auto",
     lean: bool = False,
     front: Optional[Front] = None,
-    tile_lists: Optional[Callable[..., Any]] = None,
 ) -> Tuple[Tensor, Tensor, Dict[str, Any]]:
     """Render with classic (non-antialiased) 3DGS rasterization, unpacked, plain gradients.
 
@@ -68,8 +67,7 @@ def rasterize(
     CUDA for RGB or RGB+ED with SH or RGB colours: without autograd, call the kernels directly
     (`rasterize_lean`, which takes `front` when the caller has it); with autograd and one camera,
     the training path of two autograd nodes (`train_raster.rasterize_train_lean`, same values and
-    gradients as gsplat's; `front` unused; `tile_lists` in place of gsplat's `isect_tiles` when given). Ignored
-    otherwise (the reference, other modes).
+    gradients as gsplat's; `front` unused). Ignored otherwise (the reference, other modes).
     """
     on_cuda = resolve_backend(backend, means.device) == "cuda"
     # The lean path composites SH colours or plain RGB (plus depth); other channel counts need the
@@ -94,7 +92,6 @@ def rasterize(
             with_depth=render_mode == "RGB+ED",
             near_plane=near_plane,
             far_plane=far_plane,
-            tile_lists=tile_lists,
         )
     if lean and not torch.is_grad_enabled():
         return rasterize_lean(

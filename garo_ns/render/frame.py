@@ -296,10 +296,8 @@ def render_splats(
     backend: Backend,
     lean: bool = False,
     front: Any = None,
-    tile_lists: Any = None,
 ) -> Tuple[Tensor, Tensor, Dict[str, Any]]:
-    """Rasterize `splats` for `view`: render [1, H, W, C], alpha [1, H, W, 1] and the rasterizer's info
-    (`tile_lists`: see garo_ns.render.backend.rasterize)."""
+    """Rasterize `splats` for `view`: render [1, H, W, C], alpha [1, H, W, 1] and the rasterizer's info."""
     return rasterize(
         means=splats.means,
         quats=splats.quats,
@@ -316,5 +314,4 @@ def render_splats(
         backend=backend,
         lean=lean,
         front=front,
-        tile_lists=tile_lists,
     )

@@ -219,6 +219,16 @@ def iter_field_offsets(
                 yield k0 + j, block
 
 
+def choose_order(spec: TableSpec, err: Dict[str, Tensor]) -> Tuple[TableSpec, Tensor, Dict[str, int]]:
+    """From each order's midpoint errors (`midpoint_errors`): `spec` with the order that leaves the fewest Gaussians
+    over the tolerance (the spec's own on a tie), the indices of those it leaves to the network, and how many each
+    order would leave."""
+    off = {o: int((err[o] > spec.tolerance).sum()) for o in ORDERS}
+    order: Order = min(ORDERS, key=lambda o: (off[o], o != spec.order))
+    network = torch.nonzero(err[order] > spec.tolerance).squeeze(-1)
+    return TableSpec(**{**spec.to_dict(), "order": order}), network, off
+
+
 def midpoint_errors(
     spec: TableSpec,
     field: Any,
@@ -355,10 +365,8 @@ class TimeTable:
                 residual[k] = codec.encode(d - base - line(k))
         whole = cls(spec, base, anchors, residual, torch.arange(xyz.shape[0], device=xyz.device), None, {}, codec)
         err = midpoint_errors(spec, field, xyz, base, whole.interpolate_moving, midpoint_samples, scales)
-        off = {o: int((err[o] > spec.tolerance).sum()) for o in ORDERS}
-        order: Order = min(ORDERS, key=lambda o: (off[o], o != spec.order))
-        spec = TableSpec(**{**spec.to_dict(), "order": order})
-        network = torch.nonzero(err[order] > spec.tolerance).squeeze(-1)
+        spec, network, off = choose_order(spec, err)
+        order = spec.order
         # A Gaussian whose offsets stay within a thousandth of the tolerance of the base keeps the base.
         tol = spec.tolerance * 1e-3
         moving = torch.nonzero((motion[:, :3].amax(-1) > tol * spec.extent) | (motion[:, 3:].amax(-1) > tol))
@@ -409,10 +417,7 @@ class TimeTable:
             return interpolate(around["keys"], order, 1, f)
 
         err = midpoint_errors(spec, field, xyz, base, interp, midpoint_samples, scales)
-        off = {o: int((err[o] > spec.tolerance).sum()) for o in ORDERS}
-        order: Order = min(ORDERS, key=lambda o: (off[o], o != spec.order))
-        spec = TableSpec(**{**spec.to_dict(), "order": order})
-        network = torch.nonzero(err[order] > spec.tolerance).squeeze(-1)
+        spec, network, off = choose_order(spec, err)
         n = xyz.shape[0]
         empty = torch.empty(0, n, CHANNELS, device=xyz.device)
         info = {"spec": spec.to_dict(), "keys": len(times), "gaussians": int(n), "network": int(network.numel())}

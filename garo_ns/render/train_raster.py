@@ -19,13 +19,12 @@ The tile intersection runs between them, outside autograd. Values and gradients 
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, Dict, Optional, Tuple
+from typing import Any, Dict, Optional, Tuple
 
 import torch
 from torch import Tensor
 
 from garo_ns.render.backend import EPS2D, TILE_SIZE, _kernels, lean_front
-from garo_ns.render.tiles import TileLists
 
 ALPHA_FLOOR = 1e-10  # gsplat's clamp on the alpha that divides the accumulated depth (RGB+ED)
 
@@ -249,15 +248,12 @@ def rasterize_train_lean(
     with_depth: bool = False,
     near_plane: float = 0.01,
     far_plane: float = 1e10,
-    tile_lists: Optional[Callable[..., TileLists]] = None,
 ) -> Tuple[Tensor, Tensor, Dict[str, Any]]:
     """Differentiable CUDA rasterization of one camera with gsplat's kernels behind two autograd
     nodes: render [1, H, W, 3 (+1 expected depth with `with_depth`)], alpha [1, H, W, 1] and an
     `info` with gsplat's keys for unpacked rendering, less its per-view opacities. `colors`: SH
     coefficients [N, K, 3] with `sh_degree`, else RGB [N, 3]. `info["means2d"]` is a non-leaf
     that compositing consumes: `retain_grad()` on it before backward gives gsplat's 2D gradient.
-    `tile_lists`: builds the tile lists without a host read (garo_ns.render.tiles.TileCapacity), in place of
-    gsplat's `isect_tiles`, which reads their size on the host.
     """
     if viewmats.shape[0] != 1:
         raise ValueError(f"the lean training path renders one camera, got {viewmats.shape[0]}")
@@ -270,16 +266,10 @@ def rasterize_train_lean(
     )
     # Tile lists: integer bookkeeping that autograd does not see.
     tiles_w, tiles_h = math.ceil(width / TILE_SIZE), math.ceil(height / TILE_SIZE)
-    if tile_lists is not None:
-        with torch.no_grad():
-            lists = tile_lists(means2d.detach(), radii, depths.detach(), TILE_SIZE, tiles_w, tiles_h)
-        tiles_per_gauss, isect_ids, flatten_ids = lists.counts, lists.isect_ids, lists.flatten_ids
-        offsets = lists.offsets
-    else:
-        tiles_per_gauss, isect_ids, flatten_ids = kernels.isect_tiles(
-            means2d, radii, depths, None, None, 1, TILE_SIZE, tiles_w, tiles_h, True, True
-        )
-        offsets = kernels.isect_offset_encode(isect_ids, 1, tiles_w, tiles_h)
+    tiles_per_gauss, isect_ids, flatten_ids = kernels.isect_tiles(
+        means2d, radii, depths, None, None, 1, TILE_SIZE, tiles_w, tiles_h, True, True
+    )
+    offsets = kernels.isect_offset_encode(isect_ids, 1, tiles_w, tiles_h)
     render, alpha = _Composite.apply(
         means2d,
         conics,
