@@ -14,7 +14,7 @@ gradients, or when the setting is off, it runs eagerly.
 from __future__ import annotations
 
 from time import perf_counter
-from typing import Any, Callable, Optional, Tuple, Union
+from typing import Any, Callable, Iterable, List, Optional, Tuple, Union
 
 import torch
 from torch import Tensor, nn
@@ -44,6 +44,16 @@ class Bf16Field(nn.Module):
         # No weight cache: a captured CUDA graph must recast the weights the optimizer has just updated.
         with torch.autocast(xyz.device.type, dtype=torch.bfloat16, cache_enabled=False):
             return self.field(xyz, time)
+
+
+def step_stream_accumulators(params: Iterable[Tensor]) -> List[Any]:
+    """Each parameter's gradient accumulator (the autograd node that adds into `.grad`), made now on the current
+    stream; hold them across a capture. make_graphed_callables captures on a side stream, and the autograd graph its
+    captured outputs keep alive would keep accumulators made there: every later backward would then hand each
+    parameter's gradient from the step's stream to that side stream and back, an event recorded and waited on per
+    parameter (27 of each a step in `garo-deform`'s host pass, benchmarks/results/train_profile_hx2_*). Made here and
+    held, they are the ones the capture and every step use, on the step's stream."""
+    return [p.view_as(p).grad_fn.next_functions[0][0] for p in params if p.requires_grad]
 
 
 class _SplatsCall(nn.Module):
@@ -79,6 +89,9 @@ class GraphedSplats:
         # into the memory its dropped predecessors held, once Python's collector has freed them (a dropped graph
         # lives in a reference cycle: garo_ns.collector), instead of allocating a pool of its own each time.
         self._pool: Optional[Any] = None
+        # The field parameters' gradient accumulators, made on the training step's stream before each capture and
+        # held while its graph lives (`step_stream_accumulators`).
+        self._accumulators: List[Any] = []
 
     def __call__(self, canonical: Canonical, time: Union[float, Tensor], scale_offset: ScaleOffset) -> Splats:
         field = self.field()
@@ -103,6 +116,7 @@ class GraphedSplats:
             warmup = 3 if self.captures == 0 else 1
             call = _SplatsCall(run, scale_offset)
             start = perf_counter()
+            self._accumulators = step_stream_accumulators(call.parameters())
             with collector_paused():
                 graphed = torch.cuda.make_graphed_callables(call, samples, num_warmup_iters=warmup, pool=self._pool)
             self.graphed = graphed

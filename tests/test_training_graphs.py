@@ -114,6 +114,39 @@ def test_the_graphed_splats_run_eagerly_without_gradients_or_when_off():
     assert on.captures == 1
 
 
+@pytest.mark.parametrize("hold", [True, False])
+def test_a_graphed_step_accumulates_its_gradients_on_the_step_stream(hold, monkeypatch):
+    """After a capture, a step's backward hands no gradient across streams: the field parameters' accumulators are
+    the step stream's (`step_stream_accumulators`), not the capture's side stream's. Without holding them the same
+    backward records and waits on an event per field parameter: the case that shows the test can fail."""
+    from garo_ns import train_graphs
+    from garo_ns.deformation import DeformationField
+
+    if not hold:
+        monkeypatch.setattr(train_graphs, "step_stream_accumulators", lambda params: [])
+    field = DeformationField(time_net=30).cuda().train()
+    graphed = train_graphs.GraphedSplats(lambda: field, enabled=True)
+    canonical = _canonical(3000, 0)
+
+    def step() -> None:
+        for p in list(canonical) + list(field.parameters()):
+            p.grad = None
+        sum(o.square().sum() for o in graphed(canonical, 0.4, "log")[:5]).backward()
+
+    step()  # the capture
+    torch.cuda.synchronize()
+    activities = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
+    with torch.profiler.profile(activities=activities) as prof:
+        step()
+        torch.cuda.synchronize()
+    waits = sum(e.count for e in prof.key_averages() if e.key == "cudaStreamWaitEvent")
+    assert graphed.captures == 1 and all(p.grad is not None for p in field.parameters())
+    if hold:
+        assert waits == 0
+    else:
+        assert waits >= len(list(field.parameters()))
+
+
 def test_the_bf16_step_graph_replays_the_eager_bf16_step():
     """`deform_train_bf16` graphed: the same autocast kernels as the eager bf16 step, so the same values and
     gradients up to the order of the products' sums; the weights the graph reads are recast at every replay (an

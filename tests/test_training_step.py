@@ -290,6 +290,33 @@ def test_graphed_splats_off_the_gpu_are_the_composed_gaussians():
     assert graphed.captures == 0 and all(torch.equal(a, b) for a, b in zip(got[:5], want[:5]))
 
 
+def test_held_accumulators_are_the_ones_every_later_step_adds_through():
+    """`step_stream_accumulators` returns each parameter's gradient accumulator; while held, a later forward's graph
+    reaches the same nodes (so a capture made after it adds through them too), and a parameter without gradients
+    has none."""
+    from garo_ns.deformation import DeformationField
+    from garo_ns.train_graphs import step_stream_accumulators
+
+    field = DeformationField(depth=3, width=16, time_net=8)
+    field.layers[0].bias.requires_grad_(False)
+    held = step_stream_accumulators(field.parameters())
+    assert len(held) == sum(p.requires_grad for p in field.parameters())
+    assert all(type(a).__name__ == "AccumulateGrad" for a in held)
+    out = sum(o.sum() for o in field(torch.rand(5, 3), 0.3))
+
+    def leaves(fn, found):
+        for node, _ in fn.next_functions:
+            if node is not None and type(node).__name__ == "AccumulateGrad":
+                found.append(node)
+            elif node is not None:
+                leaves(node, found)
+        return found
+
+    reached = leaves(out.grad_fn, [])
+    assert reached and all(any(r is h for h in held) for r in reached)
+    assert {id(a.variable) for a in held} == {id(p) for p in field.parameters() if p.requires_grad}
+
+
 def test_training_metrics_are_computed_on_the_trainers_log_steps_only(scene_dir, tmp_path):
     from garo_ns.tools.train import QuickSchedule, make_config
 
