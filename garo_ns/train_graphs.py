@@ -14,7 +14,7 @@ gradients, or when the setting is off, it runs eagerly.
 from __future__ import annotations
 
 from time import perf_counter
-from typing import Any, Callable, Iterable, List, Optional, Tuple, Union
+from typing import Any, Callable, List, Optional, Tuple, Union
 
 import torch
 from torch import Tensor, nn
@@ -46,19 +46,9 @@ class Bf16Field(nn.Module):
             return self.field(xyz, time)
 
 
-def step_stream_accumulators(params: Iterable[Tensor]) -> List[Any]:
-    """Each parameter's gradient accumulator (the autograd node that adds into `.grad`), made now on the current
-    stream; hold them across a capture. make_graphed_callables captures on a side stream, and the autograd graph its
-    captured outputs keep alive would keep accumulators made there: every later backward would then hand each
-    parameter's gradient from the step's stream to that side stream and back, an event recorded and waited on per
-    parameter (27 of each a step in `garo-deform`'s host pass, benchmarks/results/train_profile_hx2_*). Made here and
-    held, they are the ones the capture and every step use, on the step's stream."""
-    return [p.view_as(p).grad_fn.next_functions[0][0] for p in params if p.requires_grad]
-
-
 class _SplatsCall(nn.Module):
-    """A training step's Gaussians as a module of (the six canonical tensors, time [1, 1]): what
-    make_graphed_callables captures (the field's parameters are the module's)."""
+    """A training step's Gaussians as a module of (the six canonical tensors, time [1, 1]) (`functional_splats`
+    makes the field's parameters arguments too)."""
 
     def __init__(self, field: nn.Module, scale_offset: ScaleOffset) -> None:
         super().__init__()
@@ -68,6 +58,28 @@ class _SplatsCall(nn.Module):
     def forward(self, *args: Tensor) -> Tuple[Tensor, ...]:
         canonical = Canonical(*args[:6])
         return tuple(activate(canonical, compose(self.field, canonical, args[6], self.scale_offset))[:5])
+
+
+def functional_splats(call: nn.Module) -> Tuple[Callable[..., Tuple[Tensor, ...]], List[Tensor]]:
+    """`call` as a function of (its arguments..., then every parameter of it), and those parameters in that order.
+
+    What make_graphed_callables captures, with stand-ins for the parameters: leaf tensors on their storage
+    (`p.detach().requires_grad_()`). A capture runs on a side stream, and the autograd graph of the captured
+    outputs, which the graphed callable keeps, keeps each leaf's gradient accumulator as made there, on that stream;
+    a module's own parameters would then hand their gradient from the step's stream to the side stream and back in
+    every backward, an event recorded and waited on per parameter (27 of each a step in `garo-deform`'s host pass,
+    benchmarks/results/train_profile_hx2_*). The stand-ins keep those accumulators; each step passes the real
+    parameters, whose accumulators are made in the step, on its stream. Sharing their storage, the stand-ins are not
+    copied into at replay, and they read the optimizer's updates."""
+    names = [name for name, _ in call.named_parameters()]
+    params = [p for _, p in call.named_parameters()]
+    count = len(names)
+
+    def run(*args: Tensor) -> Tuple[Tensor, ...]:
+        inputs, values = args[: len(args) - count], args[len(args) - count :]
+        return torch.func.functional_call(call, dict(zip(names, values)), inputs)
+
+    return run, params
 
 
 class GraphedSplats:
@@ -89,9 +101,7 @@ class GraphedSplats:
         # into the memory its dropped predecessors held, once Python's collector has freed them (a dropped graph
         # lives in a reference cycle: garo_ns.collector), instead of allocating a pool of its own each time.
         self._pool: Optional[Any] = None
-        # The field parameters' gradient accumulators, made on the training step's stream before each capture and
-        # held while its graph lives (`step_stream_accumulators`).
-        self._accumulators: List[Any] = []
+        self._params: Tuple[Tensor, ...] = ()  # the field's parameters, passed to the graph (`functional_splats`)
 
     def __call__(self, canonical: Canonical, time: Union[float, Tensor], scale_offset: ScaleOffset) -> Splats:
         field = self.field()
@@ -114,14 +124,16 @@ class GraphedSplats:
             # Warm-up runs before a capture initialise what the first capture needs (libraries' handles and
             # workspaces): three before the first, as torch advises; later captures of the same code need one.
             warmup = 3 if self.captures == 0 else 1
-            call = _SplatsCall(run, scale_offset)
+            function, params = functional_splats(_SplatsCall(run, scale_offset))
+            stand_ins = tuple(p.detach().requires_grad_(p.requires_grad) for p in params)
             start = perf_counter()
-            self._accumulators = step_stream_accumulators(call.parameters())
             with collector_paused():
-                graphed = torch.cuda.make_graphed_callables(call, samples, num_warmup_iters=warmup, pool=self._pool)
-            self.graphed = graphed
+                graphed = torch.cuda.make_graphed_callables(
+                    function, samples + stand_ins, num_warmup_iters=warmup, pool=self._pool
+                )
+            self.graphed, self._params = graphed, tuple(params)
             self.capture_s += perf_counter() - start
             self.key = key
             self.captures += 1
         assert self.graphed is not None
-        return Splats(*self.graphed(*canonical, t))
+        return Splats(*self.graphed(*canonical, t, *self._params))

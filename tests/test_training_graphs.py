@@ -114,37 +114,40 @@ def test_the_graphed_splats_run_eagerly_without_gradients_or_when_off():
     assert on.captures == 1
 
 
-@pytest.mark.parametrize("hold", [True, False])
-def test_a_graphed_step_accumulates_its_gradients_on_the_step_stream(hold, monkeypatch):
-    """After a capture, a step's backward hands no gradient across streams: the field parameters' accumulators are
-    the step stream's (`step_stream_accumulators`), not the capture's side stream's. Without holding them the same
-    backward records and waits on an event per field parameter: the case that shows the test can fail."""
-    from garo_ns import train_graphs
-    from garo_ns.deformation import DeformationField
-
-    if not hold:
-        monkeypatch.setattr(train_graphs, "step_stream_accumulators", lambda params: [])
-    field = DeformationField(time_net=30).cuda().train()
-    graphed = train_graphs.GraphedSplats(lambda: field, enabled=True)
-    canonical = _canonical(3000, 0)
-
-    def step() -> None:
-        for p in list(canonical) + list(field.parameters()):
-            p.grad = None
-        sum(o.square().sum() for o in graphed(canonical, 0.4, "log")[:5]).backward()
-
-    step()  # the capture
+def _stream_waits(step) -> int:
+    """cudaStreamWaitEvent calls while `step` runs (after one call outside the count)."""
+    step()
     torch.cuda.synchronize()
     activities = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
     with torch.profiler.profile(activities=activities) as prof:
         step()
         torch.cuda.synchronize()
-    waits = sum(e.count for e in prof.key_averages() if e.key == "cudaStreamWaitEvent")
-    assert graphed.captures == 1 and all(p.grad is not None for p in field.parameters())
-    if hold:
-        assert waits == 0
-    else:
-        assert waits >= len(list(field.parameters()))
+    return sum(e.count for e in prof.key_averages() if e.key == "cudaStreamWaitEvent")
+
+
+def test_a_graphed_step_accumulates_its_gradients_on_the_step_stream():
+    """A graphed step's backward hands no gradient across streams (`functional_splats`' stand-ins keep the capture's
+    accumulators). The module graphed as itself, its parameters its own, waits on an event per parameter: the case
+    the stand-ins exist for, and what shows that this test can fail."""
+    from garo_ns.deformation import DeformationField
+    from garo_ns.train_graphs import GraphedSplats, _SplatsCall
+
+    field = DeformationField(time_net=30).cuda().train()
+    canonical = _canonical(3000, 0)
+    t = torch.full((1, 1), 0.4, device="cuda")
+    leaves = list(canonical) + list(field.parameters())
+    graphed = GraphedSplats(lambda: field, enabled=True)
+    samples = tuple(x.detach().clone().requires_grad_(True) for x in canonical) + (t.clone(),)
+    module_graphed = torch.cuda.make_graphed_callables(_SplatsCall(field, "log"), samples)
+
+    def step(run) -> None:
+        for p in leaves:
+            p.grad = None
+        sum(o.square().sum() for o in run()[:5]).backward()
+
+    assert _stream_waits(lambda: step(lambda: graphed(canonical, 0.4, "log"))) == 0
+    assert graphed.captures == 1 and all(p.grad is not None for p in leaves)
+    assert _stream_waits(lambda: step(lambda: module_graphed(*canonical, t))) >= len(list(field.parameters()))
 
 
 def test_the_bf16_step_graph_replays_the_eager_bf16_step():

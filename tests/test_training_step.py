@@ -290,31 +290,40 @@ def test_graphed_splats_off_the_gpu_are_the_composed_gaussians():
     assert graphed.captures == 0 and all(torch.equal(a, b) for a, b in zip(got[:5], want[:5]))
 
 
-def test_held_accumulators_are_the_ones_every_later_step_adds_through():
-    """`step_stream_accumulators` returns each parameter's gradient accumulator; while held, a later forward's graph
-    reaches the same nodes (so a capture made after it adds through them too), and a parameter without gradients
-    has none."""
+def test_the_functional_splats_are_the_modules_and_send_gradients_to_the_tensors_passed():
+    """`functional_splats`: the step's Gaussians with the field's parameters as arguments are the module's call, to
+    the bit; gradients reach the tensors passed (the real parameters at a step, stand-ins at a capture) and nothing
+    else, stand-ins reading their parameters' storage."""
     from garo_ns.deformation import DeformationField
-    from garo_ns.train_graphs import step_stream_accumulators
+    from garo_ns.render.frame import Canonical
+    from garo_ns.train_graphs import _SplatsCall, functional_splats
 
+    torch.manual_seed(3)
     field = DeformationField(depth=3, width=16, time_net=8)
-    field.layers[0].bias.requires_grad_(False)
-    held = step_stream_accumulators(field.parameters())
-    assert len(held) == sum(p.requires_grad for p in field.parameters())
-    assert all(type(a).__name__ == "AccumulateGrad" for a in held)
-    out = sum(o.sum() for o in field(torch.rand(5, 3), 0.3))
-
-    def leaves(fn, found):
-        for node, _ in fn.next_functions:
-            if node is not None and type(node).__name__ == "AccumulateGrad":
-                found.append(node)
-            elif node is not None:
-                leaves(node, found)
-        return found
-
-    reached = leaves(out.grad_fn, [])
-    assert reached and all(any(r is h for h in held) for r in reached)
-    assert {id(a.variable) for a in held} == {id(p) for p in field.parameters() if p.requires_grad}
+    call = _SplatsCall(field, "log")
+    function, params = functional_splats(call)
+    assert [id(p) for p in params] == [id(p) for p in field.parameters()]
+    n = 50
+    canonical = Canonical(
+        torch.rand(n, 3),
+        torch.randn(n, 4),
+        -3 + 0.3 * torch.randn(n, 3),
+        torch.randn(n, 1),
+        torch.randn(n, 3),
+        0.1 * torch.randn(n, 15, 3),
+    )
+    t = torch.full((1, 1), 0.6)
+    want = call(*canonical, t)
+    got = function(*canonical, t, *params)
+    assert all(torch.equal(a, b) for a, b in zip(got, want))
+    stand_ins = [p.detach().requires_grad_(True) for p in params]
+    sum(o.square().sum() for o in function(*canonical, t, *stand_ins)).backward()
+    assert all(p.grad is None for p in params) and all(s.grad is not None for s in stand_ins)
+    sum(o.square().sum() for o in want).backward()
+    assert all(torch.equal(p.grad, s.grad) for p, s in zip(params, stand_ins))
+    with torch.no_grad():
+        params[0].add_(1.0)  # an optimizer's in-place update
+    assert torch.equal(stand_ins[0], params[0])
 
 
 def test_training_metrics_are_computed_on_the_trainers_log_steps_only(scene_dir, tmp_path):
