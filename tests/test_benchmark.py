@@ -236,3 +236,16 @@ def test_a_failing_re_timing_keeps_the_measured_rows(tmp_path, monkeypatch):
     assert result["paired_timing_error"] == "RuntimeError: no memory left"
     assert json.loads(out.read_text())["variants"]["deform-splatfacto"]["psnr"] > 0
     assert "fps_paired" not in result["variants"]["deform-splatfacto"]
+
+
+def test_a_result_names_the_hosts_cpu(tmp_path):
+    """Host-bound training runs are compared only where the CPU is known: its model name from the cpuinfo file
+    (None where there is none) and its core count are in every result's environment."""
+    from garo_ns.bench import benchmark
+
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nvendor_id\t: AuthenticAMD\nmodel name\t: AMD EPYC 9654 96-Core Processor\n")
+    assert benchmark.cpu_model(info) == "AMD EPYC 9654 96-Core Processor"
+    assert benchmark.cpu_model(tmp_path / "absent") is None
+    env = benchmark.environment("cpu")
+    assert env["cpu_model"] == benchmark.cpu_model() and env["cpu_count"] >= 1

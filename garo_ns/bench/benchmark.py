@@ -438,6 +438,17 @@ def psnr_difference(row: List[float], plain: List[float]) -> Dict[str, Any]:
 
 
 # ---------------------------------------------------------------------------- report
+def cpu_model(cpuinfo: Path = Path("/proc/cpuinfo")) -> Optional[str]:
+    """The CPU's model name as Linux reports it in `cpuinfo` (None where there is none)."""
+    try:
+        for line in cpuinfo.read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return None
+
+
 def environment(device: str) -> Dict[str, Any]:
     """GPU, torch and commit of this run."""
     import torch
@@ -456,6 +467,10 @@ def environment(device: str) -> Dict[str, Any]:
     return {
         "gpu": gpu,
         "cpu": platform.processor() or platform.machine(),
+        # Training after densification waits on the host: runs on two machines with the same GPU model differ by
+        # their CPUs (benchmarks/results/train_profile_tf32_*_H100.json against train_profile_gcpreview_*).
+        "cpu_model": cpu_model(),
+        "cpu_count": os.cpu_count(),
         "torch": torch.__version__,
         "git_commit": commit,
         # Training processes sharing a GPU under CUDA MPS (benchmarks/device_run.sh starts it) run side by side;
