@@ -137,8 +137,6 @@ def test_a_graphed_step_accumulates_its_gradients_on_the_step_stream():
     t = torch.full((1, 1), 0.4, device="cuda")
     leaves = list(canonical) + list(field.parameters())
     graphed = GraphedSplats(lambda: field, enabled=True)
-    samples = tuple(x.detach().clone().requires_grad_(True) for x in canonical) + (t.clone(),)
-    module_graphed = torch.cuda.make_graphed_callables(_SplatsCall(field, "log"), samples)
 
     def step(run) -> None:
         for p in leaves:
@@ -147,6 +145,9 @@ def test_a_graphed_step_accumulates_its_gradients_on_the_step_stream():
 
     assert _stream_waits(lambda: step(lambda: graphed(canonical, 0.4, "log"))) == 0
     assert graphed.captures == 1 and all(p.grad is not None for p in leaves)
+    # Graphed as itself, the module's capture makes (and keeps) its parameters' accumulators on the side stream.
+    samples = tuple(x.detach().clone().requires_grad_(True) for x in canonical) + (t.clone(),)
+    module_graphed = torch.cuda.make_graphed_callables(_SplatsCall(field, "log"), samples)
     assert _stream_waits(lambda: step(lambda: module_graphed(*canonical, t))) >= len(list(field.parameters()))
 
 
