@@ -314,6 +314,11 @@ class DeformationSettings:
     the same kernels and numbers (tests/test_training_graphs.py). 40k jumpingjacks steps alone on an H100 took 394 s
     with it and 403 s with the field alone in the graph (benchmarks/results/train_profile_splats*). See
     `loss_cuda_graph` for what the two graphs save."""
+    deform_graph_grads: bool = False
+    """With `deform_cuda_graph`: the graph's backward adds the field's gradients into each parameter's `.grad` itself
+    (garo_ns.train_graphs.StepGraph) instead of returning them for autograd to accumulate, one node, allocation and
+    copy per parameter (26) every step; the same sums (tests/test_training_graphs.py). Off until its CUDA tests and a
+    40k run have run on a GPU."""
     deform_train_tf32: bool = True
     """Training on CUDA: the matrix products (the deformation MLP's, forward and backward) take TF32 inputs
     (10-bit mantissa, fp32 sums) on tensor cores; rendering, evaluation and the CPU stay exact fp32."""

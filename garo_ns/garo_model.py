@@ -90,7 +90,9 @@ class GaroModel(SplatfactoModel):
         # The loss's own SSIM (a module, so its window moves with the model): fused kernels where they run.
         self.loss_ssim = SSIM(data_range=1.0, fused=cfg.fused_ssim)
         self.image_loss = ImageLoss(self.loss_ssim, cfg.ssim_lambda, cfg.loss_cuda_graph)
-        self.train_splats = GraphedSplats(lambda: self.deformation, cfg.deform_cuda_graph, cfg.deform_train_bf16)
+        self.train_splats = GraphedSplats(
+            lambda: self.deformation, cfg.deform_cuda_graph, cfg.deform_train_bf16, cfg.deform_graph_grads
+        )
         self.collector = TrainingCollector(cfg.gc_threshold)  # Python's collector paced to training (set on step 1)
         # The dataset's cameras on the host: a training step reads its camera's numbers there (garo_ns.training_data).
         self.step_cameras: Optional[HostCameras] = None

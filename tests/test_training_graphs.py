@@ -50,6 +50,14 @@ def test_a_second_size_gets_its_own_graph_and_evaluation_stays_eager():
     assert len(graphed.graphs) == 2
 
 
+def _backward_grads(loss, leaves):
+    """Each leaf's gradient of `loss` from a backward (the graphed step adds the field's into `.grad` itself)."""
+    for x in leaves:
+        x.grad = None
+    loss.backward()
+    return [x.grad.clone() for x in leaves]
+
+
 def _canonical(n, seed):
     from garo_ns.render.frame import Canonical
 
@@ -63,8 +71,9 @@ def _canonical(n, seed):
     )
 
 
+@pytest.mark.parametrize("own_grads", [False, True])
 @pytest.mark.parametrize("scale_offset", ["log", "linear"])
-def test_the_graphed_splats_are_the_composed_gaussians_forward_and_backward(scale_offset):
+def test_the_graphed_splats_are_the_composed_gaussians_forward_and_backward(scale_offset, own_grads):
     """The whole step's Gaussians (field, composition, activations) from one graph: the eager values and the
     gradients of every canonical tensor and field parameter, call after call; a new count captures anew."""
     from garo_ns.deformation import DeformationField
@@ -73,14 +82,14 @@ def test_the_graphed_splats_are_the_composed_gaussians_forward_and_backward(scal
 
     torch.manual_seed(0)
     field = DeformationField(time_net=30).cuda().train()
-    graphed = GraphedSplats(lambda: field, enabled=True)
+    graphed = GraphedSplats(lambda: field, enabled=True, own_grads=own_grads)
     kept = ()
     for n, seed in ((4000, 0), (4000, 1), (4000, 2), (6000, 3), (3000, 4)):
         canonical = _canonical(n, seed)
         t = 0.1 + 0.2 * seed
         leaves = list(canonical) + list(field.parameters())
         out = graphed(canonical, t, scale_offset)
-        got = torch.autograd.grad(sum(o.square().sum() for o in out[:5]), leaves)
+        got = _backward_grads(sum(o.square().sum() for o in out[:5]), leaves)
         twin = Canonical(*(x.detach().clone().requires_grad_(True) for x in canonical))
         want = activate(twin, compose(field, twin, t, scale_offset))
         want_grads = torch.autograd.grad(sum(o.square().sum() for o in want[:5]), list(twin) + list(field.parameters()))
@@ -114,6 +123,37 @@ def test_the_graphed_splats_run_eagerly_without_gradients_or_when_off():
     assert on.captures == 1
 
 
+def test_a_graphed_backward_accumulates_into_grad_as_autograd_does():
+    """With `own_grads` (deform_graph_grads) the graph adds the field's gradients into each parameter's `.grad`:
+    from zero after an optimizer's zero_grad (None), onto a gradient already there (another tensor, or its own buffer
+    from an earlier backward), and a parameter that is not trained gets none; the canonical tensors' gradients come
+    through autograd as before."""
+    from garo_ns.deformation import DeformationField
+    from garo_ns.train_graphs import GraphedSplats
+
+    torch.manual_seed(0)
+    field = DeformationField(time_net=30).cuda().train()
+    frozen = field.layers[0].bias
+    frozen.requires_grad_(False)
+    canonical = _canonical(2000, 7)
+    graphed = GraphedSplats(lambda: field, enabled=True, own_grads=True)
+    trained = [p for p in field.parameters() if p.requires_grad]
+
+    def loss():
+        return sum(o.square().sum() for o in graphed(canonical, 0.5, "log")[:5])
+
+    once = _backward_grads(loss(), list(canonical) + trained)
+    loss().backward()  # onto its own buffer
+    assert all(torch.allclose(p.grad, 2 * g, rtol=1e-5, atol=1e-7) for p, g in zip(trained, once[6:]))
+    assert all(torch.allclose(x.grad, 2 * g, rtol=1e-5, atol=1e-7) for x, g in zip(canonical, once[:6]))
+    extra = [torch.randn_like(p) for p in trained]
+    for p, e in zip(trained, extra):
+        p.grad = e.clone()  # another tensor
+    loss().backward()
+    assert all(torch.allclose(p.grad, e + g, rtol=1e-5, atol=1e-6) for p, e, g in zip(trained, extra, once[6:]))
+    assert frozen.grad is None and graphed.captures == 1
+
+
 def _stream_waits(step) -> int:
     """cudaStreamWaitEvent calls while `step` runs (after one call outside the count)."""
     step()
@@ -125,10 +165,12 @@ def _stream_waits(step) -> int:
     return sum(e.count for e in prof.key_averages() if e.key == "cudaStreamWaitEvent")
 
 
-def test_a_graphed_step_accumulates_its_gradients_on_the_step_stream():
-    """A graphed step's backward hands no gradient across streams (`functional_splats`' stand-ins keep the capture's
-    accumulators). The module graphed as itself, its parameters its own, waits on an event per parameter: the case
-    the stand-ins exist for, and what shows that this test can fail."""
+@pytest.mark.parametrize("own_grads", [False, True])
+def test_a_graphed_step_accumulates_its_gradients_on_the_step_stream(own_grads):
+    """A graphed step's backward hands no gradient across streams, whether the graph adds the field's gradients
+    itself or hands them to autograd (`functional_splats`' stand-ins keep the capture's accumulators). The module
+    graphed as itself, its parameters its own, waits on an event per parameter: the case the stand-ins exist for,
+    and what shows that this test can fail."""
     from garo_ns.deformation import DeformationField
     from garo_ns.train_graphs import GraphedSplats, _SplatsCall
 
@@ -136,7 +178,7 @@ def test_a_graphed_step_accumulates_its_gradients_on_the_step_stream():
     canonical = _canonical(3000, 0)
     t = torch.full((1, 1), 0.4, device="cuda")
     leaves = list(canonical) + list(field.parameters())
-    graphed = GraphedSplats(lambda: field, enabled=True)
+    graphed = GraphedSplats(lambda: field, enabled=True, own_grads=own_grads)
 
     def step(run) -> None:
         for p in leaves:
@@ -160,15 +202,15 @@ def test_the_bf16_step_graph_replays_the_eager_bf16_step():
 
     torch.manual_seed(0)
     field = DeformationField(time_net=30).cuda().train()
-    graphed = GraphedSplats(lambda: field, enabled=True, bf16=True)
+    graphed = GraphedSplats(lambda: field, enabled=True, bf16=True, own_grads=True)
     eager = GraphedSplats(lambda: field, enabled=False, bf16=True)
     for seed in range(3):
         canonical = _canonical(4000, seed)
         leaves = list(canonical) + list(field.parameters())
         out = graphed(canonical, 0.2 + 0.2 * seed, "log")
-        got = torch.autograd.grad(sum(o.square().sum() for o in out[:5]), leaves)
+        got = _backward_grads(sum(o.square().sum() for o in out[:5]), leaves)
         want = eager(canonical, 0.2 + 0.2 * seed, "log")
-        want_grads = torch.autograd.grad(sum(o.square().sum() for o in want[:5]), leaves)
+        want_grads = _backward_grads(sum(o.square().sum() for o in want[:5]), leaves)
         for a, b in zip(out[:5], want[:5]):
             assert torch.allclose(a, b, rtol=1e-3, atol=1e-5)
         for a, b in zip(got, want_grads):
@@ -212,7 +254,7 @@ def test_no_collection_runs_inside_a_capture():
     with _collections_seen() as seen:
         for n in (3000, 3100, 3200):  # each new count drops the previous graph
             out = graphed(_canonical(n, n), 0.3, "log")
-            torch.autograd.grad(out[0].sum(), field.parameters(), allow_unused=True)
+            out[0].sum().backward()
         gt, pred = _images((32, 32, 3), 0)
         loss(gt, pred).backward()
         capture(lambda x: 2 * x, (torch.ones(4, device="cuda"),), torch.device("cuda"), 1)

@@ -326,6 +326,28 @@ def test_the_functional_splats_are_the_modules_and_send_gradients_to_the_tensors
     assert torch.equal(stand_ins[0], params[0])
 
 
+def test_attached_gradient_buffers_hold_what_grad_held():
+    """`attach_gradients`: each buffer becomes its parameter's `.grad` holding what that held (zero for None,
+    a copy of another tensor, itself untouched when already attached), so adding into the buffers accumulates."""
+    from garo_ns.train_graphs import attach_gradients
+
+    params = [torch.zeros(3, requires_grad=True) for _ in range(3)]
+    buffers = [torch.full((3,), 9.0) for _ in range(3)]
+    params[1].grad = torch.tensor([1.0, 2.0, 3.0])
+    params[2].grad = buffers[2]
+    buffers[2].fill_(5.0)
+    attach_gradients(params, buffers)
+    assert all(p.grad is b for p, b in zip(params, buffers))
+    assert buffers[0].tolist() == [0.0, 0.0, 0.0]
+    assert buffers[1].tolist() == [1.0, 2.0, 3.0]
+    assert buffers[2].tolist() == [5.0, 5.0, 5.0]
+    for b in buffers:
+        b.add_(1.0)  # what the graph's backward does
+    params[0].grad = None  # an optimizer's zero_grad
+    attach_gradients(params, buffers)
+    assert [b.tolist()[0] for b in buffers] == [0.0, 2.0, 6.0]
+
+
 def test_training_metrics_are_computed_on_the_trainers_log_steps_only(scene_dir, tmp_path):
     from garo_ns.tools.train import QuickSchedule, make_config
 
@@ -353,11 +375,14 @@ def test_training_metrics_are_computed_on_the_trainers_log_steps_only(scene_dir,
     assert METHODS["deform-splatfacto"].config.pipeline.model.deform_train_bf16
     assert not METHODS["garo-compact"].config.pipeline.model.deform_train_bf16
 
+    assert not model.train_splats.own_grads  # deform_graph_grads: off until run on a GPU
     config.pipeline.model.deform_train_bf16 = False
     config.pipeline.model.deform_cuda_graph = False
+    config.pipeline.model.deform_graph_grads = True
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
-    assert not trainer.pipeline.model.train_splats.bf16 and not trainer.pipeline.model.train_splats.enabled
+    splats = trainer.pipeline.model.train_splats
+    assert not splats.bf16 and not splats.enabled and splats.own_grads
 
 
 def _outputs_and_batch(trainer):
