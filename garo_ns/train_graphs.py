@@ -132,17 +132,25 @@ class StepGraph:
         torch.cuda.synchronize()
         with torch.cuda.stream(stream):
             for _ in range(warmup):
-                outs = function(*inputs, *stand_ins)
-                torch.autograd.grad(outs, wrt, [torch.empty_like(o) for o in outs], allow_unused=True)
-            del outs
+                differentiable = [o for o in function(*inputs, *stand_ins) if o.requires_grad]
+                torch.autograd.grad(
+                    differentiable, wrt, [torch.empty_like(o) for o in differentiable], allow_unused=True
+                )
+            del differentiable
         torch.cuda.synchronize()
         self.forward_graph, self.backward_graph = torch.cuda.CUDAGraph(), torch.cuda.CUDAGraph()
         with torch.cuda.graph(self.forward_graph, pool=pool, stream=stream):
             outs = function(*inputs, *stand_ins)
-        self.grad_outputs = tuple(torch.empty_like(o) for o in outs)
+        # An output that needs no gradient gets none (its incoming gradient is not copied in).
+        self.grad_outputs: Tuple[Optional[Tensor], ...] = tuple(
+            torch.empty_like(o) if o.requires_grad else None for o in outs
+        )
+        differentiable = [(o, g) for o, g in zip(outs, self.grad_outputs) if g is not None]
         n_inputs = sum(self.needs_grad)
         with torch.cuda.graph(self.backward_graph, pool=pool, stream=stream):
-            got = torch.autograd.grad(outs, wrt, self.grad_outputs, allow_unused=True)
+            got = torch.autograd.grad(
+                [o for o, _ in differentiable], wrt, [g for _, g in differentiable], allow_unused=True
+            )
             for buffer, g in zip(self.grads, got[n_inputs:]):
                 if g is not None:
                     buffer.add_(g)
@@ -173,7 +181,7 @@ class _StepReplay(torch.autograd.Function):
     def backward(ctx: Any, *grads: Tensor) -> Tuple[Optional[Tensor], ...]:  # type: ignore[override]
         graph: StepGraph = ctx.graph
         for static, g in zip(graph.grad_outputs, grads):
-            if static.data_ptr() != g.data_ptr():
+            if static is not None and static.data_ptr() != g.data_ptr():
                 static.copy_(g)
         attach_gradients(graph.params, graph.grads)
         graph.backward_graph.replay()
