@@ -18,6 +18,11 @@
 #                                                      the background once the scene is there, result
 #                                                      $W/results/NAME.json; AFTER=JOB queues it behind job JOB (runs
 #                                                      alone on the GPU, one after another)
+#   bash benchmarks/device_run.sh pair NAME SCENE PREV [train_profile args...]
+#                                                      an A/B on one host (2-GPU kinds): `profile NAME_base_SCENE` (the
+#                                                      default recipe) on GPU 0 and `profile NAME_arm_SCENE` with the args
+#                                                      on GPU 1, started together; each waits for its GPU's previous pair
+#                                                      (PREV: that pair's scene, `-` for none)
 #   bash benchmarks/device_run.sh extra NAME CMD...    any other command in the background (parity, ...)
 #   bash benchmarks/device_run.sh wait SECONDS         poll until every launched job ended or SECONDS passed,
 #                                                      then collect (what has landed comes back in every call)
@@ -131,6 +136,12 @@ profile)
       python3 -m garo_ns.bench.train_profile --scene /tmp/$scene --score $* --work-dir $W/$name \
       --output $W/results/$name.json > $W/$name.log 2>&1; echo \$? > $W/jobs/$name.done" > /dev/null 2>&1 &
   touch $W/jobs/$name.job; sleep 2; echo "launched $name${AFTER:+ (starts when $AFTER has ended)}" ;;
+pair)
+  name=$1; scene=$2; prev=$3; shift 3
+  wait0=; wait1=
+  [ "$prev" != - ] && wait0=${name}_base_$prev && wait1=${name}_arm_$prev
+  CUDA_VISIBLE_DEVICES=0 AFTER=$wait0 bash "$0" profile ${name}_base_$scene $scene
+  CUDA_VISIBLE_DEVICES=1 AFTER=$wait1 bash "$0" profile ${name}_arm_$scene $scene "$@" ;;
 extra)
   name=$1; shift
   cd $W/src
