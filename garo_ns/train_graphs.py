@@ -4,10 +4,11 @@ A training step runs the field's MLP on every Gaussian and back, then the D-3DGS
 quaternions normalised, the scale term) and the activations (exp, sigmoid, the SH concatenation): a few dozen small
 kernels each way whose launches, and the autograd nodes around them, cost the host more time than the GPU spends on
 them (benchmarks/results/train_profile_fast_*). For fixed shapes the whole of it is captured once
-(`StepGraph`) and replayed with the step's canonical parameters and time copied in, as one autograd node whose
-backward also adds the field parameters' gradients into their `.grad` inside the graph; a new count of Gaussians
-(densification, pruning, compaction) captures anew. Off the GPU, without gradients, or when the setting is off, it
-runs eagerly.
+(torch's make_graphed_callables, the field's parameters passed as arguments: `functional_splats`) and replayed with
+the step's canonical parameters and time copied in, as one autograd node; a new count of Gaussians (densification,
+pruning, compaction) captures anew. With `deform_graph_grads` the capture is our own (`StepGraph`), whose backward
+also adds the field parameters' gradients into their `.grad` inside the graph. Off the GPU, without gradients, or
+when the setting is off, it runs eagerly.
 
 `deform_train_bf16` runs the field's matrix products in bf16 (`Bf16Field`), graphed or eager, on CUDA only.
 """
