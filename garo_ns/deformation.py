@@ -327,7 +327,8 @@ class DeformationSettings:
     in fp32 and its offsets returned in fp32 (garo_ns.train_graphs.Bf16Field); the CPU stays fp32. On a fresh field
     the offsets differ from fp32 by about 0.3% of their norm (tests/test_training_step.py). `garo-deform` and
     `deform-splatfacto` turn it on, each after a 40k A/B on jumpingjacks, mutant and standup against fp32 runs (test
-    PSNR -0.03 and +0.04 dB on average; benchmarks/results/train_profile_bf16_*). Off elsewhere until their own A/B."""
+    PSNR -0.03 and +0.02 dB on average, the latter with two bf16 runs on mutant; benchmarks/results/train_profile_bf16_*
+    and train_profile_hx2_*). Off elsewhere until their own A/B."""
 
     def make_deformation(self) -> DeformationField:
         """The deformation field these settings describe (untrained)."""

@@ -83,6 +83,11 @@ def functional_splats(call: nn.Module) -> Tuple[Callable[..., Tuple[Tensor, ...]
     return run, params
 
 
+def stand_ins(params: Sequence[Tensor]) -> Tuple[Tensor, ...]:
+    """Leaf tensors on the parameters' storage, for a capture (`functional_splats`)."""
+    return tuple(p.detach().requires_grad_(p.requires_grad) for p in params)
+
+
 def attach_gradients(params: Sequence[Tensor], buffers: Sequence[Tensor]) -> None:
     """Make each buffer its parameter's `.grad`, holding what `.grad` held: zero where it was None (an optimizer's
     zero_grad), a copy where it was another tensor, untouched where it already is the buffer. A graph that adds
@@ -121,19 +126,19 @@ class StepGraph:
         warmup: int,
         pool: Any,
     ) -> None:
-        stand_ins = tuple(p.detach().requires_grad_(p.requires_grad) for p in params)
+        leaves = stand_ins(params)
         # Only the trained parameters get a `.grad`, as autograd would give them.
         trained = [(p, b) for p, b in zip(params, grads) if p.requires_grad]
         self.params, self.grads = tuple(p for p, _ in trained), tuple(b for _, b in trained)
         self.needs_grad = tuple(x.requires_grad for x in inputs)
-        wrt = [x for x in inputs if x.requires_grad] + [s for s in stand_ins if s.requires_grad]
+        wrt = [x for x in inputs if x.requires_grad] + [s for s in leaves if s.requires_grad]
         stream = torch.cuda.Stream()
         # Warm-up runs before the capture initialise what it needs (libraries' handles and workspaces), on the
         # stream the capture will use, as torch advises.
         torch.cuda.synchronize()
         with torch.cuda.stream(stream):
             for _ in range(warmup):
-                differentiable = [o for o in function(*inputs, *stand_ins) if o.requires_grad]
+                differentiable = [o for o in function(*inputs, *leaves) if o.requires_grad]
                 torch.autograd.grad(
                     differentiable, wrt, [torch.empty_like(o) for o in differentiable], allow_unused=True
                 )
@@ -141,7 +146,7 @@ class StepGraph:
         torch.cuda.synchronize()
         self.forward_graph, self.backward_graph = torch.cuda.CUDAGraph(), torch.cuda.CUDAGraph()
         with torch.cuda.graph(self.forward_graph, pool=pool, stream=stream):
-            outs = function(*inputs, *stand_ins)
+            outs = function(*inputs, *leaves)
         # An output that needs no gradient gets none (its incoming gradient is not copied in).
         self.grad_outputs: Tuple[Optional[Tensor], ...] = tuple(
             torch.empty_like(o) if o.requires_grad else None for o in outs
@@ -249,9 +254,8 @@ class GraphedSplats:
                     self.graphed = StepGraph(function, samples, params, self._grads[1], warmup, self._pool)
                     self._params = ()
                 else:
-                    stand_ins = tuple(p.detach().requires_grad_(p.requires_grad) for p in params)
                     self.graphed = torch.cuda.make_graphed_callables(
-                        function, samples + stand_ins, num_warmup_iters=warmup, pool=self._pool
+                        function, samples + stand_ins(params), num_warmup_iters=warmup, pool=self._pool
                     )
                     self._params = tuple(params)
             self.capture_s += perf_counter() - start
