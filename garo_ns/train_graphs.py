@@ -115,7 +115,9 @@ class StepGraph:
     parameters' gradients into `grads` (each parameter's `.grad` at every backward, `attach_gradients`), so autograd
     sees neither the parameters nor their accumulators: torch's make_graphed_callables returned one gradient per
     parameter, for autograd to accumulate (a node, an allocation and a copy each, 26 a step for the field). The
-    capture's own autograd graph is dropped after the capture. Built inside the caller's memory pool."""
+    capture's own autograd graph is dropped after the capture. Built inside the caller's memory pool, on the caller's
+    capture stream: the caching allocator reuses a freed block only on the stream it was allocated on, so captures on
+    a new stream each could not reuse their dropped predecessors' memory (a 40k run held 40 GB so)."""
 
     def __init__(
         self,
@@ -125,6 +127,7 @@ class StepGraph:
         grads: Sequence[Tensor],
         warmup: int,
         pool: Any,
+        stream: "torch.cuda.Stream",
     ) -> None:
         leaves = stand_ins(params)
         # Only the trained parameters get a `.grad`, as autograd would give them.
@@ -132,7 +135,6 @@ class StepGraph:
         self.params, self.grads = tuple(p for p, _ in trained), tuple(b for _, b in trained)
         self.needs_grad = tuple(x.requires_grad for x in inputs)
         wrt = [x for x in inputs if x.requires_grad] + [s for s in leaves if s.requires_grad]
-        stream = torch.cuda.Stream()
         # Warm-up runs before the capture initialise what it needs (libraries' handles and workspaces), on the
         # stream the capture will use, as torch advises.
         torch.cuda.synchronize()
@@ -217,6 +219,7 @@ class GraphedSplats:
         # into the memory its dropped predecessors held, once Python's collector has freed them (a dropped graph
         # lives in a reference cycle: garo_ns.collector), instead of allocating a pool of its own each time.
         self._pool: Optional[Any] = None
+        self._stream: Optional[torch.cuda.Stream] = None  # one capture stream, for the same reason (StepGraph)
         # The field parameters' gradient buffers: each is its parameter's `.grad` after a graphed backward, kept
         # across captures while the parameters are the same tensors.
         self._grads: Tuple[Tuple[int, ...], Tuple[Tensor, ...]] = ((), ())
@@ -240,7 +243,7 @@ class GraphedSplats:
             self.graphed = None
             samples = tuple(x.detach().clone().requires_grad_(x.requires_grad) for x in canonical) + (t.clone(),)
             if self._pool is None:
-                self._pool = torch.cuda.graph_pool_handle()
+                self._pool, self._stream = torch.cuda.graph_pool_handle(), torch.cuda.Stream()
             # Warm-up runs before a capture initialise what the first capture needs (libraries' handles and
             # workspaces): three before the first, as torch advises; later captures of the same code need one.
             warmup = 3 if self.captures == 0 else 1
@@ -251,7 +254,9 @@ class GraphedSplats:
             start = perf_counter()
             with collector_paused():
                 if self.own_grads:
-                    self.graphed = StepGraph(function, samples, params, self._grads[1], warmup, self._pool)
+                    self.graphed = StepGraph(
+                        function, samples, params, self._grads[1], warmup, self._pool, self._stream
+                    )
                     self._params = ()
                 else:
                     self.graphed = torch.cuda.make_graphed_callables(

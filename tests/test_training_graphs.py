@@ -193,6 +193,32 @@ def test_a_graphed_step_accumulates_its_gradients_on_the_step_stream(own_grads):
     assert _stream_waits(lambda: step(lambda: module_graphed(*canonical, t))) >= len(list(field.parameters()))
 
 
+@pytest.mark.parametrize("own_grads", [False, True])
+def test_a_new_capture_reuses_the_memory_of_the_graph_it_replaces(own_grads):
+    """Densification captures anew at every new count of Gaussians. Each capture must reuse the memory its dropped
+    predecessor held: what the process keeps reserved stops growing after the first captures. Captures on a new
+    stream each (torch hands out up to 32) could not reuse it, and grew by about one capture's memory every time."""
+    from garo_ns.deformation import DeformationField
+    from garo_ns.train_graphs import GraphedSplats
+
+    field = DeformationField(time_net=30).cuda().train()
+    graphed = GraphedSplats(lambda: field, enabled=True, own_grads=own_grads)
+    gc.collect()
+    torch.cuda.empty_cache()
+    before = torch.cuda.memory_reserved()
+    reserved = []
+    for i in range(12):
+        canonical = _canonical(20000 + 100 * i, i)  # grows as densification does
+        sum(o.square().sum() for o in graphed(canonical, 0.3, "log")[:5]).backward()
+        del canonical
+        gc.collect()  # torch's graphed callables are freed by the collector
+        torch.cuda.empty_cache()  # what is left reserved is held: live tensors and the graphs' pool
+        reserved.append(torch.cuda.memory_reserved())
+    first = reserved[0] - before
+    assert graphed.captures == 12 and first > 0
+    assert reserved[-1] - reserved[2] < 0.5 * first, [r - before for r in reserved]
+
+
 def test_the_bf16_step_graph_replays_the_eager_bf16_step():
     """`deform_train_bf16` graphed: the same autocast kernels as the eager bf16 step, so the same values and
     gradients up to the order of the products' sums; the weights the graph reads are recast at every replay (an
