@@ -89,6 +89,7 @@ def test_profile_of_a_short_cpu_training(tmp_path):
     assert [op["self_ms_per_step"] for op in top] == sorted((op["self_ms_per_step"] for op in top), reverse=True)
     assert sum(op["self_ms_per_step"] for op in top) <= host["ms_per_step"]  # own times: within the steps' wall
     assert result["score"]["psnr"] > 10  # the scored model renders the scene, not noise
+    assert result["cuda_memory_mib"] is None  # a CPU run has no CUDA allocator to report
     assert result["score"]["split"] == "val" and result["score"]["background"] == "black"
     assert result["model_settings"] == {"deform_cuda_graph": True, "loss_cuda_graph": True}
     timeline = result["timeline"]
@@ -244,6 +245,8 @@ def test_a_cuda_run_replays_its_adam_graph_once_the_gaussians_settle(tmp_path):
     # later, replayed from then on (160 replays on an H100).
     assert counts["captures"] >= 1 and 100 <= counts["replays"] <= 600 - 340 - 100 + 1
     assert result["score"]["psnr"] > 10
+    memory = result["cuda_memory_mib"]
+    assert 0 < memory["peak_allocated"] <= memory["peak_reserved"]
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA: kernel launches")

@@ -531,6 +531,17 @@ def adam_graph_counts(optimizers: Any) -> Optional[Dict[str, int]]:
     return None if graph is None else {"captures": graph.captures, "replays": graph.replays}
 
 
+def cuda_memory_mib(device: str) -> Optional[Dict[str, float]]:
+    """The run's peak of memory in tensors and of memory the caching allocator reserved (what other processes
+    cannot use, and what nvidia-smi shows), in MiB; None off CUDA."""
+    if device != "cuda":
+        return None
+    return {
+        "peak_allocated": torch.cuda.max_memory_allocated() / 2**20,
+        "peak_reserved": torch.cuda.max_memory_reserved() / 2**20,
+    }
+
+
 def splats_graph_counts(model: Any) -> Optional[Dict[str, float]]:
     """How often the run's training graph of the Gaussians (`deform_cuda_graph`) was captured, one capture per new
     count of Gaussians, and the wall seconds those captures took, warm-up runs included (None: no such graph)."""
@@ -672,6 +683,7 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         "adam_graph": adam_graph_counts(trainer.optimizers),
         "splats_graph": splats_graph_counts(trainer.pipeline.model),
         "gaussians_final": int(trainer.pipeline.model.num_points),
+        "cuda_memory_mib": cuda_memory_mib(args.device),
     }
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(json.dumps(result, indent=2) + "\n")
