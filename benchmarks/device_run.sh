@@ -16,13 +16,14 @@
 #   bash benchmarks/device_run.sh profile NAME SCENE [train_profile args...]
 #                                                      python -m garo_ns.bench.train_profile --score on /tmp/SCENE in
 #                                                      the background once the scene is there, result
-#                                                      $W/results/NAME.json; AFTER=JOB queues it behind job JOB (runs
-#                                                      alone on the GPU, one after another)
+#                                                      $W/results/NAME.json; AFTER="JOB ..." queues it behind those
+#                                                      jobs (runs alone on the GPU, one after another)
 #   bash benchmarks/device_run.sh pair NAME SCENE PREV [train_profile args...]
 #                                                      an A/B on one host (2-GPU kinds): `profile NAME_base_SCENE` (the
 #                                                      default recipe) on GPU 0 and `profile NAME_arm_SCENE` with the args
-#                                                      on GPU 1, started together; each waits for its GPU's previous pair
-#                                                      (PREV: that pair's scene, `-` for none)
+#                                                      on GPU 1 (SWAP=1: the other way round), started together
+#                                                      once both runs of the previous pair (PREV: its scene, `-`
+#                                                      for none) have ended
 #   bash benchmarks/device_run.sh extra NAME CMD...    any other command in the background (parity, ...)
 #   bash benchmarks/device_run.sh wait SECONDS         poll until every launched job ended or SECONDS passed,
 #                                                      then collect (what has landed comes back in every call)
@@ -65,6 +66,10 @@ start_mps() {
   else
     echo quit | nvidia-cuda-mps-control; echo "CUDA MPS failed to serve a client; training processes time-slice the GPU"
   fi
+}
+# AFTER="JOB ..." queues a launched run behind each job named (a shell loop for its command line).
+after_jobs() {
+  for j in ${AFTER:-}; do printf 'while [ ! -e %s/jobs/%s.done ]; do sleep 5; done; ' $W $j; done
 }
 # What the result files record of it (garo_ns.bench.benchmark.environment).
 [ -e $W/mps.on ] && export GARO_MPS_ON=1
@@ -119,7 +124,7 @@ launch)
   start_mps; [ -e $W/mps.on ] && export GARO_MPS_ON=1
   cd $W/src
   # AFTER=JOB queues this run behind job JOB (its deadline counts from its own start).
-  after=${AFTER:+while [ ! -e $W/jobs/$AFTER.done ]; do sleep 5; done;}
+  after=$(after_jobs)
   CUDA_VISIBLE_DEVICES=$gpus setsid nohup bash -c "$after python3 -m garo_ns.bench.benchmark --scene /tmp/$scene --split $split $* \
       --output $W/results/$name.json --work-dir $W/$name > $W/$name.log 2>&1; echo \$? > $W/jobs/$name.done" \
       > /dev/null 2>&1 &
@@ -131,17 +136,21 @@ profile)
   cd $W/src
   # Waits for the scene's copy (a later call may carry it) and for AFTER's job, so that a queue of runs can be
   # launched in the first call.
-  after=${AFTER:+while [ ! -e $W/jobs/$AFTER.done ]; do sleep 5; done;}
+  after=$(after_jobs)
   setsid nohup bash -c "$after while [ ! -e /tmp/$scene.ready ]; do sleep 2; done; \
       python3 -m garo_ns.bench.train_profile --scene /tmp/$scene --score $* --work-dir $W/$name \
       --output $W/results/$name.json > $W/$name.log 2>&1; echo \$? > $W/jobs/$name.done" > /dev/null 2>&1 &
   touch $W/jobs/$name.job; sleep 2; echo "launched $name${AFTER:+ (starts when $AFTER has ended)}" ;;
 pair)
   name=$1; scene=$2; prev=$3; shift 3
-  wait0=; wait1=
-  [ "$prev" != - ] && wait0=${name}_base_$prev && wait1=${name}_arm_$prev
-  CUDA_VISIBLE_DEVICES=0 AFTER=$wait0 bash "$0" profile ${name}_base_$scene $scene
-  CUDA_VISIBLE_DEVICES=1 AFTER=$wait1 bash "$0" profile ${name}_arm_$scene $scene "$@" ;;
+  # Both of this pair's runs wait for both of the previous pair's, so that SWAP may change between pairs.
+  wait=; [ "$prev" != - ] && wait="${name}_base_$prev ${name}_arm_$prev"
+  # SWAP=1 puts the default on GPU 1 and the arm on GPU 0: two GPUs of one host differed by 2 to 8% on identical
+  # steps (the pair's steps 1k to 3k, before the field starts), as much as the arm being measured; alternate SWAP
+  # over the scenes, or compare the arms' steps 1k to 3k.
+  g0=0; g1=1; [ "${SWAP:-0}" = 1 ] && g0=1 && g1=0
+  CUDA_VISIBLE_DEVICES=$g0 AFTER="$wait" bash "$0" profile ${name}_base_$scene $scene
+  CUDA_VISIBLE_DEVICES=$g1 AFTER="$wait" bash "$0" profile ${name}_arm_$scene $scene "$@" ;;
 extra)
   name=$1; shift
   cd $W/src

@@ -196,6 +196,29 @@ def test_train_speed_compares_the_scenes_both_sides_ran_and_the_render_choice(tm
     )
 
 
+def test_train_speed_states_the_ratio_over_the_fields_warm_up(tmp_path):
+    """Steps 1k to 3k run the same code in two recipes that differ only in the field: their ratio there measures
+    the machines, stated beside the recipes' ratio; a run whose timeline lacks those steps leaves it unknown."""
+    from garo_ns.bench.train_speed import main
+
+    def timeline(warmup_s):  # 1 s per 1000 steps, except steps 1k to 3k
+        return [
+            {"step": 1000, "seconds": 1.0},
+            {"step": 3000, "seconds": 1.0 + warmup_s},
+            {"step": 40_000, "seconds": 50},
+        ]
+
+    before = _profile(tmp_path / "b.json", 50.0, extra={"timeline": timeline(2.2)})
+    after = _profile(tmp_path / "a.json", 50.0, extra={"timeline": timeline(2.0)})
+    result, table = main(["--before", f"m={before}", "--after", f"m={after}", "--output", str(tmp_path / "s.json")])
+    m = result["methods"]["m"]
+    assert abs(m["after"]["runs"][0]["warmup_ms_per_step"] - 1.0) < 1e-9
+    assert abs(m["speedup_warmup"] - 1.1) < 1e-9 and "1.10x over steps 1k to 3k" in table
+    bare = _profile(tmp_path / "c.json", 50.0)
+    result, table = main(["--before", f"m={bare}", "--after", f"m={after}", "--output", str(tmp_path / "s.json")])
+    assert result["methods"]["m"]["speedup_warmup"] is None and "steps 1k to 3k" not in table
+
+
 def test_the_committed_train_speed_is_its_files_summary():
     import json
     from pathlib import Path
