@@ -150,9 +150,9 @@ def markdown(result: Dict[str, Any]) -> str:
                 )
         if "speedup" in e:
             change = f", PSNR {e['psnr_change_db']:+.2f} dB" if e.get("psnr_change_db") is not None else ""
-            steps = f" ({e['speedup_steps']:.2f}x the steps alone)" if e.get("speedup_steps") else ""
             if e.get("speedup_warmup"):
-                steps += f"; {e['speedup_warmup']:.2f}x over steps 1k to 3k, the field's warm-up"
+                change += f"; {e['speedup_warmup']:.2f}x over steps 1k to 3k (the field's warm-up)"
+            steps = f" ({e['speedup_steps']:.2f}x the steps alone)" if e.get("speedup_steps") else ""
             scenes = ", ".join(e["scenes_compared"])
             lines.append(
                 f"| {method} | after / before | {scenes} | | | {e['speedup']:.2f}x faster{steps}{change} | | | |"
