@@ -317,8 +317,9 @@ class DeformationSettings:
     deform_graph_grads: bool = False
     """With `deform_cuda_graph`: the graph's backward adds the field's gradients into each parameter's `.grad` itself
     (garo_ns.train_graphs.StepGraph) instead of returning them for autograd to accumulate, one node, allocation and
-    copy per parameter (26) every step; the same sums (tests/test_training_graphs.py). Off until its CUDA tests and a
-    40k run have run on a GPU."""
+    copy per parameter (26) every step; the same sums (tests/test_training_graphs.py). Off: in 40k A/B pairs on one
+    H200 host it ran 1.03x faster with PSNR +0.10 dB, but its GPU also ran the field-free warm-up steps 1.06x faster
+    (benchmarks/results/ab_graph_grads_H200.json), so no gain of its own is shown."""
     deform_train_tf32: bool = True
     """Training on CUDA: the matrix products (the deformation MLP's, forward and backward) take TF32 inputs
     (10-bit mantissa, fp32 sums) on tensor cores; rendering, evaluation and the CPU stay exact fp32."""
