@@ -314,12 +314,16 @@ class DeformationSettings:
     the same kernels and numbers (tests/test_training_graphs.py). 40k jumpingjacks steps alone on an H100 took 394 s
     with it and 403 s with the field alone in the graph (benchmarks/results/train_profile_splats*). See
     `loss_cuda_graph` for what the two graphs save."""
-    deform_graph_grads: bool = False
-    """With `deform_cuda_graph`: the graph's backward adds the field's gradients into each parameter's `.grad` itself
-    (garo_ns.train_graphs.StepGraph) instead of returning them for autograd to accumulate, one node, allocation and
-    copy per parameter (26) every step; the same sums (tests/test_training_graphs.py). Off: in 40k A/B pairs on one
-    H200 host it ran 1.03x faster with PSNR +0.10 dB, but its GPU also ran the field-free warm-up steps 1.06x faster
-    (benchmarks/results/ab_graph_grads_H200.json), so no gain of its own is shown."""
+    deform_graph_grads: bool = True
+    """With `deform_cuda_graph`: the graph is our own capture (garo_ns.train_graphs.StepGraph), whose backward adds the
+    field's gradients into each parameter's `.grad` itself instead of returning them for autograd to accumulate (one
+    node, allocation and copy per parameter, 26, every step); the same sums (tests/test_training_graphs.py). On
+    because its captures, one every refinement while densifying, reuse each other's memory on one stream. Off, torch's
+    make_graphed_callables captures, and newer torch (2.14) captures it on a new stream each call: a freed block is
+    reused only on its own stream, so the pool keeps the memory of up to 32 dropped graphs (StepGraph on a new
+    stream each time held 43,697 MiB on an H200 where the run beside it held 6,175). In 40k A/B pairs on one H200
+    host it scored +0.10 dB on average and ran 1.03x faster, within the two GPUs' own difference (1.06x on the
+    field-free warm-up steps; benchmarks/results/ab_graph_grads_H200.json)."""
     deform_train_tf32: bool = True
     """Training on CUDA: the matrix products (the deformation MLP's, forward and backward) take TF32 inputs
     (10-bit mantissa, fp32 sums) on tensor cores; rendering, evaluation and the CPU stay exact fp32."""

@@ -4,11 +4,12 @@ A training step runs the field's MLP on every Gaussian and back, then the D-3DGS
 quaternions normalised, the scale term) and the activations (exp, sigmoid, the SH concatenation): a few dozen small
 kernels each way whose launches, and the autograd nodes around them, cost the host more time than the GPU spends on
 them (benchmarks/results/train_profile_fast_*). For fixed shapes the whole of it is captured once
-(torch's make_graphed_callables, the field's parameters passed as arguments: `functional_splats`) and replayed with
-the step's canonical parameters and time copied in, as one autograd node; a new count of Gaussians (densification,
-pruning, compaction) captures anew. With `deform_graph_grads` the capture is our own (`StepGraph`), whose backward
-also adds the field parameters' gradients into their `.grad` inside the graph. Off the GPU, without gradients, or
-when the setting is off, it runs eagerly.
+(`StepGraph`, the field's parameters read in place through stand-ins: `functional_splats`) and replayed with the
+step's canonical parameters and time copied in, as one autograd node whose backward also adds the field parameters'
+gradients into their `.grad` inside the graph; a new count of Gaussians (densification, pruning, compaction)
+captures anew, on the same stream and into the same memory pool. With `deform_graph_grads` off the capture is
+torch's make_graphed_callables (the earlier path). Off the GPU, without gradients, or with `deform_cuda_graph` off, it
+runs eagerly.
 
 `deform_train_bf16` runs the field's matrix products in bf16 (`Bf16Field`), graphed or eager, on CUDA only.
 """
@@ -117,7 +118,8 @@ class StepGraph:
     parameter, for autograd to accumulate (a node, an allocation and a copy each, 26 a step for the field). The
     capture's own autograd graph is dropped after the capture. Built inside the caller's memory pool, on the caller's
     capture stream: the caching allocator reuses a freed block only on the stream it was allocated on, so captures on
-    a new stream each could not reuse their dropped predecessors' memory (a 40k run held 40 GB so)."""
+    a new stream each could not reuse their dropped predecessors' memory (a run held 43,697 MiB so
+    3.5 minutes in)."""
 
     def __init__(
         self,

@@ -375,14 +375,14 @@ def test_training_metrics_are_computed_on_the_trainers_log_steps_only(scene_dir,
     assert METHODS["deform-splatfacto"].config.pipeline.model.deform_train_bf16
     assert not METHODS["garo-compact"].config.pipeline.model.deform_train_bf16
 
-    assert not model.train_splats.own_grads  # deform_graph_grads: off until run on a GPU
+    assert model.train_splats.own_grads  # deform_graph_grads: our own capture, on one stream
     config.pipeline.model.deform_train_bf16 = False
     config.pipeline.model.deform_cuda_graph = False
-    config.pipeline.model.deform_graph_grads = True
+    config.pipeline.model.deform_graph_grads = False
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
     splats = trainer.pipeline.model.train_splats
-    assert not splats.bf16 and not splats.enabled and splats.own_grads
+    assert not splats.bf16 and not splats.enabled and not splats.own_grads
 
 
 def _outputs_and_batch(trainer):
