@@ -41,6 +41,10 @@
 # Measured there (H200): three runs at once went at 15-20 it/s each once densification had grown the models, one
 # alone at about 42 it/s (57 in the 3000-step warm-up), so 40k takes about 16 minutes a scene alone: for the
 # full 40k figures, train ONE scene per hold (start A; wait ...), or one per GPU where several are lent.
+# OFFICIAL_PATCH=normalized_rotation (at the first `start`): the official code with one of its terms made ours, to
+# find what separates the two on a scene: the rasterizer then gets the rotation q + dq normalised, as gsplat
+# normalises ours (the official kernel reads an unnormalised q as a rotation that also scales and shears). The
+# patch is named in SOURCES.json's "patches" and in the result's file name (official_d3dgs_<patch>_<GPU>.json).
 # Phases: assemble | start SCENE PORT | status | wait SECONDS | stop-after ITER SECONDS | score
 set -u
 phase=$1
@@ -125,6 +129,22 @@ start)
   if [ ! -e $W/code ]; then
     cp -r .d3dgs/code $W/code
     cp -r .d3dgs/garo_head $W/garo_head
+    case ${OFFICIAL_PATCH:-} in
+    "") ;;
+    normalized_rotation)
+      f=$W/code/gaussian_renderer/__init__.py
+      [ "$(grep -c 'rotations = pc.get_rotation + d_rotation$' $f)" = 1 ] || { echo "patch target not found once in $f"; exit 1; }
+      sed -i 's/rotations = pc.get_rotation + d_rotation$/rotations = torch.nn.functional.normalize(pc.get_rotation + d_rotation)/' $f
+      python3 - $W/code/SOURCES.json <<'PY'
+import json, sys
+path = sys.argv[1]
+sources = json.load(open(path))
+sources["patches"].append("normalized_rotation: gaussian_renderer/__init__.py hands the rasterizer normalize(q + dq)")
+json.dump(sources, open(path, "w"))
+PY
+      echo "$OFFICIAL_PATCH" > $W/patch ;;
+    *) echo "unknown OFFICIAL_PATCH=$OFFICIAL_PATCH"; exit 1 ;;
+    esac
     python3 -m pip install -q --no-index --no-deps .whl/*.whl
     nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
     python3 -c "import torch; print('torch', torch.__version__, torch.version.cuda)"
@@ -203,16 +223,17 @@ score)
   if [ -e /tmp/kit/prelude.sh ]; then source /tmp/kit/prelude.sh; else source .device/prelude.sh; fi
   export PYTHONPATH=$W/garo_head:${PYTHONPATH:-} # the committed evaluation code (SOURCES.json names the commit)
   gpu=$(nvidia-smi --query-gpu=name --format=csv,noheader | head -1 | grep -o 'H[0-9]\{3\}' || echo GPU)
+  tag=; [ -e $W/patch ] && tag="$(cat $W/patch)_"
   # Scored and timed on the GPU the runs trained on: on a 2-GPU machine the other may be timing our arms.
   CUDA_VISIBLE_DEVICES=${GPU:-0} python3 benchmarks/official_score.py --work $W --code $W/code --scenes $(cat $W/scenes) \
-    --sources $W/code/SOURCES.json --note "${SHARING_NOTE:-}" --output $W/results/official_d3dgs_$gpu.json 2>&1 | tee $W/score.log
+    --sources $W/code/SOURCES.json --note "${SHARING_NOTE:-}" --output $W/results/official_d3dgs_$tag$gpu.json 2>&1 | tee $W/score.log
   if [ -n "${OUT:-}" ]; then
     cp $W/results/*.json $OUT/
     for s in $(cat $W/scenes); do
       echo "== $s (rc $(cat $W/$s.rc), $(cat $W/$s.start 2>/dev/null) -> $(cat $W/$s.end))"
       tr '\r' '\n' <$W/$s.log | grep -v '^Training progress' | grep -v '^\s*$' | tail -12
       tr '\r' '\n' <$W/$s.log | grep '^Training progress' | tail -1
-    done >$OUT/official_d3dgs_$gpu.log
+    done >$OUT/official_d3dgs_$tag$gpu.log
     cp $W/score.log $OUT/score.log
   fi
   ;;
