@@ -41,10 +41,11 @@
 # Measured there (H200): three runs at once went at 15-20 it/s each once densification had grown the models, one
 # alone at about 42 it/s (57 in the 3000-step warm-up), so 40k takes about 16 minutes a scene alone: for the
 # full 40k figures, train ONE scene per hold (start A; wait ...), or one per GPU where several are lent.
-# OFFICIAL_PATCH=normalized_rotation (at the first `start`): the official code with one of its terms made ours, to
-# find what separates the two on a scene: the rasterizer then gets the rotation q + dq normalised, as gsplat
-# normalises ours (the official kernel reads an unnormalised q as a rotation that also scales and shears). The
-# patch is named in SOURCES.json's "patches" and in the result's file name (official_d3dgs_<patch>_<GPU>.json).
+# OFFICIAL_PATCH=P[,P...] (at the first `start`): the official code with some of its terms made ours, to find what
+# separates the two on a scene (`apply_patch` below): normalized_rotation (the rasterizer gets q + dq normalised,
+# as gsplat normalises ours; the official kernel reads an unnormalised q as a rotation that also scales and
+# shears), alpha_0999 (gsplat's cap on one Gaussian's alpha), valid_ssim (the loss's SSIM without zero padding).
+# The patches are named in SOURCES.json's "patches" and in the result's file name (official_d3dgs_<P+P>_<GPU>.json).
 # Phases: assemble | start SCENE PORT | status | wait SECONDS | stop-after ITER SECONDS | score
 set -u
 phase=$1
@@ -122,6 +123,35 @@ all_ended() {
   return 0
 }
 
+# One of OFFICIAL_PATCH's terms applied to the machine's copy of the official code ($W/code), each replacing a text
+# that must occur exactly as often as counted, and named in SOURCES.json's "patches".
+replace() { # FILE COUNT OLD NEW (sed patterns, without "|")
+  [ "$(grep -c "$3" "$1")" = "$2" ] || { echo "patch: '$3' not found $2 time(s) in $1"; return 1; }
+  sed -i "s|$3|$4|g" "$1"
+}
+apply_patch() {
+  local c=$W/code ras=$W/code/submodules/depth-diff-gaussian-rasterization/cuda_rasterizer what
+  case $1 in
+  normalized_rotation) # the rasterizer gets normalize(q + dq), as gsplat normalises ours
+    replace $c/gaussian_renderer/__init__.py 1 'rotations = pc.get_rotation + d_rotation$' \
+      'rotations = torch.nn.functional.normalize(pc.get_rotation + d_rotation)' || return 1
+    what="gaussian_renderer/__init__.py hands the rasterizer normalize(q + dq)" ;;
+  alpha_0999) # one Gaussian's alpha capped at 0.999, as gsplat's kernels cap it (the official: 0.99)
+    replace $ras/forward.cu 1 'min(0.99f,' 'min(0.999f,' && replace $ras/backward.cu 1 'min(0.99f,' 'min(0.999f,' || return 1
+    what="cuda_rasterizer/{forward,backward}.cu cap alpha at 0.999" ;;
+  valid_ssim) # the loss's SSIM over the valid region only, as ours (pytorch_msssim's): no zero padding
+    replace $c/utils/loss_utils.py 5 'padding=window_size // 2' 'padding=0' || return 1
+    what="utils/loss_utils.py: SSIM without padding, the mean over the valid region" ;;
+  *) echo "unknown patch $1 (normalized_rotation, alpha_0999, valid_ssim)"; return 1 ;;
+  esac
+  python3 - $c/SOURCES.json "$1: $what" <<'PY'
+import json, sys
+sources = json.load(open(sys.argv[1]))
+sources["patches"].append(sys.argv[2])
+json.dump(sources, open(sys.argv[1], "w"))
+PY
+}
+
 case $phase in
 start)
   scene=$1 port=$2
@@ -129,22 +159,10 @@ start)
   if [ ! -e $W/code ]; then
     cp -r .d3dgs/code $W/code
     cp -r .d3dgs/garo_head $W/garo_head
-    case ${OFFICIAL_PATCH:-} in
-    "") ;;
-    normalized_rotation)
-      f=$W/code/gaussian_renderer/__init__.py
-      [ "$(grep -c 'rotations = pc.get_rotation + d_rotation$' $f)" = 1 ] || { echo "patch target not found once in $f"; exit 1; }
-      sed -i 's/rotations = pc.get_rotation + d_rotation$/rotations = torch.nn.functional.normalize(pc.get_rotation + d_rotation)/' $f
-      python3 - $W/code/SOURCES.json <<'PY'
-import json, sys
-path = sys.argv[1]
-sources = json.load(open(path))
-sources["patches"].append("normalized_rotation: gaussian_renderer/__init__.py hands the rasterizer normalize(q + dq)")
-json.dump(sources, open(path, "w"))
-PY
-      echo "$OFFICIAL_PATCH" > $W/patch ;;
-    *) echo "unknown OFFICIAL_PATCH=$OFFICIAL_PATCH"; exit 1 ;;
-    esac
+    for patch in $(echo "${OFFICIAL_PATCH:-}" | tr ',' ' '); do
+      apply_patch $patch || exit 1
+    done
+    [ -n "${OFFICIAL_PATCH:-}" ] && echo "$OFFICIAL_PATCH" | tr ',' '+' > $W/patch
     python3 -m pip install -q --no-index --no-deps .whl/*.whl
     nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
     python3 -c "import torch; print('torch', torch.__version__, torch.version.cuda)"
