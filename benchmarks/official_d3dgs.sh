@@ -44,7 +44,8 @@
 # OFFICIAL_PATCH=P[,P...] (at the first `start`): the official code with some of its terms made ours, to find what
 # separates the two on a scene (`apply_patch` below): normalized_rotation (the rasterizer gets q + dq normalised,
 # as gsplat normalises ours; the official kernel reads an unnormalised q as a rotation that also scales and
-# shears), alpha_0999 (gsplat's cap on one Gaussian's alpha), valid_ssim (the loss's SSIM without zero padding).
+# shears), alpha_0999 (gsplat's cap on one Gaussian's alpha), log_scale (the scale offset on the log-scale),
+# valid_ssim (the loss's SSIM without zero padding). All four at once make the official code's terms ours.
 # The patches are named in SOURCES.json's "patches" and in the result's file name (official_d3dgs_<P+P>_<GPU>.json).
 # Phases: assemble | start SCENE PORT | status | wait SECONDS | stop-after ITER SECONDS | score
 set -u
@@ -139,10 +140,14 @@ apply_patch() {
   alpha_0999) # one Gaussian's alpha capped at 0.999, as gsplat's kernels cap it (the official: 0.99)
     replace $ras/forward.cu 1 'min(0.99f,' 'min(0.999f,' && replace $ras/backward.cu 1 'min(0.99f,' 'min(0.999f,' || return 1
     what="cuda_rasterizer/{forward,backward}.cu cap alpha at 0.999" ;;
+  log_scale) # the scale offset added to the log-scale, as ours (deform-scale-offset log): s * exp(ds)
+    replace $c/gaussian_renderer/__init__.py 1 'scales = pc.get_scaling + d_scaling$' \
+      'scales = pc.get_scaling * torch.exp(d_scaling)' || return 1
+    what="gaussian_renderer/__init__.py composes the scale as s * exp(ds)" ;;
   valid_ssim) # the loss's SSIM over the valid region only, as ours (pytorch_msssim's): no zero padding
     replace $c/utils/loss_utils.py 5 'padding=window_size // 2' 'padding=0' || return 1
     what="utils/loss_utils.py: SSIM without padding, the mean over the valid region" ;;
-  *) echo "unknown patch $1 (normalized_rotation, alpha_0999, valid_ssim)"; return 1 ;;
+  *) echo "unknown patch $1 (normalized_rotation, alpha_0999, log_scale, valid_ssim)"; return 1 ;;
   esac
   python3 - $c/SOURCES.json "$1: $what" <<'PY'
 import json, sys
