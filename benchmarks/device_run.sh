@@ -23,7 +23,7 @@
 #                                                      default recipe) on GPU 0 and `profile NAME_arm_SCENE` with the args
 #                                                      on GPU 1 (SWAP=1: the other way round), started together
 #                                                      once both runs of the previous pair (PREV: its scene, `-`
-#                                                      for none) have ended
+#                                                      for none) have ended; BOTH="ARGS" goes to both runs
 #   bash benchmarks/device_run.sh extra NAME CMD...    any other command in the background (parity, ...)
 #   bash benchmarks/device_run.sh wait SECONDS         poll until every launched job ended or SECONDS passed,
 #                                                      then collect (what has landed comes back in every call)
@@ -150,8 +150,9 @@ pair)
   # steps (the pair's steps 1k to 3k, before the field starts), as much as the arm being measured; alternate SWAP
   # over the scenes, or compare the arms' steps 1k to 3k.
   g0=0; g1=1; [ "${SWAP:-0}" = 1 ] && g0=1 && g1=0
-  CUDA_VISIBLE_DEVICES=$g0 AFTER="$wait" bash "$0" profile ${name}_base_$scene $scene
-  CUDA_VISIBLE_DEVICES=$g1 AFTER="$wait" bash "$0" profile ${name}_arm_$scene $scene "$@" ;;
+  # BOTH="ARGS": train_profile arguments of both runs (e.g. --method deform-splatfacto).
+  CUDA_VISIBLE_DEVICES=$g0 AFTER="$wait" bash "$0" profile ${name}_base_$scene $scene ${BOTH:-}
+  CUDA_VISIBLE_DEVICES=$g1 AFTER="$wait" bash "$0" profile ${name}_arm_$scene $scene ${BOTH:-} "$@" ;;
 extra)
   name=$1; shift
   cd $W/src
