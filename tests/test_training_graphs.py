@@ -268,15 +268,17 @@ def _collections_seen():
         gc.callbacks.remove(watch)
 
 
-def test_no_collection_runs_inside_a_capture():
-    """A dropped graph is freed only by a collection, and one freed during another capture invalidates that capture
-    (a training run crashed so): every capture here runs with the collector paused."""
+@pytest.mark.parametrize("own_grads", [False, True])
+def test_no_collection_runs_inside_a_capture(own_grads):
+    """A dropped graph of torch's is freed only by a collection, and one freed during another capture invalidates that
+    capture (a training run crashed so): every capture here runs with the collector paused, `StepGraph`'s (the
+    default, `deform_graph_grads`) as well."""
     from garo_ns.deformation import DeformationField
     from garo_ns.render.graphs import capture
     from garo_ns.train_graphs import GraphedSplats
 
     field = DeformationField(time_net=30).cuda().train()
-    graphed = GraphedSplats(lambda: field, enabled=True)
+    graphed = GraphedSplats(lambda: field, enabled=True, own_grads=own_grads)
     loss = ImageLoss(SSIM().cuda(), 0.2, graphed=True)
     with _collections_seen() as seen:
         for n in (3000, 3100, 3200):  # each new count drops the previous graph
