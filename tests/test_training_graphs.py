@@ -197,8 +197,8 @@ def test_a_new_capture_reuses_the_memory_of_the_graph_it_replaces():
     """Densification captures anew at every new count of Gaussians. Each `StepGraph` capture (deform_graph_grads)
     must reuse the memory its dropped predecessor held: what the process keeps reserved stops growing after the
     first captures. Captures on a new stream each (torch hands out up to 32) could not reuse it, and grew by about
-    one capture's memory every time. torch's make_graphed_callables (the default) fails this bound on an H100
-    (benchmarks/results/cuda_subset_memory_H100.log): its warm-ups take a new stream at every capture."""
+    one capture's memory every time. torch's make_graphed_callables (deform_graph_grads off), which warms up on a new
+    stream at every capture, failed this bound on an H100 (benchmarks/results/cuda_subset_memory_H100.log)."""
     from garo_ns.deformation import DeformationField
     from garo_ns.train_graphs import GraphedSplats
 
