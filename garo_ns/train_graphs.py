@@ -205,7 +205,7 @@ class GraphedSplats:
     `bf16`, on CUDA the field runs under bf16 autocast (`Bf16Field`), graphed or not; a CPU stays fp32."""
 
     def __init__(
-        self, field: Callable[[], nn.Module], enabled: bool = False, bf16: bool = False, own_grads: bool = False
+        self, field: Callable[[], nn.Module], enabled: bool = False, bf16: bool = False, own_grads: bool = True
     ) -> None:
         self.field = field
         self.enabled = bool(enabled)

@@ -212,7 +212,7 @@ def test_a_new_capture_reuses_the_memory_of_the_graph_it_replaces():
         canonical = _canonical(20000 + 100 * i, i)  # grows as densification does
         sum(o.square().sum() for o in graphed(canonical, 0.3, "log")[:5]).backward()
         del canonical
-        gc.collect()  # torch's graphed callables are freed by the collector
+        gc.collect()
         torch.cuda.empty_cache()  # what is left reserved is held: live tensors and the graphs' pool
         reserved.append(torch.cuda.memory_reserved())
     first = reserved[0] - before
