@@ -15,9 +15,10 @@ step is one `_foreach_add_` over every group's counter and one fused update per 
 
 `AdamGraph` goes further still once the parameters stop moving (after densification): the grouped step, and the
 zeroing of the gradients, replay one CUDA graph. A graph reads fixed addresses, so while it is in use each gradient
-lives in a buffer of the graph's own that backward accumulates into (autograd adds into an existing gradient in place)
-and the graph zeroes after the update, and each group's learning rate is a device scalar written only when the
-scheduler changes it. The updates are those of the grouped step, bit for bit, except that on CUDA the fused kernel
+lives in a buffer of the graph's own that backward accumulates into (autograd adds into an existing gradient in place;
+a gradient that the training step's graph writes at a fixed address stays where it is: `graph_gradients`) and the
+graph zeroes after the update, and each group's learning rate is a device scalar written only when the scheduler
+changes it. The updates are those of the grouped step, bit for bit, except that on CUDA the fused kernel
 reads a device learning rate in fp32 where it takes a Python float in fp64: a rate that is not an fp32 number moves
 each step by a relative 6e-8 (tests/test_adam.py).
 """
@@ -116,6 +117,22 @@ def apply(work: Sequence[Work]) -> None:
         )
 
 
+_GRAPH_GRADIENT = "_garo_graph_gradient"
+
+
+def graph_gradients(buffers: Sequence[Tensor]) -> None:
+    """Mark `buffers` as gradients that another CUDA graph adds into at fixed addresses (the training step's
+    `StepGraph`), and which bumps their autograd version as it does: an `AdamGraph` takes them as they are. Replacing
+    one with a buffer of its own would have that graph copy it back each step, and each would drop the other."""
+    for b in buffers:
+        setattr(b, _GRAPH_GRADIENT, True)
+
+
+def is_graph_gradient(grad: Optional[Tensor]) -> bool:
+    """Whether `grad` is a buffer marked by `graph_gradients`."""
+    return grad is not None and getattr(grad, _GRAPH_GRADIENT, False)
+
+
 class AdamGraph:
     """`apply` as one CUDA graph (on a CPU, the same calls eagerly) for work whose parameters and optimizer states have
     stayed where they are for `stable_steps` steps: captured then, and dropped as soon as any of them moves (a
@@ -203,8 +220,10 @@ class AdamGraph:
         device = work[0][1][0].device
         self.pairs = []
         for _, params, _ in work:
-            for p in params:  # the graph's own buffers: a gradient autograd made may alias another graph's output
-                buf = p.grad.detach().clone()
+            for p in params:
+                # The graph's own buffers (a gradient autograd made may alias another graph's output), except a
+                # gradient that is already a graph's fixed buffer (`graph_gradients`): that graph writes there.
+                buf = p.grad if is_graph_gradient(p.grad) else p.grad.detach().clone()
                 p.grad = buf
                 self.pairs.append((p, buf))
         self.groups = [group for group, _, _ in work]

@@ -21,7 +21,9 @@ from typing import Any, Callable, List, Optional, Sequence, Tuple, Union
 
 import torch
 from torch import Tensor, nn
+from torch.autograd.graph import increment_version
 
+from garo_ns.adam import graph_gradients
 from garo_ns.collector import collector_paused
 from garo_ns.deformation import ScaleOffset
 from garo_ns.render.frame import Canonical, Splats, activate, compose
@@ -164,6 +166,10 @@ class StepGraph:
             for buffer, g in zip(self.grads, got[n_inputs:]):
                 if g is not None:
                     buffer.add_(g)
+        # A replay's adds bump no version counter: `_StepReplay` bumps these, as an eager add would, for whatever
+        # tells a step's gradients by their versions (AdamGraph.settle).
+        self.written = tuple(b for b, g in zip(self.grads, got[n_inputs:]) if g is not None)
+        graph_gradients(self.grads)
         self.inputs = inputs
         self.outputs = tuple(o.detach() for o in outs)  # the capture's autograd graph goes with `outs`
         grads_of_inputs = iter(got[:n_inputs])
@@ -195,6 +201,7 @@ class _StepReplay(torch.autograd.Function):
                 static.copy_(g)
         attach_gradients(graph.params, graph.grads)
         graph.backward_graph.replay()
+        increment_version(graph.written)
         return (None, *(None if g is None else g.detach() for g in graph.input_grads))
 
 

@@ -315,3 +315,35 @@ def test_the_adam_cuda_graph_replays_the_grouped_step_bitwise():
         else:
             for p, q in zip(ref_params, params):  # the rates' rounding to fp32: a few ulps after 30 steps
                 assert torch.allclose(p, q, rtol=5e-7, atol=1e-7)
+
+
+def test_the_graph_shares_a_gradient_another_graph_writes_in_place():
+    """A gradient marked as another graph's fixed buffer (the training step's StepGraph, which adds into it without
+    autograd and bumps its version) stays that parameter's `.grad` through the capture: taking a copy would have
+    the step graph copy it back each step and each drop the other. Unmarked gradients get the graph's own buffers;
+    the numbers are the grouped step's either way."""
+    from torch.autograd.graph import increment_version
+
+    (ref, ref_params), (graphed, params), graph = _graphed_pair()
+    buffers = {}
+    for run, ps in ((ref, ref_params), (graphed, params)):
+        buffer = torch.zeros_like(ps[0])
+        adam.graph_gradients([buffer])
+        buffers[id(ps[0])] = buffer
+        g = torch.Generator().manual_seed(1)
+        for _ in range(20):
+            run.zero_grad_some(list("abc"))
+            targets = [torch.randn(p.shape, generator=g) for p in ps]
+            if ps[0].grad is not buffer:  # as StepGraph's backward attaches its buffer (attach_gradients)
+                buffer.zero_() if ps[0].grad is None else buffer.copy_(ps[0].grad)
+                ps[0].grad = buffer
+            buffer.data.add_(2 * (ps[0].detach() - targets[0]))  # an add autograd does not see, as a replay's
+            increment_version(buffer)
+            sum(((p - t) ** 2).sum() for p, t in zip(ps[1:], targets[1:])).backward()
+            for name in "abc":
+                run.optimizers[name].param_groups[0]["lr"] *= 0.97
+            run.optimizer_scaler_step_some(_Scaler(), list("abc"))
+    assert graph.captures == 1 and graph.replays == 16
+    assert params[0].grad is buffers[id(params[0])] and all(not adam.is_graph_gradient(p.grad) for p in params[1:])
+    assert _same(ref_params, params)
+    _same_states(ref, graphed)

@@ -126,8 +126,9 @@ def test_the_graphed_splats_run_eagerly_without_gradients_or_when_off():
 def test_a_graphed_backward_accumulates_into_grad_as_autograd_does():
     """With `own_grads` (deform_graph_grads) the graph adds the field's gradients into each parameter's `.grad`:
     from zero after an optimizer's zero_grad (None), onto a gradient already there (another tensor, or its own buffer
-    from an earlier backward), and a parameter that is not trained gets none; the canonical tensors' gradients come
-    through autograd as before."""
+    from an earlier backward, whose version it bumps), and a parameter that is not trained gets none; the canonical
+    tensors' gradients come through autograd as before."""
+    from garo_ns.adam import is_graph_gradient
     from garo_ns.deformation import DeformationField
     from garo_ns.train_graphs import GraphedSplats
 
@@ -143,7 +144,14 @@ def test_a_graphed_backward_accumulates_into_grad_as_autograd_does():
         return sum(o.square().sum() for o in graphed(canonical, 0.5, "log")[:5])
 
     once = _backward_grads(loss(), list(canonical) + trained)
-    loss().backward()  # onto its own buffer
+    loss().backward()
+    versions = [p.grad._version for p in trained]
+    loss().backward()  # onto its own buffer: the replay bumps its version, as an eager add would (AdamGraph reads it)
+    assert all(is_graph_gradient(p.grad) and p.grad._version > v for p, v in zip(trained, versions))
+    for x in list(canonical) + trained:
+        x.grad = None  # an optimizer's zero_grad
+    loss().backward()
+    loss().backward()
     assert all(torch.allclose(p.grad, 2 * g, rtol=1e-5, atol=1e-7) for p, g in zip(trained, once[6:]))
     assert all(torch.allclose(x.grad, 2 * g, rtol=1e-5, atol=1e-7) for x, g in zip(canonical, once[:6]))
     extra = [torch.randn_like(p) for p in trained]
