@@ -365,23 +365,50 @@ def tests_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     ) + gpu_tests_sentence(results, readme_dir)
 
 
+def _test_log(path: Path) -> Optional[Tuple[List[str], List[str], str]]:
+    """A CUDA test log's first line's words (commit, date, GPU), its other lines and pytest's counts without the
+    warnings (None: not such a log, or one that broke off)."""
+    lines = [x for x in path.read_text().splitlines() if x.strip()]
+    head = lines[0].split() if lines else []
+    if len(head) < 4 or head[0] != "commit" or not re.search(r"\d+ passed", lines[-1]):
+        return None
+    return head, lines[1:], ", ".join(x for x in lines[-1].split(" in ")[0].split(", ") if "warning" not in x)
+
+
+def _rerun_clause(results: Path, readme_dir: Path, commit: str, gpu: str, body: List[str]) -> str:
+    """For a run with failures: a passing rerun of the failed tests' files on the same GPU model after a fix, from a
+    `cuda_subset_*.log` whose second line is `rerun of COMMIT: FILE ...` (COMMIT the failed run's)."""
+    failed = [x.split()[1].split("::")[0] for x in body if x.startswith("FAILED ")]
+    if not failed:
+        return ""
+    for path in sorted(results.glob("cuda_subset_*.log")):
+        log = _test_log(path)
+        if log is None or "failed" in log[2] or " ".join(log[0][3:]) != gpu or not log[1]:
+            continue
+        rerun = re.match(r"rerun of (\w+): (.+)", log[1][0])
+        if rerun and commit.startswith(rerun.group(1)) and set(failed) <= set(rerun.group(2).split()):
+            return f"; fixed at {log[0][1][:7]} (its files: {log[2]}, {_link(path, readme_dir)})"
+    return ""
+
+
 def gpu_tests_sentence(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     """The newest CUDA-only test run, from the log `device_run.sh gputests` writes (first line: commit, date, GPU;
-    last line: pytest's counts)."""
+    `FAILED` lines; last line: pytest's counts), and for a run with failures the rerun that passes them
+    (`_rerun_clause`)."""
     logs = []
     for path in results.glob("gputests_*.log"):
-        lines = [x for x in path.read_text().splitlines() if x.strip()]
-        head = lines[0].split() if lines else []
-        if len(head) >= 4 and head[0] == "commit" and re.search(r"\d+ passed", lines[-1]):
-            counts = ", ".join(x for x in lines[-1].split(" in ")[0].split(", ") if "warning" not in x)
-            logs.append((head[2], path, head[1], " ".join(head[3:]), counts))
+        log = _test_log(path)
+        if log is not None:
+            head, body, counts = log
+            logs.append((head[2], path, head[1], " ".join(head[3:]), counts, body))
     if not logs:
         return ""
     # The newest day's runs, one clause per GPU model: a day's log names no hour to order them by.
     newest = max(x[0] for x in logs)
     runs = "; ".join(
         f"{counts} on an {gpu.removeprefix('NVIDIA ')}, commit {commit[:7]} ({_link(path, readme_dir)})"
-        for _, path, commit, gpu, counts in sorted(x for x in logs if x[0] == newest)
+        + _rerun_clause(results, readme_dir, commit, gpu, body)
+        for _, path, commit, gpu, counts, body in sorted(x for x in logs if x[0] == newest)
     )
     return f"\nThe CUDA-only tests ([docs/testing.md](docs/testing.md#gpu-only-tests)), {newest}: {runs}.\n"
 

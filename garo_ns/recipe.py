@@ -75,7 +75,8 @@ class D3dgsRecipe(SplatfactoModelConfig):
     and the gradients' zeroing replay one CUDA graph (garo_ns.adam.AdamGraph) instead of about 1 ms of host time a
     step in launches. The same updates, but for each learning rate rounded to fp32 on the device (tests/test_adam.py).
     Off: 40k runs alone on an H100 took 324 / 317 / 336 s with it against 327 / 325 / 321 without (mutant, standup,
-    jumpingjacks; benchmarks/results/train_profile_adamgraph_*), no gain beyond two runs' spread."""
+    jumpingjacks; benchmarks/results/train_profile_adamgraph_*), no gain beyond two runs' spread; with the step graph's
+    own gradients (ab110af) mutant's step at 16.5k took 6.32 ms with it, 6.21 without (train_profile_adam17k*)."""
     gc_threshold: int = 20_000
     """While training, Python's garbage collector scans its youngest generation every this many net allocations
     of containers instead of every 700 (garo_ns.collector): a step allocates thousands, so at 700 it runs two or three
