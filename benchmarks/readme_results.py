@@ -438,7 +438,9 @@ def _training_line(path: Path, readme_dir: Path) -> str:
         scenes = ", ".join(sorted({r["scene"] for r in a["runs"]}))
         psnr = f", {a['psnr']:.2f} dB" if a.get("psnr") is not None else ""
         was = f", {e['speedup']:.2f}x before's speed on {', '.join(e['scenes_compared'])}" if e.get("speedup") else ""
-        parts.append(f"`{method}`{named} {a['minutes_per_40k']:.1f} min{without} on {scenes}{psnr}{was}")
+        slowest = a.get("slowest_minutes_per_40k")
+        worst = f", the slowest run {slowest:.1f}," if slowest is not None and len(a["runs"]) > 1 else ""
+        parts.append(f"`{method}`{named} {a['minutes_per_40k']:.1f} min{without}{worst} on {scenes}{psnr}{was}")
     return (
         f"\nTraining 40k steps alone on one {', '.join(data['gpus'])} ({_link(path, readme_dir)}; mean minutes, in "
         f"brackets without the finished model's render choice; test PSNR): {'; '.join(parts)}.\n"

@@ -256,3 +256,6 @@ def test_training_line_reads_the_newest_train_speed_file(tmp_path):
     line = training_block(tmp_path, tmp_path)
     assert "alone on one GPU X" in line
     assert "`garo-deform` 4.5 min (4.0) on lego, ship, 30.10 dB, 2.07x before's speed on lego." in line
+    entry["after"]["slowest_minutes_per_40k"] = 4.75
+    (tmp_path / "train_speed_X.json").write_text(json.dumps({"gpus": ["GPU X"], "methods": {"garo-deform": entry}}))
+    assert "4.5 min (4.0), the slowest run 4.8, on lego, ship" in training_block(tmp_path, tmp_path)

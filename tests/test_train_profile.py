@@ -164,6 +164,21 @@ def test_train_speed_compares_the_mean_of_each_side(tmp_path):
         main(["--after", str(new1), "--output", str(out)])
 
 
+def test_train_speed_weighs_each_scene_once_in_a_sides_means(tmp_path):
+    from garo_ns.bench.train_speed import main
+
+    runs = [
+        _profile(tmp_path / "a1.json", 300.0, psnr=40.0, scene="a"),
+        _profile(tmp_path / "a2.json", 360.0, psnr=41.0, scene="a"),  # scene a run twice: its mean counts once
+        _profile(tmp_path / "b.json", 240.0, psnr=36.0, scene="b"),
+    ]
+    result, _ = main(["--after"] + [f"m={p}" for p in runs] + ["--output", str(tmp_path / "speed.json")])
+    side = result["methods"]["m"]["after"]
+    assert abs(side["minutes_per_40k"] - (330.0 + 240.0) / 2 / 60) < 1e-9
+    assert abs(side["psnr"] - 38.25) < 1e-9 and side["slowest_minutes_per_40k"] == 6.0
+    assert abs(side["steps_per_second"] - (40_000 / 300 + 40_000 / 360 + 2 * 40_000 / 240) / 4) < 1e-9
+
+
 def test_train_speed_compares_the_scenes_both_sides_ran_and_the_render_choice(tmp_path):
     from garo_ns.bench.train_speed import main
 
