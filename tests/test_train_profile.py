@@ -164,6 +164,14 @@ def test_train_speed_compares_the_mean_of_each_side(tmp_path):
         main(["--after", str(new1), "--output", str(out)])
 
 
+def test_a_run_without_windows_shows_its_timeline_not_an_empty_table():
+    timeline = [{"step": 1000 * k, "seconds": 2.0 * k, "gaussians": 1} for k in range(1, 13)]
+    table = markdown_table({"windows": [], "steps": 12_000, "timeline": timeline})
+    assert "| step | 5,000 | 10,000 | 12,000 |" in table and "| seconds | 10 | 20 | 24 |" in table
+    assert "phase" not in table
+    assert "no timeline" in markdown_table({"windows": [], "steps": 10})
+
+
 def test_train_speed_weighs_each_scene_once_in_a_sides_means(tmp_path):
     from garo_ns.bench.train_speed import main
 

@@ -455,6 +455,22 @@ class TrainProfiler:
 def markdown_table(result: Dict[str, Any]) -> str:
     """The windows of a result as a table: device ms per step of each phase (host ms in brackets)."""
     windows = result["windows"]
+    if not windows:  # a timing run (`--windows` past its last step): its timeline is what it measured
+        marks = [r for r in result.get("timeline") or [] if r["step"] % 5000 == 0 or r["step"] == result.get("steps")]
+        if not marks:
+            return "No profile window and no timeline in this run.\n"
+        return (
+            "No profile window (a run that times the whole run alone). Seconds elapsed at each step:\n\n"
+            + "| step | "
+            + " | ".join(f"{r['step']:,}" for r in marks)
+            + " |\n"
+            + "|---|"
+            + "---|" * len(marks)
+            + "\n"
+            + "| seconds | "
+            + " | ".join(f"{r['seconds']:.0f}" for r in marks)
+            + " |\n"
+        )
     head = "| phase | " + " | ".join(f"step {w['step']:,} ({w['gaussians']:,} Gaussians)" for w in windows) + " |"
     rows = [head, "|---|" + "---|" * len(windows)]
     for phase in PHASES:
