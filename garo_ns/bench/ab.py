@@ -15,11 +15,12 @@ LPIPS change, and the two rules issue 45 judges a change by: kept for speed wher
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 from pathlib import Path
 from statistics import mean
 from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+from garo_ns.bench.results import utc_stamp, write_with_table
 
 WITHIN_DB = 0.15
 GAIN_DB = 0.01  # the least change the table shows: a mean of +0.004 dB is no gain
@@ -141,7 +142,7 @@ def main(argv: Optional[Sequence[str]] = None) -> Tuple[Dict[str, Any], str]:
     parser.add_argument("--date", default=None, help="when the result was written (default: now, UTC)")
     parser.add_argument("--output", type=Path, required=True)
     args = parser.parse_args(argv)
-    date = args.date or datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%MZ")
+    date = args.date or utc_stamp()
     result = {
         "note": args.note,
         "date": date,
@@ -149,12 +150,7 @@ def main(argv: Optional[Sequence[str]] = None) -> Tuple[Dict[str, Any], str]:
         "arm": list(args.arm),
         **compare([run_of(s) for s in args.base], [run_of(s) for s in args.arm], args.within),
     }
-    table = markdown(result)
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(result, indent=2) + "\n")
-    args.output.with_suffix(".md").write_text(table)
-    print(table)
-    return result, table
+    return result, write_with_table(result, markdown, args.output)
 
 
 if __name__ == "__main__":

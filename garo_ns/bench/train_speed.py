@@ -15,11 +15,12 @@ machines, not the recipes: two GPUs of one host differed by 2 to 8% on those ste
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 from pathlib import Path
 from statistics import mean, median
 from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+from garo_ns.bench.results import utc_stamp, write_with_table
 
 STEPS_40K = 40_000
 WARMUP_SPAN = (1000, 3000)  # inside the field's warm-up, past the start-up's first steps
@@ -187,13 +188,9 @@ def main(argv: Optional[Sequence[str]] = None) -> Tuple[Dict[str, Any], str]:
     )
     parser.add_argument("--output", type=Path, required=True)
     args = parser.parse_args(argv)
-    date = args.date or datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%MZ")
+    date = args.date or utc_stamp()
     result = {"note": args.note, "date": date, **summary(_pairs(args.before), _pairs(args.after))}
-    table = markdown(result)
-    args.output.write_text(json.dumps(result, indent=2) + "\n")
-    args.output.with_suffix(".md").write_text(table)
-    print(table)
-    return result, table
+    return result, write_with_table(result, markdown, args.output)
 
 
 if __name__ == "__main__":
