@@ -704,8 +704,9 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(json.dumps(result, indent=2) + "\n")
     args.output.with_suffix(".md").write_text(
-        f"{args.method} on {args.scene.name}, {result['environment'].get('gpu') or 'CPU'}: ms per step, device "
-        f"(host); {steps} steps in {seconds:.0f} s ({result['steps_per_second']:.1f} steps/s)\n\n"
+        f"{args.method} on {args.scene.name}, {result['environment'].get('gpu') or 'CPU'}: "
+        + ("ms per step, device (host); " if result["windows"] else "")
+        + f"{steps} steps in {seconds:.0f} s ({result['steps_per_second']:.1f} steps/s)\n\n"
         + markdown_table(result)
     )
     if args.score:  # the trained model on the eval split, as garo-eval scores it (plain render)
