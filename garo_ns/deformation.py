@@ -325,8 +325,10 @@ class DeformationSettings:
     host it scored +0.10 dB on average and ran 1.03x faster, within the two GPUs' own difference (1.06x on the
     field-free warm-up steps; benchmarks/results/ab_graph_grads_H200.json)."""
     deform_train_tf32: bool = True
-    """Training on CUDA: the matrix products (the deformation MLP's, forward and backward) take TF32 inputs
-    (10-bit mantissa, fp32 sums) on tensor cores; rendering, evaluation and the CPU stay exact fp32."""
+    """Training on CUDA: the step's fp32 matrix products (the deformation MLP's, forward and backward, where
+    `deform_train_bf16` is off) take TF32 inputs (10-bit mantissa, fp32 sums) on tensor cores; rendering, evaluation
+    and the CPU stay exact fp32. The camera's view matrix and centre are sums, not products, so they stay exact fp32
+    either way (TF32 would move a camera 4 units out by about 2e-3)."""
     deform_train_bf16: bool = False
     """Training on CUDA: the deformation MLP's forward (and so its backward) under bf16 autocast, its weights kept
     in fp32 and its offsets returned in fp32 (garo_ns.train_graphs.Bf16Field); the CPU stays fp32. On a fresh field

@@ -338,3 +338,40 @@ def test_viewmat_inverts_the_pose_with_opencv_axes():
     flipped[:, :3, :4] = c2w
     flipped[:, :3, 1:3] *= -1  # OpenGL camera axes (nerfstudio) to OpenCV (gsplat)
     torch.testing.assert_close(viewmat_from_c2w(c2w), torch.linalg.inv(flipped), rtol=0, atol=1e-5)
+
+
+def _poses_around_the_origin(n: int = 8, distance: float = 4.0) -> torch.Tensor:
+    """D-NeRF-like camera-to-world poses [n, 3, 4]: random rotations, centres `distance` from the origin."""
+    g = torch.Generator().manual_seed(3)
+    rot, _ = torch.linalg.qr(torch.randn(n, 3, 3, generator=g, dtype=torch.float64))
+    centres = torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=torch.float64), dim=-1) * distance
+    return torch.cat([rot, centres[..., None]], dim=-1)
+
+
+def _tf32(x: torch.Tensor) -> torch.Tensor:
+    """fp32 values rounded to TF32's 10-bit mantissa (to nearest), as tensor cores read a product's inputs."""
+    bits = x.contiguous().view(torch.int32)
+    return ((bits + 0x1000) & ~0x1FFF).view(torch.float32)
+
+
+def test_the_cameras_keep_fp32_precision_when_matrix_products_round_to_tf32(monkeypatch):
+    """A training step lets cuBLAS round products' inputs to TF32 (`deform_train_tf32`). The camera's translation
+    and centre must not go through such a product: rounded, a camera 4 units out moves by about 2e-3, half a pixel
+    of an 800 x 800 D-NeRF image. Emulated here on the CPU by rounding every matrix product's inputs."""
+    from garo_ns.render.view import camera_centres, viewmat_from_c2w
+
+    matmul = torch.Tensor.__matmul__
+    monkeypatch.setattr(torch.Tensor, "__matmul__", lambda a, b: matmul(_tf32(a), _tf32(b)))
+    torch_matmul, bmm = torch.matmul, torch.bmm
+    monkeypatch.setattr(torch, "matmul", lambda a, b, **k: torch_matmul(_tf32(a), _tf32(b), **k))
+    monkeypatch.setattr(torch, "bmm", lambda a, b, **k: bmm(_tf32(a), _tf32(b), **k))
+    c2w64 = _poses_around_the_origin()
+    rounded = torch.ones(2, 3) * 4.001
+    assert float((_tf32(rounded) - rounded).abs().max()) > 1e-4  # the emulation rounds as TF32 does
+    flipped = torch.eye(4, dtype=torch.float64).repeat(len(c2w64), 1, 1)
+    flipped[:, :3, :4] = c2w64
+    flipped[:, :3, 1:3] *= -1
+    expected = torch.linalg.inv(flipped)
+    view = viewmat_from_c2w(c2w64.float())
+    torch.testing.assert_close(view.double(), expected, rtol=0, atol=2e-6)
+    torch.testing.assert_close(camera_centres(view).double(), c2w64[:, :, 3], rtol=0, atol=2e-6)

@@ -77,3 +77,29 @@ def test_lean_falls_back_for_channel_counts_it_cannot_composite():
     lean, _, info = rasterize(means, quats, scales, opacities, features, viewmat, K, 64, 48, lean=True)
     assert lean.shape[-1] == 2 and "gaussian_ids" in info  # gsplat's own path, with its info
     torch.testing.assert_close(lean, ref, rtol=0, atol=0)
+
+
+def test_the_cameras_keep_fp32_precision_while_a_training_step_allows_tf32():
+    """get_outputs turns cuBLAS TF32 on for a training step before it builds the step's camera: the view matrix and
+    the SH camera centre must stay exact fp32 (their products are sums, not cuBLAS calls)."""
+    from garo_ns.render.view import camera_centres, viewmat_from_c2w
+
+    g = torch.Generator().manual_seed(3)
+    rot, _ = torch.linalg.qr(torch.randn(8, 3, 3, generator=g, dtype=torch.float64))
+    centres = torch.nn.functional.normalize(torch.randn(8, 3, generator=g, dtype=torch.float64), dim=-1) * 4.0
+    c2w64 = torch.cat([rot, centres[..., None]], dim=-1)
+    was = torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = True
+    try:
+        view = viewmat_from_c2w(c2w64.float().cuda())
+        centre = camera_centres(view)
+        # What a cuBLAS product gives here, for the record (-s shows it): the error the sums avoid.
+        product = -(view[:, :3, :3].transpose(1, 2) @ view[:, :3, 3:4]).squeeze(-1)
+        print("TF32-allowed product's camera-centre error:", float((product.double().cpu() - centres).abs().max()))
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = was
+    torch.testing.assert_close(centre.double().cpu(), centres, rtol=0, atol=2e-6)
+    flipped = torch.eye(4, dtype=torch.float64).repeat(8, 1, 1)
+    flipped[:, :3, :4] = c2w64
+    flipped[:, :3, 1:3] *= -1
+    torch.testing.assert_close(view.double().cpu(), torch.linalg.inv(flipped), rtol=0, atol=2e-6)

@@ -11,6 +11,7 @@ import torch
 from torch import Tensor
 
 from garo_ns.render import reference
+from garo_ns.render.view import camera_centres
 
 Backend = Literal["auto", "cuda", "reference"]
 
@@ -204,8 +205,7 @@ def lean_front(
     if not with_sh:
         return radii, means2d, depths, conics, None, None
     # Camera centre in closed form (-R^T t): the world-to-camera matrices are rigid.
-    rot, trans = viewmats[:, :3, :3], viewmats[:, :3, 3:4]
-    campos = -(rot.transpose(1, 2) @ trans).squeeze(-1)
+    campos = camera_centres(viewmats)
     return radii, means2d, depths, conics, means[None] - campos[:, None], radii > 0
 
 
