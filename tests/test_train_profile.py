@@ -164,6 +164,54 @@ def test_train_speed_compares_the_mean_of_each_side(tmp_path):
         main(["--after", str(new1), "--output", str(out)])
 
 
+def test_the_gpu_busy_share_counts_each_kernel_once():
+    """torch's profiler lists a kernel twice: as a GPU event and inside the device time of the CPU event that
+    launched it (a user annotation's GPU range spans kernels too). The share and the top list read GPU events only."""
+    from types import SimpleNamespace
+
+    from garo_ns.bench.train_profile import kernel_share, top_kernels
+
+    cpu, cuda = torch.autograd.DeviceType.CPU, torch.autograd.DeviceType.CUDA
+
+    def event(key, device_type, us, count=2, annotation=False):
+        return SimpleNamespace(
+            key=key, device_type=device_type, self_device_time_total=us, count=count, is_user_annotation=annotation
+        )
+
+    events = [
+        event("aten::mm", cpu, 3000.0),  # its kernel's time, which the GPU event below holds again
+        event("gemm_kernel", cuda, 3000.0),
+        event("relu_kernel", cuda, 1000.0, count=4),
+        event("phase: loss", cuda, 4000.0, annotation=True),
+    ]
+    prof = SimpleNamespace(key_averages=lambda: events)
+    assert abs(kernel_share(prof, wall_ms=8.0) - 0.5) < 1e-12  # 4 ms of kernels in 8 ms, not 7 or 11
+    top = top_kernels(prof, steps=2)
+    assert [k["name"] for k in top] == ["gemm_kernel", "relu_kernel"]
+    assert top[0]["ms_per_step"] == 1.5 and top[1]["calls_per_step"] == 2.0
+    table = markdown_table({"windows": [{"step": 5, "gaussians": 1, "gpu_kernel_share": 0.6}]})
+    assert "counted twice" in table and "| GPU busy share |" not in table
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA: kernels")
+def test_on_a_gpu_summing_every_event_counts_each_kernel_twice():
+    """The diagnosis behind kernel_share's fix, checked where it matters: with kernels launched by aten ops, the sum
+    over every event's device time (the old share) is twice the sum over the GPU's own events."""
+    from garo_ns.bench.train_profile import kernel_share
+
+    a = torch.randn(2048, 2048, device="cuda")
+    torch.cuda.synchronize()
+    with torch.profiler.profile(
+        activities=[torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
+    ) as prof:
+        for _ in range(5):
+            a = torch.relu(a @ a) * 1e-3
+        torch.cuda.synchronize()
+    old = sum(float(getattr(e, "self_device_time_total", 0.0) or 0.0) for e in prof.key_averages())
+    new = kernel_share(prof, wall_ms=1e-3)  # kernel microseconds, per this wall
+    assert new > 0 and 1.9 <= old / new <= 2.0
+
+
 def test_a_run_without_windows_shows_its_timeline_not_an_empty_table():
     timeline = [{"step": 1000 * k, "seconds": 2.0 * k, "gaussians": 1} for k in range(1, 13)]
     table = markdown_table({"windows": [], "steps": 12_000, "timeline": timeline})
@@ -309,4 +357,8 @@ def test_a_cuda_runs_host_pass_counts_its_launches(tmp_path):
     # A step launches kernels (and graphs) by the dozen; the kernels themselves are not host operations.
     assert host["launches_per_step"] > 10 and "cudaLaunchKernel" in host["runtime_calls_per_step"]
     assert all(not op["name"].startswith("cuda") for op in host["top_host_ops"])
-    assert 0 < window["gpu_kernel_share"] <= 1
+    assert 0 < window["gpu_busy_share"] <= 1
+    top = window["top_kernels"]
+    assert (
+        top and sum(k["ms_per_step"] for k in top) <= window["gpu_busy_share"] * window["profiled_ms_per_step"] + 1e-6
+    )

@@ -323,12 +323,36 @@ def host_op_summary(prof: Any, steps: int, top: int = 12) -> Dict[str, Any]:
     }
 
 
+def _device_events(prof: Any) -> List[Any]:
+    """The GPU's own events of a finished torch profiler (kernels, copies, sets), as torch's table totals them: a
+    CPU event's device time is that of the kernels it launched, which appear again here, and a user annotation's
+    GPU range spans kernels counted already."""
+    cpu = torch.autograd.DeviceType.CPU
+    return [
+        e
+        for e in prof.key_averages()
+        if getattr(e, "device_type", None) not in (None, cpu) and not getattr(e, "is_user_annotation", False)
+    ]
+
+
 def kernel_share(prof: Any, wall_ms: float) -> Optional[float]:
-    """Share of `wall_ms` the GPU spent in kernels, from a finished torch profiler."""
-    total_us = 0.0
-    for e in prof.key_averages():
-        total_us += float(getattr(e, "self_device_time_total", getattr(e, "self_cuda_time_total", 0.0)) or 0.0)
+    """Share of `wall_ms` the GPU spent in kernels and copies (their summed time), from a finished torch profiler.
+    Files written before this counted each kernel twice, under its CPU event too (`gpu_kernel_share`)."""
+    total_us = sum(float(e.self_device_time_total or 0.0) for e in _device_events(prof))
     return total_us / 1e3 / wall_ms if wall_ms > 0 else None
+
+
+def top_kernels(prof: Any, steps: int, top: int = 15) -> List[Dict[str, Any]]:
+    """The `top` GPU events by their time: name (cut at 100 characters), calls and milliseconds per step."""
+    events = sorted(_device_events(prof), key=lambda e: -float(e.self_device_time_total or 0.0))
+    return [
+        {
+            "name": e.key[:100],
+            "calls_per_step": e.count / steps,
+            "ms_per_step": float(e.self_device_time_total) / 1e3 / steps,
+        }
+        for e in events[:top]
+    ]
 
 
 class TrainProfiler:
@@ -443,7 +467,8 @@ class TrainProfiler:
                 self._sync_counter = None
         elif kind == "profiler" and self._prof is not None:
             self._prof.__exit__(None, None, None)
-            window["gpu_kernel_share"] = kernel_share(self._prof, wall_ms)
+            window["gpu_busy_share"] = kernel_share(self._prof, wall_ms)
+            window["top_kernels"] = top_kernels(self._prof, n)
             window["profiled_ms_per_step"] = wall_ms / n
             self._prof = None
         elif kind == "host_ops" and self._prof is not None:
@@ -483,7 +508,9 @@ def markdown_table(result: Dict[str, Any]) -> str:
         ("instrumented_ms_per_step", "step, instrumented"),
         ("plain_ms_per_step", "step, plain (wall)"),
         ("host_syncs_per_step", "host syncs per step"),
-        ("gpu_kernel_share", "GPU busy share"),
+        ("gpu_busy_share", "GPU busy share"),
+        # Files from before the fix: each kernel's time counted twice (kernel_share), so about twice the busy share.
+        ("gpu_kernel_share", "GPU kernel time counted twice / wall (about 2x the busy share)"),
         ("launches_per_step", "kernel and graph launches per step"),
     ):
         vals = [w.get(key, w.get("host_ops", {}).get(key)) for w in windows]
