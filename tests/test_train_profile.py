@@ -191,6 +191,10 @@ def test_the_gpu_busy_share_counts_each_kernel_once():
     assert top[0]["ms_per_step"] == 1.5 and top[1]["calls_per_step"] == 2.0
     table = markdown_table({"windows": [{"step": 5, "gaussians": 1, "gpu_kernel_share": 0.6}]})
     assert "counted twice" in table and "| GPU busy share |" not in table
+    window = {"step": 30_000, "gaussians": 1, "gpu_busy_share": 0.5, "top_kernels": top}
+    table = markdown_table({"windows": [window]})
+    assert "| GPU busy share | 0.50 |" in table and "GPU events at step 30,000" in table
+    assert "| `gemm_kernel` | 1.500 | 1.0 |" in table
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA: kernels")

@@ -516,6 +516,13 @@ def markdown_table(result: Dict[str, Any]) -> str:
         vals = [w.get(key, w.get("host_ops", {}).get(key)) for w in windows]
         if any(v is not None for v in vals):
             rows.append(f"| {label} | " + " | ".join("" if v is None else f"{v:.2f}" for v in vals) + " |")
+    # Where the GPU's time goes, in the last window that says (its 10 costliest events).
+    last = next((w for w in reversed(windows) if w.get("top_kernels")), None)
+    if last is not None:
+        rows += ["", f"GPU events at step {last['step']:,}, per step:", "", "| event | ms | calls |", "|---|---|---|"]
+        rows += [
+            f"| `{k['name']}` | {k['ms_per_step']:.3f} | {k['calls_per_step']:.1f} |" for k in last["top_kernels"][:10]
+        ]
     return "\n".join(rows) + "\n"
 
 
