@@ -13,7 +13,10 @@ RESULTS = Path(__file__).resolve().parents[1] / "benchmarks" / "results"
 def _profile(path, scene, psnr, lpips=0.01, gaussians=100):
     env = {"gpu": "GPU X", "git_commit": "abc"}
     score = {"psnr": psnr, "lpips": lpips}
-    path.write_text(json.dumps({"scene": scene, "environment": env, "score": score, "gaussians_final": gaussians}))
+    run = {"steps": 40_000, "train_seconds": 300.0, "steps_per_second": 40_000 / 300.0}
+    path.write_text(
+        json.dumps({"scene": scene, "environment": env, "score": score, "gaussians_final": gaussians, **run})
+    )
     return str(path)
 
 
@@ -57,9 +60,13 @@ def test_bad_inputs_are_refused_with_a_message(tmp_path):
     bench = _benchmark(tmp_path / "t.json", "a", {"m": 40.0})
     with pytest.raises(SystemExit, match="no variant 'n'"):
         run_of(bench + ":n")
-    (tmp_path / "u.json").write_text(json.dumps({"scene": "a", "environment": {}}))
+    unscored = {"scene": "a", "environment": {}, "steps": 10, "train_seconds": 1.0, "steps_per_second": 10.0}
+    (tmp_path / "u.json").write_text(json.dumps(unscored))
     with pytest.raises(SystemExit, match="no scored run"):
         run_of(str(tmp_path / "u.json"))
+    (tmp_path / "v.json").write_text(json.dumps({"scene": "a"}))
+    with pytest.raises(SystemExit, match="not a train_profile result"):
+        run_of(str(tmp_path / "v.json"))
     with pytest.raises(SystemExit, match="cannot read"):
         run_of(str(tmp_path / "missing.json"))
     with pytest.raises(SystemExit, match="no scene has runs on both sides"):

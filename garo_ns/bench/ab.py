@@ -21,39 +21,43 @@ from statistics import mean
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 from garo_ns.bench.results import utc_stamp, write_with_table
+from garo_ns.bench.train_speed import run_row
 
 WITHIN_DB = 0.15
 GAIN_DB = 0.01  # the least change the table shows: a mean of +0.004 dB is no gain
 
 
 def run_of(spec: str) -> Dict[str, Any]:
-    """One run's scores from `FILE` (a train_profile result) or `FILE:VARIANT` (a benchmark result's row)."""
+    """One run's scores from `FILE` (a train_profile result, read by train_speed.run_row) or `FILE:VARIANT` (a
+    benchmark result's row)."""
     path, _, variant = spec.partition(":")
     try:
-        data = json.loads(Path(path).read_text())
+        if variant:
+            data = json.loads(Path(path).read_text())
+        else:
+            run = run_row(Path(path))
     except (OSError, json.JSONDecodeError) as err:
         raise SystemExit(f"error: cannot read result {path}: {err}") from None
+    except KeyError as err:
+        raise SystemExit(f"error: {path} is not a train_profile result (it lacks {err})") from None
     if variant:
         rows = data.get("variants") or {}
         if variant not in rows:
             raise SystemExit(f"error: {path} has no variant {variant!r} (it has {', '.join(sorted(rows))})")
-        row, env = rows[variant], data
-        score = {"psnr": row.get("psnr"), "lpips": row.get("lpips"), "gaussians": row.get("num_gaussians")}
-        scene, commit = data.get("scene"), data.get("git_commit")
-    else:
-        env = data.get("environment") or {}
-        s = data.get("score") or {}
-        score = {"psnr": s.get("psnr"), "lpips": s.get("lpips"), "gaussians": data.get("gaussians_final")}
-        scene, commit = data.get("scene"), env.get("git_commit")
-    if score["psnr"] is None or not scene:
+        row = rows[variant]
+        run = {"scene": data.get("scene"), "gpu": data.get("gpu"), "git_commit": data.get("git_commit")}
+        run.update(psnr=row.get("psnr"), lpips=row.get("lpips"), gaussians_final=row.get("num_gaussians"))
+    if run["psnr"] is None or not run["scene"]:
         raise SystemExit(f"error: {spec} holds no scored run of a named scene")
     return {
         "file": Path(path).name,
         "variant": variant or None,
-        "scene": scene,
-        "gpu": env.get("gpu"),
-        "git_commit": commit,
-        **score,
+        "scene": run["scene"],
+        "gpu": run["gpu"],
+        "git_commit": run["git_commit"],
+        "psnr": run["psnr"],
+        "lpips": run["lpips"],
+        "gaussians": run["gaussians_final"],
     }
 
 

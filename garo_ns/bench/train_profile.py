@@ -484,17 +484,11 @@ def markdown_table(result: Dict[str, Any]) -> str:
         marks = [r for r in result.get("timeline") or [] if r["step"] % 5000 == 0 or r["step"] == result.get("steps")]
         if not marks:
             return "No profile window and no timeline in this run.\n"
+        steps = " | ".join(f"{r['step']:,}" for r in marks)
+        seconds = " | ".join(f"{r['seconds']:.0f}" for r in marks)
         return (
             "No profile window (a run that times the whole run alone). Seconds elapsed at each step:\n\n"
-            + "| step | "
-            + " | ".join(f"{r['step']:,}" for r in marks)
-            + " |\n"
-            + "|---|"
-            + "---|" * len(marks)
-            + "\n"
-            + "| seconds | "
-            + " | ".join(f"{r['seconds']:.0f}" for r in marks)
-            + " |\n"
+            f"| step | {steps} |\n|---|{'---|' * len(marks)}\n| seconds | {seconds} |\n"
         )
     head = "| phase | " + " | ".join(f"step {w['step']:,} ({w['gaussians']:,} Gaussians)" for w in windows) + " |"
     rows = [head, "|---|" + "---|" * len(windows)]
