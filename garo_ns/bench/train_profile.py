@@ -337,8 +337,17 @@ def _device_events(prof: Any) -> List[Any]:
 
 def kernel_share(prof: Any, wall_ms: float) -> Optional[float]:
     """Share of `wall_ms` the GPU spent in kernels and copies (their summed time), from a finished torch profiler.
-    Files written before this counted each kernel twice, under its CPU event too (`gpu_kernel_share`)."""
+    Files written before 6a8422c counted most kernels twice, under their CPU event too (`every_event_share`)."""
     total_us = sum(float(e.self_device_time_total or 0.0) for e in _device_events(prof))
+    return total_us / 1e3 / wall_ms if wall_ms > 0 else None
+
+
+def every_event_share(prof: Any, wall_ms: float) -> Optional[float]:
+    """The busy share as files before 6a8422c measured it (`gpu_kernel_share`): the device time of every event, so a
+    kernel counts under the GPU's own event and again under the op that launched it, where one was recorded (aten
+    ops, autograd's backward nodes), and the profiler's own events add theirs. Kept beside `kernel_share` so that
+    each new file measures, on real steps, how far the old figures overstated the share."""
+    total_us = sum(float(getattr(e, "self_device_time_total", 0.0) or 0.0) for e in prof.key_averages())
     return total_us / 1e3 / wall_ms if wall_ms > 0 else None
 
 
@@ -468,6 +477,7 @@ class TrainProfiler:
         elif kind == "profiler" and self._prof is not None:
             self._prof.__exit__(None, None, None)
             window["gpu_busy_share"] = kernel_share(self._prof, wall_ms)
+            window["gpu_kernel_share"] = every_event_share(self._prof, wall_ms)
             window["top_kernels"] = top_kernels(self._prof, n)
             window["profiled_ms_per_step"] = wall_ms / n
             self._prof = None
@@ -503,8 +513,8 @@ def markdown_table(result: Dict[str, Any]) -> str:
         ("plain_ms_per_step", "step, plain (wall)"),
         ("host_syncs_per_step", "host syncs per step"),
         ("gpu_busy_share", "GPU busy share"),
-        # Files from before the fix: each kernel's time counted twice (kernel_share), so about twice the busy share.
-        ("gpu_kernel_share", "GPU kernel time counted twice / wall (about 2x the busy share)"),
+        # The measure before 6a8422c (every_event_share): launched kernels count twice, so it overstates the share.
+        ("gpu_kernel_share", "every event's device time / wall (the old share; overstates it)"),
         ("launches_per_step", "kernel and graph launches per step"),
     ):
         vals = [w.get(key, w.get("host_ops", {}).get(key)) for w in windows]
