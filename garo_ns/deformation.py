@@ -12,7 +12,10 @@ from dataclasses import dataclass
 from typing import Callable, Dict, List, Literal, Optional, Tuple
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
+
+from garo_ns.dense import aligned, dense
 
 HeadInit = Literal["zero", "default"]
 HEAD_INITS = ("zero", "default")
@@ -86,8 +89,11 @@ class DeformationField(nn.Module):
         skip: int = 4,
         head_init: HeadInit = "default",
         time_net: int = 0,
+        fused_layers: bool = False,
     ):
         super().__init__()
+        # Not a parameter: how the products run (garo_ns.dense), not what they compute.
+        self.fused_layers = fused_layers
         if depth < 1 or width < 1:
             raise ValueError(f"depth and width must be >= 1, got depth={depth}, width={width}")
         if time_net < 0:
@@ -116,9 +122,9 @@ class DeformationField(nn.Module):
                 nn.init.zeros_(head.weight)
                 nn.init.zeros_(head.bias)
 
-    def encode(self, xyz: Tensor, time: Tensor | float) -> Tensor:
+    def encode(self, xyz: Tensor, time: Tensor | float, pad: int = 0) -> Tensor:
         """The MLP's input [N, F]: positional encodings of `xyz` [N, 3] and of `time` (a scalar, or one
-        per point [N, 1]), the latter through the time network when there is one."""
+        per point [N, 1]), the latter through the time network when there is one; then `pad` zero columns."""
         # A number is filled in on the device: a tensor made from it on the host is a copy that waits for the GPU.
         if isinstance(time, Tensor):
             t = time.to(dtype=xyz.dtype, device=xyz.device)
@@ -129,7 +135,10 @@ class DeformationField(nn.Module):
             t_enc = self.time_net(t_enc)
         # One time (a scalar) is encoded once and broadcast: the time network runs on one row.
         t_enc = t_enc.expand(xyz.shape[0], -1) if t_enc.shape[0] == 1 else t_enc
-        return torch.cat([positional_encoding(xyz, self.pos_freqs, self.pos_bands), t_enc.to(xyz.dtype)], dim=-1)
+        parts = [positional_encoding(xyz, self.pos_freqs, self.pos_bands), t_enc.to(xyz.dtype)]
+        if pad:  # in the concatenation that happens anyway: no copy of its own
+            parts.append(xyz.new_zeros(1, pad).expand(xyz.shape[0], -1))
+        return torch.cat(parts, dim=-1)
 
     def time_sampler(self, xyz: Tensor) -> Callable[[Tensor], Tuple[Tensor, Tensor, Tensor]]:
         """For fixed canonical positions `xyz` [N, 3], a function of times [T] that returns the offsets at every
@@ -172,6 +181,8 @@ class DeformationField(nn.Module):
 
     def hidden(self, xyz: Tensor, time: Tensor | float) -> List[Tensor]:
         """The ReLU output of every hidden layer [N, width] (before the skip concatenation)."""
+        if self.fused_layers:
+            return self._hidden_fused(xyz, time)
         x = self.encode(xyz, time)
         h, out = x, []
         for i, layer in enumerate(self.layers):
@@ -180,6 +191,36 @@ class DeformationField(nn.Module):
             if i == self.skip and i + 1 < len(self.layers):
                 h = torch.cat([x, h], dim=-1)
         return out
+
+    def _hidden_fused(self, xyz: Tensor, time: Tensor | float) -> List[Tensor]:
+        """`hidden` through garo_ns.dense: the input's zero columns pad it (and after the skip, the input and a
+        hidden layer together) to a multiple of 8, and the weights get zero columns to match."""
+        in_dim = self.layers[0].in_features
+        pad = aligned(in_dim)
+        x = self.encode(xyz, time, pad)
+        h, out = x, []
+        for i, layer in enumerate(self.layers):
+            weight = layer.weight
+            if pad and i == 0:
+                weight = F.pad(weight, (0, pad))
+            elif pad and layer.in_features > in_dim and i == self.skip + 1:  # [input, hidden]: zeros between
+                zeros = weight.new_zeros(weight.shape[0], pad)
+                weight = torch.cat([weight[:, :in_dim], zeros, weight[:, in_dim:]], dim=1)
+            h = dense(h, weight, layer.bias, relu=True)
+            out.append(h)
+            if i == self.skip and i + 1 < len(self.layers):
+                h = torch.cat([x, h], dim=-1)
+        return out
+
+    def _heads_fused(self, h: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
+        """The three heads as one product, its outputs padded to a multiple of 8 rows."""
+        heads = (self.d_xyz, self.d_rot, self.d_scale)
+        sizes = [head.out_features for head in heads]
+        pad = aligned(sum(sizes))
+        weight = torch.cat([head.weight for head in heads] + [heads[0].weight.new_zeros(pad, h.shape[1])])
+        bias = torch.cat([head.bias for head in heads] + [heads[0].bias.new_zeros(pad)])
+        d_xyz, d_rot, d_scale, _ = dense(h, weight, bias).split(sizes + [pad], dim=-1)
+        return d_xyz, d_rot, d_scale
 
     def forward(self, xyz: Tensor, time: Tensor | float) -> Tuple[Tensor, Tensor, Tensor]:
         """Offsets at `time` for canonical positions `xyz` [N, 3].
@@ -193,6 +234,8 @@ class DeformationField(nn.Module):
         """
         h = self.hidden(xyz, time)[-1]
         dt = xyz.dtype  # callers get their own dtype
+        if self.fused_layers:
+            return tuple(o.to(dt) for o in self._heads_fused(h))  # type: ignore[return-value]
         return self.d_xyz(h).to(dt), self.d_rot(h).to(dt), self.d_scale(h).to(dt)
 
 
@@ -337,6 +380,14 @@ class DeformationSettings:
     PSNR -0.03 and +0.02 dB on average, the latter with two bf16 runs on mutant; benchmarks/results/train_profile_bf16_*
     and train_profile_hx2_*). Off elsewhere until their own A/B."""
 
+    deform_fused_layers: bool = False
+    """The deformation MLP's layers through garo_ns.dense (training and rendering, CUDA and CPU): the bias and the ReLU
+    in each product's epilogue, the bias gradient as a matrix-vector product instead of a column sum over every
+    Gaussian, the two odd input widths (93 and 349) zero-padded to multiples of 8 and the three heads as one product.
+    The same sums up to their order, the same parameters and checkpoints; its speed: `benchmarks/field_layers.py`
+    (benchmarks/results/field_layers_<GPU>.json). Off until a 40k A/B on the three scenes: bf16 rounds the reordered
+    sums differently."""
+
     def make_deformation(self) -> DeformationField:
         """The deformation field these settings describe (untrained)."""
         if self.deform_scale_offset not in SCALE_OFFSETS:
@@ -349,4 +400,5 @@ class DeformationSettings:
             self.deform_skip,
             head_init=self.deform_head_init,
             time_net=self.deform_time_net,
+            fused_layers=self.deform_fused_layers,
         )

@@ -290,7 +290,8 @@ def test_graphed_splats_off_the_gpu_are_the_composed_gaussians():
     assert graphed.captures == 0 and all(torch.equal(a, b) for a, b in zip(got[:5], want[:5]))
 
 
-def test_the_functional_splats_are_the_modules_and_send_gradients_to_the_tensors_passed():
+@pytest.mark.parametrize("fused", [False, True])
+def test_the_functional_splats_are_the_modules_and_send_gradients_to_the_tensors_passed(fused):
     """`functional_splats`: the step's Gaussians with the field's parameters as arguments are the module's call, to
     the bit; gradients reach the tensors passed (the real parameters at a step, stand-ins at a capture) and nothing
     else, stand-ins reading their parameters' storage."""
@@ -299,7 +300,7 @@ def test_the_functional_splats_are_the_modules_and_send_gradients_to_the_tensors
     from garo_ns.train_graphs import _SplatsCall, functional_splats
 
     torch.manual_seed(3)
-    field = DeformationField(depth=3, width=16, time_net=8)
+    field = DeformationField(depth=3, width=16, time_net=8, fused_layers=fused)
     call = _SplatsCall(field, "log")
     function, params = functional_splats(call)
     assert [id(p) for p in params] == [id(p) for p in field.parameters()]
@@ -391,16 +392,18 @@ def _outputs_and_batch(trainer):
         return trainer.pipeline.model.get_outputs(camera), batch
 
 
-def test_the_bf16_field_stays_near_the_fp32_field_and_keeps_fp32_weights():
+@pytest.mark.parametrize("fused", [False, True])
+def test_the_bf16_field_stays_near_the_fp32_field_and_keeps_fp32_weights(fused):
     """`deform_train_bf16`'s numerics against the fp32 reference, here under the CPU's bf16 autocast (the same
     rounding of the products' inputs as CUDA's): on the recipe's field at its initialisation the offsets differ by
     about 0.3% of their norm (bound 1%), each parameter's gradient points the same way (cosine >= 0.98; the
-    smallest is about 0.992); the weights the optimizer steps stay fp32 and the offsets come back in fp32."""
+    smallest is about 0.992); the weights the optimizer steps stay fp32 and the offsets come back in fp32. The same
+    with the fused layers (garo_ns.dense), whose casts are their own."""
     from garo_ns.deformation import DeformationField
     from garo_ns.train_graphs import Bf16Field
 
     torch.manual_seed(0)
-    field = DeformationField().train()
+    field = DeformationField(fused_layers=fused).train()
     xyz, t = torch.rand(4000, 3) * 2 - 1, 0.37
     weights = [torch.randn(4000, k) for k in (3, 4, 3)]
 
