@@ -347,9 +347,9 @@ class DeformationSettings:
     """How the field's scale offset composes with a Gaussian's scale: `log` adds it to the log-scale (scales stay
     positive), `linear` to the scale itself, as the official D-3DGS code does (its magnitude, floored at 1e-8:
     garo_ns.deformation.log_scale_offset). Every reader follows it: training, rendering and the time table, the
-    static classification, export. At 40k on the three shared scenes (deform-splatfacto, one run each) `linear`
-    changed test PSNR by -0.30, +0.16 and +0.14 dB (jumpingjacks, mutant, standup; +0.00 on average) with worse LPIPS
-    on all three, so `log` is the default (docs/benchmarks.md)."""
+    static classification, export. At 40k on the three shared scenes (deform-splatfacto, two rounds) `linear`
+    changed test PSNR by -0.25, +0.16 and +0.07 dB (jumpingjacks, mutant, standup; -0.01 on average) with worse LPIPS
+    on all three in both rounds, so `log` is the default (benchmarks/results/ab_scale_term_H200.json)."""
     deform_cuda_graph: bool = True
     """Training on CUDA: the step's Gaussians, from the canonical parameters to the rasterizer's inputs (the field,
     the composition, the activations), replay a CUDA graph captured for the current count of Gaussians (captured
@@ -384,8 +384,9 @@ class DeformationSettings:
     """The deformation MLP's layers through garo_ns.dense (training and rendering, CUDA and CPU): the bias and the ReLU
     in each product's epilogue, the bias gradient as a matrix-vector product instead of a column sum over every
     Gaussian, the two odd input widths (93 and 349) zero-padded to multiples of 8 and the three heads as one product.
-    The same sums up to their order, the same parameters and checkpoints; its speed: `benchmarks/field_layers.py`
-    (benchmarks/results/field_layers_<GPU>.json). Off until a 40k A/B on the three scenes: bf16 rounds the reordered
+    The same sums up to their order, the same parameters and checkpoints. The field alone in bf16, graphed, ran
+    1.8x faster (benchmarks/field_layers.py, benchmarks/results/field_layers_H200.json); 40k steps on mutant took 252 s
+    instead of 278 (one pair, docs/benchmarks.md). Off until a 40k A/B on the three scenes: bf16 rounds the reordered
     sums differently."""
 
     def make_deformation(self) -> DeformationField:

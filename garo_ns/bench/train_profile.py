@@ -335,19 +335,24 @@ def _device_events(prof: Any) -> List[Any]:
     ]
 
 
+OLD_KEYS = {"gpu_busy_share": "gpu_kernel_share"}
+"""A window's keys under their names in older files: the same measure (the profiler window records GPU activity only,
+so summing every event there sums the GPU's own)."""
+
+
+def _window_value(window: Dict[str, Any], key: str) -> Any:
+    """`key` of a window: its own, under its older name (OLD_KEYS), or its host pass's."""
+    for name in (key, OLD_KEYS.get(key)):
+        if name is not None and name in window:
+            return window[name]
+    return window.get("host_ops", {}).get(key)
+
+
 def kernel_share(prof: Any, wall_ms: float) -> Optional[float]:
     """Share of `wall_ms` the GPU spent in kernels and copies (their summed time), from a finished torch profiler.
-    Files written before 6a8422c counted most kernels twice, under their CPU event too (`every_event_share`)."""
+    The GPU's own events only: a profiler that also records the CPU holds a launched kernel's time again under the
+    op that launched it (tests/test_train_profile.py)."""
     total_us = sum(float(e.self_device_time_total or 0.0) for e in _device_events(prof))
-    return total_us / 1e3 / wall_ms if wall_ms > 0 else None
-
-
-def every_event_share(prof: Any, wall_ms: float) -> Optional[float]:
-    """The busy share as files before 6a8422c measured it (`gpu_kernel_share`): the device time of every event, so a
-    kernel counts under the GPU's own event and again under the op that launched it, where one was recorded (aten
-    ops, autograd's backward nodes), and the profiler's own events add theirs. Kept beside `kernel_share` so that
-    each new file measures, on real steps, how far the old figures overstated the share."""
-    total_us = sum(float(getattr(e, "self_device_time_total", 0.0) or 0.0) for e in prof.key_averages())
     return total_us / 1e3 / wall_ms if wall_ms > 0 else None
 
 
@@ -477,7 +482,6 @@ class TrainProfiler:
         elif kind == "profiler" and self._prof is not None:
             self._prof.__exit__(None, None, None)
             window["gpu_busy_share"] = kernel_share(self._prof, wall_ms)
-            window["gpu_kernel_share"] = every_event_share(self._prof, wall_ms)
             window["top_kernels"] = top_kernels(self._prof, n)
             window["profiled_ms_per_step"] = wall_ms / n
             self._prof = None
@@ -513,11 +517,9 @@ def markdown_table(result: Dict[str, Any]) -> str:
         ("plain_ms_per_step", "step, plain (wall)"),
         ("host_syncs_per_step", "host syncs per step"),
         ("gpu_busy_share", "GPU busy share"),
-        # The measure before 6a8422c (every_event_share): launched kernels count twice, so it overstates the share.
-        ("gpu_kernel_share", "every event's device time / wall (the old share; overstates it)"),
         ("launches_per_step", "kernel and graph launches per step"),
     ):
-        vals = [w.get(key, w.get("host_ops", {}).get(key)) for w in windows]
+        vals = [_window_value(w, key) for w in windows]
         if any(v is not None for v in vals):
             rows.append(f"| {label} | " + " | ".join("" if v is None else f"{v:.2f}" for v in vals) + " |")
     # Where the GPU's time goes, in the last window that says (its 10 costliest events).
