@@ -14,28 +14,11 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import statistics
 from pathlib import Path
-from typing import Callable, Dict, List, Sequence
+from typing import Dict, List, Sequence
 
 import torch
 from torch import Tensor
-
-
-def device_ms(call: Callable[[], None], calls: int, repeats: int) -> float:
-    """Median over `repeats` blocks of the device milliseconds per call of `calls` back-to-back calls."""
-    for _ in range(3):
-        call()
-    times = []
-    for _ in range(repeats):
-        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-        start.record()
-        for _ in range(calls):
-            call()
-        end.record()
-        end.synchronize()
-        times.append(start.elapsed_time(end) / calls)
-    return statistics.median(times)
 
 
 def relative(a: Sequence[Tensor], b: Sequence[Tensor]) -> float:
@@ -66,6 +49,7 @@ def markdown(result: Dict) -> str:
 def main() -> None:
     from garo_ns.bench.benchmark import environment
     from garo_ns.bench.results import utc_stamp, write_with_table
+    from garo_ns.bench.timing import device_ms
     from garo_ns.deformation import DeformationField
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

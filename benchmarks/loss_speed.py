@@ -13,31 +13,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
 from pathlib import Path
-from typing import Callable, Dict
+from typing import Dict
 
 import torch
 
 
-def device_ms(call: Callable[[], None], calls: int, repeats: int) -> float:
-    """Median over `repeats` blocks of the device milliseconds per call of `calls` back-to-back calls."""
-    for _ in range(3):
-        call()
-    times = []
-    for _ in range(repeats):
-        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-        start.record()
-        for _ in range(calls):
-            call()
-        end.record()
-        end.synchronize()
-        times.append(start.elapsed_time(end) / calls)
-    return statistics.median(times)
-
-
 def main() -> None:
     from garo_ns.bench.benchmark import environment
+    from garo_ns.bench.timing import device_ms
     from garo_ns.losses import ImageLoss
     from garo_ns.ssim import SSIM
 
