@@ -42,7 +42,7 @@ def train_views_l1(pipeline: Any, n: int = 6) -> float:
     return sum(errs) / len(errs)
 
 
-def _train(method: str, scene: Path, out: Path) -> Dict[str, Any]:
+def _train(method: str, scene: Path, out: Path, **model_settings: Any) -> Dict[str, Any]:
     from garo_ns.tools.eval import evaluate
     from garo_ns.tools.train import QuickSchedule, make_config, seed_everything
 
@@ -53,6 +53,8 @@ def _train(method: str, scene: Path, out: Path) -> Dict[str, Any]:
         schedule=QuickSchedule(steps=TRAIN_STEPS, num_random=3000, deform_width=64, deform_depth=4, deform_skip=2),
         experiment_name=method,
     )
+    for name, value in model_settings.items():
+        setattr(config.pipeline.model, name, value)
     config.set_timestamp()
     seed_everything(config.machine.seed)
     config.save_config()

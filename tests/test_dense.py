@@ -99,3 +99,27 @@ def test_the_setting_builds_a_fused_field():
 
     assert not DeformationSettings().make_deformation().fused_layers
     assert DeformationSettings(deform_fused_layers=True).make_deformation().fused_layers
+
+
+@pytest.mark.slow
+def test_garo_deform_trains_the_built_in_scene_with_fused_layers(scene_dir, tmp_path):
+    """The setting end to end on the CPU: the model builds the fused field, trains to the demo's quality (the bound
+    of tests/test_training.py), and its checkpoint loads into a model with the fused field that renders the same
+    image."""
+    from conftest import _train
+    from test_training import MIN_TEST_PSNR
+
+    from garo_ns.bench.timing import render_view
+    from garo_ns.tools.eval import load_run
+
+    run = _train("garo-deform", scene_dir, tmp_path, deform_fused_layers=True)
+    model = run["trainer"].pipeline.model
+    assert model.deformation.fused_layers
+    assert run["l1_after"] < 0.5 * run["l1_before"]
+    assert run["eval"]["psnr"] > MIN_TEST_PSNR, run["eval"]
+    model.eval()
+    loaded = load_run(run["config_path"])[1].model
+    assert loaded.deformation.fused_layers
+    loaded.config.time_table = False  # the network's frame on both sides
+    cam = run["trainer"].pipeline.datamanager.train_dataset.cameras[3:4].to(model.device)
+    torch.testing.assert_close(render_view(loaded, cam), render_view(model, cam), rtol=0, atol=1e-6)
