@@ -31,6 +31,12 @@ def _product_dtype(x: Tensor) -> Optional[torch.dtype]:
     return torch.get_autocast_dtype(kind) if torch.is_autocast_enabled(kind) else None
 
 
+def _addmm_relu(bias: Tensor, x: Tensor, weight_t: Tensor) -> Tensor:
+    """relu(bias + x @ weight_t), the ReLU in the product's epilogue where torch offers it (cuBLASLt on CUDA)."""
+    fused = getattr(torch, "_addmm_activation", None)  # a private op: a torch without it gets the two steps
+    return fused(bias, x, weight_t) if fused is not None else torch.relu(torch.addmm(bias, x, weight_t))
+
+
 class _Dense(torch.autograd.Function):
     """x @ W^T + b, optionally through a ReLU, with the bias gradient as a matrix-vector product."""
 
@@ -41,7 +47,7 @@ class _Dense(torch.autograd.Function):
         if dtype is not None:  # autocast's cast, done here because autocast does not reach into a Function
             x, weight, bias = x.to(dtype), weight.to(dtype), bias.to(dtype)
         with torch.autocast(x.device.type, enabled=False):
-            y = torch._addmm_activation(bias, x, weight.t()) if relu else torch.addmm(bias, x, weight.t())
+            y = _addmm_relu(bias, x, weight.t()) if relu else torch.addmm(bias, x, weight.t())
         ctx.relu = relu
         ctx.save_for_backward(x, weight, y if relu else None)
         return y

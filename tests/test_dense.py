@@ -123,3 +123,12 @@ def test_garo_deform_trains_the_built_in_scene_with_fused_layers(scene_dir, tmp_
     loaded.config.time_table = False  # the network's frame on both sides
     cam = run["trainer"].pipeline.datamanager.train_dataset.cameras[3:4].to(model.device)
     torch.testing.assert_close(render_view(loaded, cam), render_view(model, cam), rtol=0, atol=1e-6)
+
+
+def test_dense_without_torchs_fused_relu_op_computes_the_same(monkeypatch):
+    """`torch._addmm_activation` is private: without it the layer takes the product and the ReLU apart."""
+    torch.manual_seed(4)
+    x, layer = torch.randn(50, 24), torch.nn.Linear(24, 16)
+    want = dense(x, layer.weight, layer.bias, relu=True)
+    monkeypatch.delattr(torch, "_addmm_activation")
+    torch.testing.assert_close(dense(x, layer.weight, layer.bias, relu=True), want, rtol=1e-6, atol=1e-6)
