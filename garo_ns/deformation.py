@@ -180,33 +180,24 @@ class DeformationField(nn.Module):
         return sample
 
     def hidden(self, xyz: Tensor, time: Tensor | float) -> List[Tensor]:
-        """The ReLU output of every hidden layer [N, width] (before the skip concatenation)."""
-        if self.fused_layers:
-            return self._hidden_fused(xyz, time)
-        x = self.encode(xyz, time)
-        h, out = x, []
-        for i, layer in enumerate(self.layers):
-            h = torch.relu(layer(h))
-            out.append(h)
-            if i == self.skip and i + 1 < len(self.layers):
-                h = torch.cat([x, h], dim=-1)
-        return out
-
-    def _hidden_fused(self, xyz: Tensor, time: Tensor | float) -> List[Tensor]:
-        """`hidden` through garo_ns.dense: the input's zero columns pad it (and after the skip, the input and a
-        hidden layer together) to a multiple of 8, and the weights get zero columns to match."""
+        """The ReLU output of every hidden layer [N, width] (before the skip concatenation). With `fused_layers` the
+        layers run through garo_ns.dense, the input padded with zero columns to a multiple of 8 (after the skip, the
+        input and a hidden layer together) and the weights given zero columns to match."""
         in_dim = self.layers[0].in_features
-        pad = aligned(in_dim)
+        pad = aligned(in_dim) if self.fused_layers else 0
         x = self.encode(xyz, time, pad)
         h, out = x, []
         for i, layer in enumerate(self.layers):
-            weight = layer.weight
-            if pad and i == 0:
-                weight = F.pad(weight, (0, pad))
-            elif pad and layer.in_features > in_dim and i == self.skip + 1:  # [input, hidden]: zeros between
-                zeros = weight.new_zeros(weight.shape[0], pad)
-                weight = torch.cat([weight[:, :in_dim], zeros, weight[:, in_dim:]], dim=1)
-            h = dense(h, weight, layer.bias, relu=True)
+            if self.fused_layers:
+                weight = layer.weight
+                if pad and i == 0:
+                    weight = F.pad(weight, (0, pad))
+                elif pad and i == self.skip + 1:  # [input, hidden]: the zeros sit between them
+                    zeros = weight.new_zeros(weight.shape[0], pad)
+                    weight = torch.cat([weight[:, :in_dim], zeros, weight[:, in_dim:]], dim=1)
+                h = dense(h, weight, layer.bias, relu=True)
+            else:
+                h = torch.relu(layer(h))
             out.append(h)
             if i == self.skip and i + 1 < len(self.layers):
                 h = torch.cat([x, h], dim=-1)

@@ -39,13 +39,23 @@ def test_dense_is_a_linear_layer_in_fp32(relu):
         torch.testing.assert_close(a, r, rtol=1e-5, atol=1e-5)
 
 
-def test_dense_under_autocast_computes_in_its_dtype_and_returns_gradients_in_the_inputs():
+@pytest.mark.parametrize(
+    "device",
+    [
+        "cpu",
+        pytest.param(
+            "cuda",
+            marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA: cuBLASLt's ReLU epilogue"),
+        ),
+    ],
+)
+def test_dense_under_autocast_computes_in_its_dtype_and_returns_gradients_in_the_inputs(device):
     """As F.linear under autocast: a bf16 product and output; the fp32 weights get fp32 gradients (torch would cast
     them too), within bf16's rounding of torch's own layer."""
     torch.manual_seed(2)
-    x = torch.randn(500, 96, requires_grad=True)
-    layer = torch.nn.Linear(96, 64)
-    with torch.autocast("cpu", dtype=torch.bfloat16):
+    x = torch.randn(500, 96, requires_grad=True, device=device)
+    layer = torch.nn.Linear(96, 64).to(device)
+    with torch.autocast(device, dtype=torch.bfloat16):
         ours = dense(x, layer.weight, layer.bias, relu=True)
         ref = torch.relu(F.linear(x, layer.weight, layer.bias))
     assert ours.dtype == ref.dtype == torch.bfloat16
