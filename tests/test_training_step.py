@@ -372,9 +372,13 @@ def test_training_metrics_are_computed_on_the_trainers_log_steps_only(scene_dir,
     assert model.train_splats.enabled and model.train_splats.bf16  # garo-deform's recipe: graphed, bf16 products
     from garo_ns.config import METHODS
 
-    # Both measured at 40k on three scenes; the methods without their own A/B keep fp32.
-    assert METHODS["deform-splatfacto"].config.pipeline.model.deform_train_bf16
-    assert not METHODS["garo-compact"].config.pipeline.model.deform_train_bf16
+    # Each measured at 40k on three scenes; the methods without their own A/B keep fp32 and the plain layers.
+    assert model.deformation.fused_layers
+    baseline = METHODS["deform-splatfacto"].config.pipeline.model  # the official composition, in fp32
+    assert not baseline.deform_train_bf16 and baseline.deform_scale_offset == "linear"
+    assert not baseline.deform_fused_layers
+    compact = METHODS["garo-compact"].config.pipeline.model
+    assert not compact.deform_train_bf16 and not compact.deform_fused_layers and compact.deform_scale_offset == "log"
 
     assert model.train_splats.own_grads  # deform_graph_grads: our own capture, on one stream
     config.pipeline.model.deform_train_bf16 = False
