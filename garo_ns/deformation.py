@@ -340,7 +340,9 @@ class DeformationSettings:
     garo_ns.deformation.log_scale_offset). Every reader follows it: training, rendering and the time table, the
     static classification, export. At 40k on the three shared scenes (deform-splatfacto, two rounds) `linear`
     changed test PSNR by -0.25, +0.16 and +0.07 dB (jumpingjacks, mutant, standup; -0.01 on average) with worse LPIPS
-    on all three in both rounds, so `log` is the default (benchmarks/results/ab_scale_term_H200.json)."""
+    on all three in both rounds (benchmarks/results/ab_scale_term_H200.json), but those runs took bf16 products; with
+    fp32 products it gained on all three (+0.08, +0.23, +0.09 dB, two rounds; ab_scale_term_fp32_H200.json), so
+    `deform-splatfacto` trains with `linear` in fp32, as the official code does. `log` stays the default elsewhere."""
     deform_cuda_graph: bool = True
     """Training on CUDA: the step's Gaussians, from the canonical parameters to the rasterizer's inputs (the field,
     the composition, the activations), replay a CUDA graph captured for the current count of Gaussians (captured
@@ -366,10 +368,11 @@ class DeformationSettings:
     deform_train_bf16: bool = False
     """Training on CUDA: the deformation MLP's forward (and so its backward) under bf16 autocast, its weights kept
     in fp32 and its offsets returned in fp32 (garo_ns.train_graphs.Bf16Field); the CPU stays fp32. On a fresh field
-    the offsets differ from fp32 by about 0.3% of their norm (tests/test_training_step.py). `garo-deform` and
-    `deform-splatfacto` turn it on, each after a 40k A/B on jumpingjacks, mutant and standup against fp32 runs (test
-    PSNR -0.03 and +0.02 dB on average, the latter with two bf16 runs on mutant; benchmarks/results/train_profile_bf16_*
-    and train_profile_hx2_*). Off elsewhere until their own A/B."""
+    the offsets differ from fp32 by about 0.3% of their norm (tests/test_training_step.py). `garo-deform` turns it
+    on after a 40k A/B on jumpingjacks, mutant and standup against fp32 runs (test PSNR -0.03 dB on average;
+    benchmarks/results/train_profile_bf16_*). `deform-splatfacto` had it on too (+0.02 dB, train_profile_hx2_*) until it
+    took the official scale composition, which gains in fp32 only (`deform_scale_offset`). Off elsewhere until their own
+    A/B."""
 
     deform_fused_layers: bool = False
     """The deformation MLP's layers through garo_ns.dense (training and rendering, CUDA and CPU): the bias and the ReLU
@@ -377,8 +380,9 @@ class DeformationSettings:
     Gaussian, the two odd input widths (93 and 349) zero-padded to multiples of 8 and the three heads as one product.
     The same sums up to their order, the same parameters and checkpoints. The field alone in bf16, graphed, ran
     1.8x faster (benchmarks/field_layers.py, benchmarks/results/field_layers_H200.json); 40k steps on mutant took 252 s
-    instead of 278 (one pair, docs/benchmarks.md). Off until a 40k A/B on the three scenes: bf16 rounds the reordered
-    sums differently."""
+    instead of 278 (one pair, docs/benchmarks.md). `garo-deform` turns it on after its 40k A/B on the three scenes
+    (+0.14 dB on average; benchmarks/results/ab_fused_layers_H200.json); off elsewhere until their own A/B, as bf16
+    rounds the reordered sums differently."""
 
     def make_deformation(self) -> DeformationField:
         """The deformation field these settings describe (untrained)."""
