@@ -97,7 +97,7 @@ gputests)
   { echo "commit ${GARO_GIT_COMMIT:-$(git rev-parse HEAD 2>/dev/null)} $(date -u +%F) $(nvidia-smi --query-gpu=name --format=csv,noheader | head -1)"
     python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py tests/test_rendering_cuda.py \
       tests/test_time_table.py tests/test_render_switches.py tests/test_view.py tests/test_training_graphs.py tests/test_adam.py \
-      tests/test_train_raster.py tests/test_train_profile.py tests/test_fused_ssim.py tests/test_dense.py --tb=line 2>&1 \
+      tests/test_train_raster.py tests/test_train_profile.py tests/test_fused_ssim.py tests/test_dense.py tests/test_fp32_heads.py --tb=line 2>&1 \
       | grep -E "Error|FAILED|ERROR| passed| failed" | tail -n 40; } | tee $OUT/gputests.log ;;
 smoke)
   scene=$1; export CUDA_VISIBLE_DEVICES=$2

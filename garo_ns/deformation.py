@@ -90,10 +90,13 @@ class DeformationField(nn.Module):
         head_init: HeadInit = "default",
         time_net: int = 0,
         fused_layers: bool = False,
+        fp32_heads: bool = False,
     ):
         super().__init__()
-        # Not a parameter: how the products run (garo_ns.dense), not what they compute.
+        # Not parameters: how the products run (garo_ns.dense; the heads' precision under autocast), not what they
+        # compute.
         self.fused_layers = fused_layers
+        self.fp32_heads = fp32_heads
         if depth < 1 or width < 1:
             raise ValueError(f"depth and width must be >= 1, got depth={depth}, width={width}")
         if time_net < 0:
@@ -224,10 +227,18 @@ class DeformationField(nn.Module):
             d_xyz [N, 3], d_rot [N, 4], d_log_scale [N, 3].
         """
         h = self.hidden(xyz, time)[-1]
-        dt = xyz.dtype  # callers get their own dtype
+        if self.fp32_heads and torch.is_autocast_enabled(h.device.type):
+            # The offsets' last product in fp32, outside autocast: a bf16 result keeps 8 bits of an offset, too few
+            # where the scale offset nearly cancels a small scale (`deform_fp32_heads`).
+            with torch.autocast(h.device.type, enabled=False):
+                return self.heads(h.float(), xyz.dtype)
+        return self.heads(h, xyz.dtype)
+
+    def heads(self, h: Tensor, dtype: torch.dtype) -> Tuple[Tensor, Tensor, Tensor]:
+        """The three offsets of the last hidden layer `h` [N, width], in `dtype`."""
         if self.fused_layers:
-            return tuple(o.to(dt) for o in self._heads_fused(h))  # type: ignore[return-value]
-        return self.d_xyz(h).to(dt), self.d_rot(h).to(dt), self.d_scale(h).to(dt)
+            return tuple(o.to(dtype) for o in self._heads_fused(h))  # type: ignore[return-value]
+        return self.d_xyz(h).to(dtype), self.d_rot(h).to(dtype), self.d_scale(h).to(dtype)
 
 
 @torch.no_grad()
@@ -384,6 +395,13 @@ class DeformationSettings:
     (+0.14 dB on average; benchmarks/results/ab_fused_layers_H200.json); off elsewhere until their own A/B, as bf16
     rounds the reordered sums differently."""
 
+    deform_fp32_heads: bool = False
+    """With `deform_train_bf16`: the three heads' product (the offsets) in fp32, from the last hidden layer's bf16
+    output, instead of rounding each offset to bf16's 8 bits. Where the scale offset composes `linear`ly it can nearly
+    cancel a small scale, and the rounding of the offset becomes the rounding of the scale; the heads are about 0.5% of
+    the field's products. The same parameters and checkpoints; it changes nothing outside bf16 autocast. Off until a
+    40k A/B (with `linear`) on the three scenes."""
+
     def make_deformation(self) -> DeformationField:
         """The deformation field these settings describe (untrained)."""
         if self.deform_scale_offset not in SCALE_OFFSETS:
@@ -397,4 +415,5 @@ class DeformationSettings:
             head_init=self.deform_head_init,
             time_net=self.deform_time_net,
             fused_layers=self.deform_fused_layers,
+            fp32_heads=self.deform_fp32_heads,
         )
