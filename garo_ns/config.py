@@ -119,9 +119,9 @@ def with_official_composition(config: TrainerConfig) -> TrainerConfig:
     products in fp32 (TF32), as that code trains. In fp32 it gained on all three shared scenes at 40k, two rounds
     (+0.08, +0.23, +0.09 dB: benchmarks/results/ab_scale_term_fp32_H200.json), where in bf16 it lost 0.25 dB on
     jumpingjacks (ab_scale_term_H200.json; the likely cause: bf16 keeps 8 bits of an offset that nearly cancels a
-    small scale). It scores the official code's PSNR on each scene (baseline_vs_official_recipe_H200.json). Mutant's
-    40k took 468 s alone on an H200 (436 s in bf16 with `log`, at an earlier commit): fp32 costs time, and `linear`
-    keeps 10% fewer Gaussians there."""
+    small scale). It scores the official code's PSNR on mutant and standup (baseline_vs_official_recipe_H200.json;
+    jumpingjacks awaits an official run on the same GPU model). Mutant's 40k took 468 s alone on an H200 (436 s in
+    bf16 with `log`, at an earlier commit): fp32 costs time, and `linear` keeps 10% fewer Gaussians there."""
     config.pipeline.model.deform_scale_offset = "linear"
     config.pipeline.model.deform_train_bf16 = False
     return config
