@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Tuple
 
 from garo_ns import compat
+from garo_ns.deformation import ScaleOffset
 
 compat.install()
 
@@ -94,7 +95,7 @@ class DemoArgs:
     static_threshold: Optional[float] = None
     """Static threshold as a share of the scene extent. Default: the model's 2.5e-4 scaled by 800 / resolution,
     the same fraction of a pixel as the default at 800 px (the D-NeRF size)."""
-    deform_scale_offset: Literal["log", "linear"] = "log"
+    deform_scale_offset: ScaleOffset = "log"
     """How both arms compose the field's scale offset with a scale: `log`, `garo-deform`'s, for both, so that the
     demo compares GARO with the same model without it. `deform-splatfacto` trains with `linear` (the official code's,
     which matches it at 40k on D-NeRF), but on this schedule `linear` scored 0.3 to 0.9 dB below `log` in each of three
