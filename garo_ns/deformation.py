@@ -353,7 +353,9 @@ class DeformationSettings:
     changed test PSNR by -0.25, +0.16 and +0.07 dB (jumpingjacks, mutant, standup; -0.01 on average) with worse LPIPS
     on all three in both rounds (benchmarks/results/ab_scale_term_H200.json), but those runs took bf16 products; with
     fp32 products it gained on all three (+0.08, +0.23, +0.09 dB, two rounds; ab_scale_term_fp32_H200.json), so
-    `deform-splatfacto` trains with `linear` in fp32, as the official code does. `log` stays the default elsewhere."""
+    `deform-splatfacto` trains with `linear` in fp32, as the official code does; `garo-deform` with `linear` in bf16
+    with its heads in fp32 (`deform_fp32_heads`: +0.17 dB on average, ab_fp32_heads_H200.json). `log` stays the
+    default elsewhere."""
     deform_cuda_graph: bool = True
     """Training on CUDA: the step's Gaussians, from the canonical parameters to the rasterizer's inputs (the field,
     the composition, the activations), replay a CUDA graph captured for the current count of Gaussians (captured
@@ -399,8 +401,8 @@ class DeformationSettings:
     """With `deform_train_bf16`: the three heads' product (the offsets) in fp32, from the last hidden layer's bf16
     output, instead of rounding each offset to bf16's 8 bits. Where the scale offset composes `linear`ly it can nearly
     cancel a small scale, and the rounding of the offset becomes the rounding of the scale; the heads are about 0.5% of
-    the field's products. The same parameters and checkpoints; it changes nothing outside bf16 autocast. Off until a
-    40k A/B (with `linear`) on the three scenes."""
+    the field's products. The same parameters and checkpoints; it changes nothing outside bf16 autocast. On in
+    `garo-deform`, with `linear` (its 40k A/B on the three scenes: benchmarks/results/ab_fp32_heads_H200.json)."""
 
     def make_deformation(self) -> DeformationField:
         """The deformation field these settings describe (untrained)."""

@@ -25,8 +25,15 @@ STEPS = 120
 # Small on purpose (the fixture is committed): few Gaussians, SH degree 1, a static threshold that
 # leaves some Gaussians dynamic and some static.
 # The fixture's activity reading ("training") was the default when it was written; pinned so that the
-# later default ("garo_step") leaves the fixture valid.
-EXTRA = dict(sh_degree=1, densify_grad_thresh=1e-3, static_threshold=5e-2, garo_activity_window="training")
+# later default ("garo_step") leaves the fixture valid; so is the scale composition (`log`, garo-deform's until it took
+# `linear`).
+EXTRA = dict(
+    sh_degree=1,
+    densify_grad_thresh=1e-3,
+    static_threshold=5e-2,
+    garo_activity_window="training",
+    deform_scale_offset="log",
+)
 SCHEDULE = dict(steps=STEPS, num_random=300, deform_width=32, deform_depth=3, deform_skip=1, extra=EXTRA)
 GARO_STEP = 20  # a refinement step inside densification, so GARO, clone, split and prune all run
 

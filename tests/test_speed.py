@@ -105,23 +105,28 @@ def test_static_gaussians_render_like_the_full_field(garo_run):
     from garo_ns.static import motion_statistics as stats
 
     times = model.train_times
-    deviation, mean = stats(model.deformation, model.means.detach(), times)
-    size = torch.exp(model.scales.detach() + mean[:, 7:]).amax(-1)
+    # The method's scale composition (`linear` since garo-deform took it): the statistics in log-scale offsets.
+    log_scales, composition = model.scales.detach(), model.config.deform_scale_offset
+    deviation, mean = stats(
+        model.deformation, model.means.detach(), times, log_scales=log_scales, scale_offset=composition
+    )
+    size = torch.exp(log_scales + mean[:, 7:]).amax(-1)
     move = displacement(deviation, size)
     threshold = float(move.median()) / model.scene_extent
     saved = model.config.static_threshold
-    model.config.static_threshold = threshold
-    model.refresh_static(times)
-    fraction = model.static_fraction()
-    # The classification is the measured movement against the threshold in scene units (the
-    # threshold is relative to the scene extent): exactly, Gaussian by Gaussian.
-    static = model.strategy_state["static"]
-    assert torch.equal(static, move < threshold * model.scene_extent)
-    assert fraction == static.float().mean().item() and 0 < fraction < 1
-    cams = garo_run["trainer"].pipeline.datamanager.train_dataset.cameras
     calls = []
     hook = model.deformation.register_forward_hook(lambda m, i, o: calls.append(i[0].shape[0]))
-    try:
+    try:  # from here on the shared run's classification is changed: restored below, even when an assertion fails
+        model.config.static_threshold = threshold
+        model.refresh_static(times)
+        fraction = model.static_fraction()
+        # The classification is the measured movement against the threshold in scene units (the
+        # threshold is relative to the scene extent): exactly, Gaussian by Gaussian.
+        static = model.strategy_state["static"]
+        assert torch.equal(static, move < threshold * model.scene_extent)
+        assert fraction == static.float().mean().item() and 0 < fraction < 1
+        cams = garo_run["trainer"].pipeline.datamanager.train_dataset.cameras
+        calls.clear()
         with torch.no_grad():
             for i in (0, 7, 15):
                 cam = cams[i : i + 1].to(model.device)

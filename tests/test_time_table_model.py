@@ -134,13 +134,17 @@ def test_the_ladder_builds_a_dense_table_only_where_its_preview_comes_within_the
     losses = {**previews, **built}
     assert table["info"]["spec"]["intervals"] == int(min(losses, key=losses.get))
     assert model.switches.record["tried"][TABLE] < math.inf  # the table taken was built and measured as built
-    # A margin between the sparsest rung and the next's preview: that rung is built and taken, the densest untried.
+    # A margin between the sparsest rung as built and the first denser rung whose preview comes below it: that rung is
+    # built and taken, the rungs between previewed and skipped, the denser ones untried. (Changes this small, 1e-4 dB,
+    # need not fall with every rung: on this scene 448's preview came above 224 as built with one composition.)
     margin = model.config.time_table_margin
-    model.config.switch_bound_db = 0.5 * (built["224"] + previews["448"]) / margin
-    assert previews["448"] < built["224"]
+    rungs = ["448", "896"]
+    taken = next(r for r in rungs if previews[r] < built["224"])  # the densest rung's preview is far below
+    model.config.switch_bound_db = 0.5 * (built["224"] + previews[taken]) / margin
     model.switches.measure_on_training_views(model, guard, model.step)
     table = model.switches.record[TABLE]
-    assert set(table["intervals_tried_db"]) == {"224", "448"} and set(table["intervals_previewed_db"]) == {"448"}
-    assert table["info"]["spec"]["intervals"] == 448
+    assert set(table["intervals_tried_db"]) == {"224", taken}
+    assert set(table["intervals_previewed_db"]) == set(rungs[: rungs.index(taken) + 1])
+    assert table["info"]["spec"]["intervals"] == int(taken)
     # The built table's change is its preview's plus the int16 keys' rounding: close to it.
-    assert table["intervals_tried_db"]["448"] == pytest.approx(previews["448"], rel=0.05, abs=1e-5)
+    assert table["intervals_tried_db"][taken] == pytest.approx(previews[taken], rel=0.05, abs=1e-5)

@@ -374,6 +374,7 @@ def test_training_metrics_are_computed_on_the_trainers_log_steps_only(scene_dir,
 
     # Each measured at 40k on three scenes; the methods without their own A/B keep fp32 and the plain layers.
     assert model.deformation.fused_layers
+    assert model.deformation.fp32_heads and model.config.deform_scale_offset == "linear"  # ab_fp32_heads_H200
     baseline = METHODS["deform-splatfacto"].config.pipeline.model  # the official composition, in fp32
     assert not baseline.deform_train_bf16 and baseline.deform_scale_offset == "linear"
     assert not baseline.deform_fused_layers
