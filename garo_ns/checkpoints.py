@@ -370,6 +370,30 @@ def field_for(state_dict: Dict[str, Any], field: nn.Module, settings: Any) -> nn
     return settings.make_deformation().to(next(field.parameters()).device)
 
 
+def scale_offset_for(state_dict: Dict[str, Any], settings: Any) -> str:
+    """The scale composition the checkpoint's Gaussians and field were trained with (`deform_scale_offset`, which
+    checkpoints record in the model's extra state since 2026-11-27), adopted by `settings` where it says otherwise: a
+    run resumed, imported or rendered under a method whose default has changed since (garo-deform took `linear`
+    from `log`) composes its scales as they were trained instead of rendering wrong sizes. A checkpoint without the
+    record keeps `settings`' composition, which its own config.yml names."""
+    from garo_ns.deformation import SCALE_OFFSETS
+
+    extra = state_dict.get("_extra_state")
+    saved = extra.get("scale_offset") if isinstance(extra, dict) else None
+    if saved is None or saved == settings.deform_scale_offset:
+        return settings.deform_scale_offset
+    if saved not in SCALE_OFFSETS:
+        raise GaroInputError(f"it records deform_scale_offset {saved!r}, which is none of {SCALE_OFFSETS}")
+    from nerfstudio.utils.rich_utils import CONSOLE
+
+    CONSOLE.print(
+        f"[yellow]Checkpoint trained with deform_scale_offset {saved!r} (the config says "
+        f"{settings.deform_scale_offset!r}): composing scales as it was trained[/yellow]"
+    )
+    settings.deform_scale_offset = saved
+    return saved
+
+
 # Settings deleted after they were measured (benchmarks/HISTORY.md), each with whether an old value asked for something
 # the model no longer does, and what it does instead.
 DELETED_SETTINGS: Dict[str, Tuple[Callable[[Any], bool], str]] = {

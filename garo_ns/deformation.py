@@ -355,7 +355,8 @@ class DeformationSettings:
     fp32 products it gained on all three (+0.08, +0.23, +0.09 dB, two rounds; ab_scale_term_fp32_H200.json), so
     `deform-splatfacto` trains with `linear` in fp32, as the official code does; `garo-deform` with `linear` in bf16
     with its heads in fp32 (`deform_fp32_heads`: +0.17 dB on average, ab_fp32_heads_H200.json). `log` stays the
-    default elsewhere."""
+    default elsewhere. A checkpoint records the composition it was trained with, and loading it adopts that one
+    (garo_ns.checkpoints.scale_offset_for), so a run trained before a method's default changed renders as trained."""
     deform_cuda_graph: bool = True
     """Training on CUDA: the step's Gaussians, from the canonical parameters to the rasterizer's inputs (the field,
     the composition, the activations), replay a CUDA graph captured for the current count of Gaussians (captured

@@ -380,6 +380,7 @@ class GaroModel(SplatfactoModel):
         loaded Gaussians; the step is the checkpoint's, set through `update_to_step`.
         """
         checkpoints.upgrade_gaussian_keys(state_dict)
+        self.frame.scale_offset = checkpoints.scale_offset_for(state_dict, self.config)
         checkpoints.check_fit({k: v for k, v in self.state_dict().items() if k.startswith("gauss_params.")}, state_dict)
         checkpoints.resize_gaussians(self.gauss_params, state_dict["gauss_params.means"].shape[0])
         self.deformation = checkpoints.field_for(state_dict, self.deformation, self.config)
@@ -399,8 +400,13 @@ class GaroModel(SplatfactoModel):
             self.frame.time_table(self.deformation, self.canonical(), spec)
 
     def get_extra_state(self) -> Dict[str, Any]:
-        """The densification strategy's running state (the compaction's summary too) travels with the checkpoint."""
-        return {"strategy_state": dict(self.strategy_state), "render_switches": self.switches.record}
+        """The densification strategy's running state (the compaction's summary too) travels with the checkpoint, and
+        the scale composition the Gaussians were trained with (checkpoints.scale_offset_for)."""
+        return {
+            "strategy_state": dict(self.strategy_state),
+            "render_switches": self.switches.record,
+            "scale_offset": self.config.deform_scale_offset,
+        }
 
     def set_extra_state(self, state: Dict[str, Any]) -> None:
         checkpoints.restore_strategy_state(self.strategy_state, (state or {}).get("strategy_state") or {}, self.device)

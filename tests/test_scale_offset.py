@@ -128,3 +128,37 @@ def test_an_unknown_scale_offset_is_refused_before_training():
 
     with pytest.raises(ValueError, match="deform_scale_offset"):
         _model(deform_scale_offset="exp")
+
+
+def test_a_checkpoint_composes_its_scales_as_it_was_trained_whatever_the_config_says(capsys):
+    """garo-deform's default went from `log` to `linear`: a run trained with `log` and resumed or imported under the
+    new default must keep `log`, or every Gaussian's size changes (an offset of 0.2 is x1.22 on the log-scale and
+    +0.2 added to the scale)."""
+    from test_training_step import _model
+
+    from garo_ns.errors import GaroInputError
+
+    trained = _model(deform_scale_offset="log")
+    with torch.no_grad():  # offsets large enough that the two compositions give other sizes
+        trained.deformation.d_scale.bias.fill_(0.2)
+    trained.eval()
+    state = trained.state_dict()
+    assert state["_extra_state"]["scale_offset"] == "log"
+    loaded = _model(deform_scale_offset="linear")
+    loaded.eval()
+    loaded.load_state_dict(state)
+    assert loaded.config.deform_scale_offset == "log" and loaded.frame.scale_offset == "log"
+    assert "trained with deform_scale_offset 'log'" in capsys.readouterr().out
+    with torch.no_grad():
+        want = trained.gaussians_at(0.5, exact=True).scales
+        assert torch.equal(loaded.gaussians_at(0.5, exact=True).scales, want)
+        as_config_says = activate(loaded.canonical(), compose(loaded.deformation, loaded.canonical(), 0.5, "linear"))
+        assert not torch.allclose(as_config_says.scales, want)  # what the guard prevents is a real change
+    # A checkpoint from before the record: the config's composition (its run's config.yml names it).
+    del state["_extra_state"]["scale_offset"]
+    older = _model(deform_scale_offset="linear")
+    older.load_state_dict(state)
+    assert older.config.deform_scale_offset == "linear" and older.frame.scale_offset == "linear"
+    state["_extra_state"]["scale_offset"] = "exp"
+    with pytest.raises(GaroInputError, match="deform_scale_offset 'exp'"):
+        _model().load_state_dict(state)
