@@ -96,9 +96,9 @@ class DemoArgs:
     """Static threshold as a share of the scene extent. Default: the model's 2.5e-4 scaled by 800 / resolution,
     the same fraction of a pixel as the default at 800 px (the D-NeRF size)."""
     deform_scale_offset: ScaleOffset = "log"
-    """How both arms compose the field's scale offset with a scale: `log`, `garo-deform`'s, for both, so that the
-    demo compares GARO with the same model without it. `deform-splatfacto` trains with `linear` (the official code's,
-    which matches it at 40k on D-NeRF), but on this schedule `linear` scored 0.3 to 0.9 dB below `log` in each of three
+    """How both arms compose the field's scale offset with a scale: `log` (the model's default) for both, so that the
+    demo compares GARO with the same model without it. Both methods train with `linear` (the official code's, which
+    matches it at 40k on D-NeRF), but on this schedule `linear` scored 0.3 to 0.9 dB below `log` in each of three
     seeds (`python benchmarks/demo_ab.py`, benchmarks/results/demo_scale_term_cpu.json)."""
 
 
