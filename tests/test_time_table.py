@@ -429,25 +429,24 @@ def test_a_field_that_takes_a_time_per_row_is_sampled_several_times_per_call():
 
     field.time_sampler = counting_sampler
     xyz = torch.rand(300, 3) * 2 - 1
-    scales = (torch.randn(300, 3) - 3.0, "log")
     times = torch.rand(40, generator=torch.Generator().manual_seed(1)).tolist()
-    batched = field_offsets(field, xyz, times, chunk=3000, scales=scales)
+    batched = field_offsets(field, xyz, times, chunk=3000)
     assert sampled == [3000] * 4 and calls == []  # ten times per call, through the sampler
     assert [k for k, _ in iter_field_offsets(field, xyz, times, chunk=3000)] == list(range(40))
     few = times[: SAMPLER_TIMES - 1]
-    repeated = field_offsets(field, xyz, few, chunk=3000, scales=scales)  # too few times for the sampler
+    repeated = field_offsets(field, xyz, few, chunk=3000)  # too few times for the sampler
     assert calls == [300 * len(few)]
     calls.clear()
     field.times_per_row = False  # as a stand-in field that takes one time per call
-    single = field_offsets(field, xyz, times, chunk=3000, scales=scales)
+    single = field_offsets(field, xyz, times, chunk=3000)
     assert calls == [300] * 40
     assert torch.allclose(batched, single, rtol=1e-5, atol=1e-6)
     assert torch.allclose(repeated, single[: len(few)], rtol=1e-5, atol=1e-6)
 
     spec = _spec(60, precision="int16", tolerance=1.0)
-    table = TimeTable.build(spec, field, xyz, scales=scales)
+    table = TimeTable.build(spec, field, xyz)
     field.times_per_row = True
-    twin = TimeTable.build(spec, field, xyz, scales=scales)
+    twin = TimeTable.build(spec, field, xyz)
     assert torch.allclose(table.anchors, twin.anchors, rtol=1e-5, atol=1e-6)
     for t in (0.03, 0.41, 0.77):
         assert torch.allclose(table.offsets_at(t), twin.offsets_at(t), atol=1e-5)

@@ -21,7 +21,7 @@ from torch import Tensor
 from garo_ns.deformation import DeformationField, ScaleOffset, log_scale_offset
 from garo_ns.render.backend import Backend, lean_front, rasterize
 from garo_ns.render.graphs import InputGraph, TimeGraph, graphs_available, versions
-from garo_ns.render.time_table import TableSpec, TimeTable, tf32_products
+from garo_ns.render.time_table import TableSpec, TimeTable, row_scales, scale_rows, tf32_products
 from garo_ns.render.view import RenderView
 
 
@@ -87,20 +87,24 @@ def activate(canonical: Canonical, deformed: Deformed) -> Splats:
     return Splats(means, quats, torch.exp(log_scales), torch.sigmoid(canonical.opacities).squeeze(-1), colors)
 
 
-def rows_splats(rows: Tensor, opacities: Tensor, colors: Tensor) -> Splats:
-    """The rasterizer's inputs from a tabled frame's rows [N, 10] (means, quaternions, log-scales) and the
-    opacities and colours made with its table."""
-    return Splats(rows[:, :3].contiguous(), rows[:, 3:7].contiguous(), torch.exp(rows[:, 7:]), opacities, colors)
+def rows_splats(rows: Tensor, opacities: Tensor, colors: Tensor, scale_offset: ScaleOffset = "log") -> Splats:
+    """The rasterizer's inputs from a tabled frame's rows [N, 10] (means, quaternions, scale rows as the table's
+    `scale_offset` holds them: garo_ns.render.time_table.scale_rows) and the opacities and colours made with its
+    table."""
+    scales = row_scales(rows[:, 7:], scale_offset)
+    return Splats(rows[:, :3].contiguous(), rows[:, 3:7].contiguous(), scales, opacities, colors)
 
 
 @torch.no_grad()
 def table_rows(canonical: Canonical, table: TimeTable) -> Optional[Tuple[Tensor, Optional[Tensor], Tensor, Tensor]]:
     """What `TimeTable.frame_rows` and a tabled frame read besides the table (None where the parameters are not
-    fp32: those frames take the reference path): the canonical means, normalised quaternions and log-scales plus
-    the table's base [N, 10], the network Gaussians' canonical rows, the opacities and the colours."""
+    fp32: those frames take the reference path): the canonical means, normalised quaternions and scale rows
+    (garo_ns.render.time_table.scale_rows) plus the table's base [N, 10], the network Gaussians' canonical rows,
+    the opacities and the colours."""
     if canonical.means.dtype != torch.float32:
         return None
-    rows = torch.cat([canonical.means, F.normalize(canonical.quats, dim=-1), canonical.log_scales], dim=-1).detach()
+    scales = scale_rows(canonical.log_scales, table.scale_offset)
+    rows = torch.cat([canonical.means, F.normalize(canonical.quats, dim=-1), scales], dim=-1).detach()
     network_rows = rows[table.network].clone() if table.network.numel() else None
     splats = activate(canonical, (canonical.means, canonical.quats, canonical.log_scales))
     return rows.add_(table.base), network_rows, splats.opacities.detach(), splats.colors.detach()
@@ -155,7 +159,7 @@ class FramePath:
                     rows, _, opacities, colors = self._table_rows
 
                     def step(t: Tensor) -> Splats:
-                        return rows_splats(tabled.rows_at(rows, t), opacities, colors)
+                        return rows_splats(tabled.rows_at(rows, t), opacities, colors, tabled.scale_offset)
 
                     # The network's graph and this one share a TimeGraph: one capture counter names the buffers
                     # the camera's projection graph reads (Splats.graph). The table's key changes with its tensors.
@@ -164,7 +168,7 @@ class FramePath:
                 else:
                     rows, network_rows, opacities, colors = self._table_rows
                     d = tabled.frame_rows(rows, network_rows, field, canonical.means.detach(), float(time))
-                    out = rows_splats(d, opacities, colors)
+                    out = rows_splats(d, opacities, colors, tabled.scale_offset)
                 self._deformed = (cache_key, out) if settings.cache_deformation else None
                 return out
         key = versions(list(canonical) + list(field.parameters()) + ([static_offset] if static is not None else []))
@@ -201,7 +205,7 @@ class FramePath:
                 make = TimeTable.preview if self.preview else TimeTable.build
                 with tf32_products(self.table_tf32):
                     built: Optional[TimeTable] = make(
-                        spec, field, canonical.means.detach(), scales=(canonical.log_scales.detach(), self.scale_offset)
+                        spec, field, canonical.means.detach(), scale_offset=self.scale_offset
                     )
                 self.table_info = {**built.info, "build_s": perf_counter() - start}  # type: ignore[union-attr]
                 # A preview renders halfway frames only (the reference path): no frame rows for it.

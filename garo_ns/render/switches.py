@@ -198,8 +198,9 @@ class RenderSettings:
     took 2.17x less time on an H200, its offsets within 6.3e-5 of fp32's where they reach 0.12
     (benchmarks/results/table_sampling_tf32_H200.json). No effect on a CPU."""
     time_table_tolerance: float = 0.03
-    """Largest interpolation error at keyframe midpoints (positions in scene extents; rotation and log-scale
-    offsets absolute) for a Gaussian to be tabled; those over it stay on the network."""
+    """Largest interpolation error at keyframe midpoints (positions in scene extents; rotation offsets absolute;
+    scales as log-scale offsets under `deform-scale-offset log`, in scene extents under `linear`) for a Gaussian to
+    be tabled; those over it stay on the network."""
     cache_deformation: bool = True
     """When not training, reuse the deformed Gaussians if the same time is rendered again and no
     parameter changed (the viewer re-renders one time for every camera move). Exact."""

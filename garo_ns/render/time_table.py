@@ -1,7 +1,7 @@
 """Time as a table: the deformation field's offsets sampled at keyframe times, interpolated at render time.
 
 A finished model's deformation MLP is a fixed function of (Gaussian, time). Outside training the table
-holds its offsets (position, rotation, log-scale) at `K` keyframes and a frame interpolates between the
+holds its offsets (position, rotation, scale) at `K` keyframes and a frame interpolates between the
 keyframes around its time, so the network leaves the frame: a few gathers and multiply-adds per Gaussian
 instead of an 8-layer MLP.
 
@@ -26,6 +26,12 @@ instead of an 8-layer MLP.
   on those few only (`network`).
 * **Order**: linear or cubic (Catmull-Rom), chosen at build time as the one that leaves fewer Gaussians on
   the network (linear on a tie: it reads half the keys).
+* **Scales** are held as the model composes them (garo_ns.deformation.log_scale_offset), so that what is
+  interpolated is the field's own smooth output: log-scale offsets under `log`; under `linear` the offsets of
+  the activated scale, which a frame adds to the scale itself (its rows hold scales, not log-scales). Made
+  log-scale offsets first, `linear`'s offsets bend wherever one nearly cancels a small Gaussian's scale
+  (log |s + d| falls to the floor and back between two keys): on 40k models 70 to 90% of the Gaussians stayed
+  on the network. A scale's error is then judged in scene units, as a position's is.
 
 The decision to render through the table is measured like the other approximate render switches
 (garo_ns.render.switches), with each measured view placed halfway between two keyframes of the table's
@@ -44,7 +50,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from garo_ns.deformation import as_log_offsets
+from garo_ns.deformation import SCALE_FLOOR, ScaleOffset, log_scale_offset
 
 Order = Literal["linear", "cubic"]
 ORDERS: Tuple[Order, ...] = ("linear", "cubic")
@@ -149,18 +155,10 @@ class Codec:
             self.scale = self.scale[rows].contiguous()
 
 
-Scales = Optional[Tuple[Tensor, str]]
-"""The Gaussians' log-scales [N, 3] and the model's scale offset (garo_ns.deformation.log_scale_offset), where
-the field's scale offsets are not log-scale offsets already (None: they are)."""
-
-
-def field_offsets(
-    field: Any, xyz: Tensor, times: Sequence[float], chunk: int = 1 << 18, scales: Scales = None
-) -> Tensor:
-    """The field's offsets [T, N, 10] at each time, for canonical positions `xyz` [N, 3] (no gradients), the scale
-    offsets as offsets of the log-scales (`scales`: the Gaussians' log-scales and the composition)."""
+def field_offsets(field: Any, xyz: Tensor, times: Sequence[float], chunk: int = 1 << 18) -> Tensor:
+    """The field's offsets [T, N, 10] at each time, for canonical positions `xyz` [N, 3] (no gradients)."""
     out = torch.empty(len(times), xyz.shape[0], CHANNELS, device=xyz.device)
-    for k, d in iter_field_offsets(field, xyz, times, chunk, scales):
+    for k, d in iter_field_offsets(field, xyz, times, chunk):
         out[k] = d
     return out
 
@@ -184,7 +182,7 @@ def tf32_products(enabled: bool) -> Iterator[None]:
 
 
 def iter_field_offsets(
-    field: Any, xyz: Tensor, times: Sequence[float], chunk: int = 1 << 18, scales: Scales = None
+    field: Any, xyz: Tensor, times: Sequence[float], chunk: int = 1 << 18
 ) -> Iterator[Tuple[int, Tensor]]:
     """(k, the field's offsets [N, 10] at times[k]) for each k in order, as `field_offsets` gives them, holding
     a few times' offsets at once rather than all of them. A field that takes one time per row
@@ -202,10 +200,7 @@ def iter_field_offsets(
             if len(group) == 1 and sample is None:
                 d = torch.empty(n, CHANNELS, device=xyz.device)
                 for s in range(0, n, chunk):
-                    part = torch.cat(field(xyz[s : s + chunk], group[0]), dim=-1).float()
-                    if scales is not None:
-                        part = as_log_offsets(part, scales[0][s : s + chunk], scales[1])  # type: ignore[arg-type]
-                    d[s : s + chunk] = part
+                    d[s : s + chunk] = torch.cat(field(xyz[s : s + chunk], group[0]), dim=-1).float()
                 yield k0, d
                 continue
             t = torch.tensor(group, dtype=xyz.dtype, device=xyz.device)
@@ -213,8 +208,6 @@ def iter_field_offsets(
                 d = torch.cat(sample(t), dim=-1).float()
             else:
                 d = torch.cat(field(xyz.repeat(len(group), 1), t.repeat_interleave(n)[:, None]), dim=-1).float()
-            if scales is not None:
-                d = as_log_offsets(d, scales[0].repeat(len(group), 1), scales[1])  # type: ignore[arg-type]
             for j, block in enumerate(d.view(len(group), n, CHANNELS)):
                 yield k0 + j, block
 
@@ -236,24 +229,38 @@ def midpoint_errors(
     base: Tensor,
     interp: Callable[[Order, int, float], Tensor],
     samples: int,
-    scales: Scales = None,
+    scale_offset: ScaleOffset = "log",
 ) -> Dict[str, Tensor]:
     """Per Gaussian, the largest error of each order's interpolation of the stored keys (`base` plus
     `interp(order, i, f)`, the stored residuals of every Gaussian interpolated) against the field at up to
     `samples` segment midpoints spread over the range, the worst place for an interpolant between two keys:
-    the larger of the position error divided by the scene extent and the rotation and log-scale errors."""
+    the larger of the position error divided by the scene extent, the rotation error and the scale error (of
+    the log-scales under `log`; under `linear`, of the scales, divided by the extent as a position's is)."""
     n_seg = spec.intervals + 1  # segments PAD-1 .. intervals+PAD-1 hold the range
     picks = torch.linspace(0, n_seg - 1, min(samples, n_seg)).round().long().unique().tolist()
     key_t = spec.key_times()
     err = {o: torch.zeros(xyz.shape[0], device=xyz.device) for o in ORDERS}
     halfway = [float(key_t[PAD - 1 + p]) + 0.5 * spec.spacing for p in picks]
-    for j, truth in iter_field_offsets(field, xyz, halfway, scales=scales):
+    per_unit = channel_units(spec, scale_offset, xyz.device)
+    for j, truth in iter_field_offsets(field, xyz, halfway):
         i = PAD - 1 + picks[j]
         truth = truth - base
         for o in ORDERS:
-            d = (interp(o, i, 0.5) - truth).abs()
-            err[o] = torch.maximum(err[o], torch.maximum(d[:, :3].amax(-1) / spec.extent, d[:, 3:].amax(-1)))
+            err[o] = torch.maximum(err[o], ((interp(o, i, 0.5) - truth).abs() * per_unit).amax(-1))
     return err
+
+
+def channel_units(spec: TableSpec, scale_offset: ScaleOffset, device: torch.device) -> Tensor:
+    """[10] what one unit of each stored channel counts for against the tolerance: positions in scene extents,
+    rotations as they are, scales in scene extents under `linear` (offsets of the scale) and as they are under
+    `log` (offsets of the log-scale)."""
+    if scale_offset not in ("log", "linear"):
+        raise ValueError(f"scale offset must be log or linear, got {scale_offset!r}")
+    units = torch.ones(CHANNELS, device=device)
+    units[:3] = 1.0 / spec.extent
+    if scale_offset == "linear":
+        units[7:] = 1.0 / spec.extent
+    return units
 
 
 def scratch_limit(device: torch.device) -> int:
@@ -303,7 +310,7 @@ class TimeTable:
         self.network = network  # [R] indices of the Gaussians rendered through the MLP
         self.info = info
         self._anchor_keys = spec.anchor_keys()
-        self.scales: Scales = None  # how the field's scale offsets became the table's (`build`)
+        self.scale_offset: ScaleOffset = "log"  # how the stored scale offsets compose (`build`)
         self._key_anchor: Optional[Tensor] = None  # made on the first `rows_at`
         self._anchor_at: Optional[Tensor] = None
         self._line = anchor_lines(anchors, self._anchor_keys)
@@ -316,13 +323,14 @@ class TimeTable:
         field: Any,
         xyz: Tensor,
         midpoint_samples: int = 64,
-        scales: Scales = None,
+        scale_offset: ScaleOffset = "log",
         scratch_bytes: Optional[int] = None,
     ) -> "TimeTable":
         """Sample `field` at the spec's keyframes for canonical positions `xyz`; choose the order by the
         midpoint check (the spec's order is the preference on a tie) and which Gaussians stay on the network.
-        The table holds log-scale offsets: `scales` converts the field's where they are not. `scratch_bytes`: the
-        most memory the build may hold every key's fine residuals in fp32 with (default `scratch_limit`)."""
+        The table holds the field's offsets as they come, its scale offsets composed as `scale_offset` says
+        (the model's). `scratch_bytes`: the most memory the build may hold every key's fine residuals in fp32
+        with (default `scratch_limit`)."""
         times = spec.key_times().tolist()
         n = xyz.shape[0]
         # Offsets from those at the middle of the range, anchors first; then one key at a time. fp32 and fp16 keys
@@ -330,9 +338,10 @@ class TimeTable:
         # encoded: where every key's fp32 residuals fit in `scratch_bytes` they are kept from that pass and encoded
         # after it (one pass of the field over the keys, the same numbers); else the field runs over the keys twice,
         # holding one key's residuals at a time. The field's passes are most of a build's time.
-        base = field_offsets(field, xyz, [0.5 * (spec.t_lo + spec.t_hi)], scales=scales)[0]
+        per_unit = channel_units(spec, scale_offset, xyz.device)  # also refuses an unknown composition early
+        base = field_offsets(field, xyz, [0.5 * (spec.t_lo + spec.t_hi)])[0]
         anchor_keys = spec.anchor_keys()
-        anchors = field_offsets(field, xyz, [times[k] for k in anchor_keys], scales=scales) - base
+        anchors = field_offsets(field, xyz, [times[k] for k in anchor_keys]) - base
         line = anchor_lines(anchors, anchor_keys)
 
         plain = Codec(spec.precision)  # fp32 and fp16 keys need no scale: they are encoded as they come
@@ -346,7 +355,7 @@ class TimeTable:
                 fine = None
         spread = torch.zeros(n, CHANNELS, device=xyz.device)  # largest fine residual
         motion = torch.zeros_like(spread)  # largest offset from the base
-        for k, d in iter_field_offsets(field, xyz, times, scales=scales):
+        for k, d in iter_field_offsets(field, xyz, times):
             r = d - base
             f = r - line(k)
             spread = torch.maximum(spread, f.abs())
@@ -361,15 +370,14 @@ class TimeTable:
                 residual[k] = codec.encode(fine[k])
             del fine
         elif plain.levels is not None:
-            for k, d in iter_field_offsets(field, xyz, times, scales=scales):
+            for k, d in iter_field_offsets(field, xyz, times):
                 residual[k] = codec.encode(d - base - line(k))
         whole = cls(spec, base, anchors, residual, torch.arange(xyz.shape[0], device=xyz.device), None, {}, codec)
-        err = midpoint_errors(spec, field, xyz, base, whole.interpolate_moving, midpoint_samples, scales)
+        err = midpoint_errors(spec, field, xyz, base, whole.interpolate_moving, midpoint_samples, scale_offset)
         spec, network, off = choose_order(spec, err)
         order = spec.order
         # A Gaussian whose offsets stay within a thousandth of the tolerance of the base keeps the base.
-        tol = spec.tolerance * 1e-3
-        moving = torch.nonzero((motion[:, :3].amax(-1) > tol * spec.extent) | (motion[:, 3:].amax(-1) > tol))
+        moving = torch.nonzero((motion * per_unit).amax(-1) > spec.tolerance * 1e-3)
         moving = moving.squeeze(-1)
         if moving.numel() != xyz.shape[0]:
             residual, anchors = residual[:, moving].contiguous(), anchors[:, moving].contiguous()
@@ -390,14 +398,19 @@ class TimeTable:
             },
         }
         table = cls(spec, base, anchors, residual, moving, network, info, codec)
-        table.scales = scales
+        table.scale_offset = scale_offset
         table.info["mb"] = table.nbytes() / 2**20
         return table
 
     @classmethod
     @torch.no_grad()
     def preview(
-        cls, spec: TableSpec, field: Any, xyz: Tensor, midpoint_samples: int = 64, scales: Scales = None
+        cls,
+        spec: TableSpec,
+        field: Any,
+        xyz: Tensor,
+        midpoint_samples: int = 64,
+        scale_offset: ScaleOffset = "log",
     ) -> "TimeTable":
         """What a table of `spec` renders halfway between two keys (`offsets_halfway`), without its keys: the order
         and the Gaussians left to the network chosen as `build` chooses them, from the keys around the sampled
@@ -406,24 +419,25 @@ class TimeTable:
         dense table takes thousands): the render switches preview a ladder of tables with it and build only a
         table whose preview comes within their margin (garo_ns.render.switches). It serves halfway frames only."""
         times = spec.key_times().tolist()
-        base = field_offsets(field, xyz, [0.5 * (spec.t_lo + spec.t_hi)], scales=scales)[0]
+        channel_units(spec, scale_offset, xyz.device)  # refuses an unknown composition before any field pass
+        base = field_offsets(field, xyz, [0.5 * (spec.t_lo + spec.t_hi)])[0]
         around: Dict[str, Any] = {"segment": None, "keys": None}
 
         def interp(order: Order, i: int, f: float) -> Tensor:
             # The four keys around segment i (what either order reads), sampled once for both orders.
             if around["segment"] != i:
-                around["keys"] = field_offsets(field, xyz, times[i - 1 : i + 3], scales=scales) - base
+                around["keys"] = field_offsets(field, xyz, times[i - 1 : i + 3]) - base
                 around["segment"] = i
             return interpolate(around["keys"], order, 1, f)
 
-        err = midpoint_errors(spec, field, xyz, base, interp, midpoint_samples, scales)
+        err = midpoint_errors(spec, field, xyz, base, interp, midpoint_samples, scale_offset)
         spec, network, off = choose_order(spec, err)
         n = xyz.shape[0]
         empty = torch.empty(0, n, CHANNELS, device=xyz.device)
         info = {"spec": spec.to_dict(), "keys": len(times), "gaussians": int(n), "network": int(network.numel())}
         info.update(preview=True, network_by_order=off)
         table = cls(spec, base, empty, empty, torch.arange(n, device=xyz.device), network, info, Codec("fp32"))
-        table.scales = scales
+        table.scale_offset = scale_offset
         return table
 
     @staticmethod
@@ -524,8 +538,8 @@ class TimeTable:
         return rows.clone().index_add_(0, self.moving, out)
 
     def frame_rows(self, rows: Tensor, network_rows: Optional[Tensor], field: Any, xyz: Tensor, time: float) -> Tensor:
-        """Every Gaussian's means, quaternions and log-scales [N, 10] at `time` for a frame: `rows` are the
-        canonical values plus the base ([N, 10]: means, normalised quaternions, log-scales; made once per table),
+        """Every Gaussian's means, quaternions and scale rows [N, 10] at `time` for a frame: `rows` are the
+        canonical values plus the base ([N, 10]: means, normalised quaternions, `scale_rows`; made once per table),
         `network_rows` the canonical values of the network's Gaussians. The same numbers as `deformed`, in
         a handful of kernels."""
         i, f = self.spec.segment(time)
@@ -540,11 +554,8 @@ class TimeTable:
         return out
 
     def network_offsets(self, field: Any, xyz: Tensor, time: float) -> Tensor:
-        """The MLP's own offsets [R, 10] of the Gaussians on the network (scale offsets as the table's)."""
-        d = torch.cat(field(xyz[self.network], float(time)), dim=-1).float()
-        if self.scales is not None:
-            d = as_log_offsets(d, self.scales[0][self.network], self.scales[1])  # type: ignore[arg-type]
-        return d
+        """The MLP's own offsets [R, 10] of the Gaussians on the network."""
+        return torch.cat(field(xyz[self.network], float(time)), dim=-1).float()
 
     def offsets_at(self, time: float) -> Tensor:
         """Every Gaussian's table offsets [N, 10] at `time` (the network's Gaussians included, as tabled)."""
@@ -567,7 +578,7 @@ class TimeTable:
         times = [time - 1.5 * h, time - 0.5 * h, time + 0.5 * h, time + 1.5 * h]
         out = self.base.clone()
         if self.moving.numel():
-            r = (field_offsets(field, xyz, times, scales=self.scales) - self.base)[:, self.moving]
+            r = (field_offsets(field, xyz, times) - self.base)[:, self.moving]
             probe = TimeTable(
                 TableSpec(**{**self.spec.to_dict(), "intervals": 4 - 2 * PAD, "anchor_every": 3}),
                 self.base,
@@ -591,7 +602,20 @@ class TimeTable:
             d.index_copy_(0, self.network, self.network_offsets(field, xyz, time))
         d = d.to(canonical.means.dtype)
         quats = F.normalize(canonical.quats, dim=-1)
-        return canonical.means + d[:, :3], quats + d[:, 3:7], canonical.log_scales + d[:, 7:]
+        log_scales = canonical.log_scales + log_scale_offset(canonical.log_scales, d[:, 7:], self.scale_offset)
+        return canonical.means + d[:, :3], quats + d[:, 3:7], log_scales
+
+
+def scale_rows(log_scales: Tensor, scale_offset: ScaleOffset) -> Tensor:
+    """What a tabled frame's rows hold of each Gaussian's scales [N, 3], so that adding the table's offsets composes
+    them as the model does: the log-scales under `log`, the scales themselves under `linear`."""
+    return log_scales if scale_offset == "log" else torch.exp(log_scales)
+
+
+def row_scales(rows: Tensor, scale_offset: ScaleOffset) -> Tensor:
+    """The rasterizer's scales from a frame's scale rows [N, 3] (`scale_rows` plus offsets): exp of log-scales, or
+    the scales by magnitude, floored as garo_ns.deformation.log_scale_offset floors them."""
+    return torch.exp(rows) if scale_offset == "log" else rows.abs().clamp_min(SCALE_FLOOR)
 
 
 def table_bytes(intervals: int, gaussians: int, precision: str, anchor_every: int = 16) -> int:
