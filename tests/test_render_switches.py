@@ -1,6 +1,7 @@
 """Default render switches: fast for a finished model, plain while training, flags override."""
 
 import math
+from dataclasses import dataclass
 
 import pytest
 import torch
@@ -321,6 +322,25 @@ def test_a_recorded_table_from_before_the_anchors_is_not_used_and_says_why():
     config, cpu = RenderSettings(), torch.device("cpu")
     assert not decision.settings(config, False, cpu).time_table
     assert "table layout before anchors" in decision.line(config, False, cpu)
+
+
+def test_a_linear_models_table_measured_before_tables_held_its_own_scale_offsets_is_not_used_and_says_why():
+    """Such a table held the offsets made log-scale offsets and left most Gaussians to the network: a load builds
+    another table now. A table recorded with its composition, or a `log` model's, is used."""
+
+    @dataclass
+    class LinearSettings(RenderSettings):
+        deform_scale_offset: str = "linear"
+
+    decision = SwitchDecision(lambda: 99)
+    decision.record = _record(99)
+    cpu = torch.device("cpu")
+    assert decision.settings(RenderSettings(), False, cpu).time_table  # `log`: the table it measured
+    assert not decision.settings(LinearSettings(), False, cpu).time_table
+    assert "linear scale offsets as log-scale offsets" in decision.line(LinearSettings(), False, cpu)
+    decision.record = _record(99)
+    decision.record[TABLE]["info"]["scale_offset"] = "linear"  # written by a build that holds them as they are
+    assert decision.settings(LinearSettings(), False, cpu).time_table
 
 
 class LadderModel:

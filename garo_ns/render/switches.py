@@ -319,6 +319,11 @@ class SwitchDecision:
         info = table.get("info") or {}
         if table.get("spec") and "anchor_every" not in table["spec"]:
             return "it was measured with the table layout before anchors (whole int16 residuals); re-measure it"
+        linear = getattr(config, "deform_scale_offset", "log") == "linear"
+        if table.get("spec") and linear and "scale_offset" not in info:
+            # Such a table interpolated this model's scale offsets made log-scale offsets, with most Gaussians on
+            # the network: what was measured is not the table a load builds now (garo_ns.render.time_table).
+            return "it was measured when tables held linear scale offsets as log-scale offsets; re-measure it"
         if info.get("mb", 0.0) > config.time_table_budget_mb:
             return f"its {info['mb']:.0f} MB exceed time_table_budget_mb {config.time_table_budget_mb:g}"
         return None
@@ -333,6 +338,7 @@ class SwitchDecision:
             torch.device(device).type,
             config.rasterizer,
             config.time_table_budget_mb,
+            getattr(config, "deform_scale_offset", "log"),  # `_table_refusal` reads it
             self._step() if self._step else None,
         )
         if self._cache is not None and self._cache[0] == key and self._cache[1] is self.record:

@@ -390,6 +390,7 @@ class TimeTable:
             "gaussians": int(xyz.shape[0]),
             "moving": int(moving.numel()),
             "network": int(network.numel()),
+            "scale_offset": scale_offset,
             "network_by_order": off,
             "midpoint_error_max": {o: float(err[o].max()) if err[o].numel() else 0.0 for o in ORDERS},
             # How the chosen order's errors spread over the Gaussians: what a tolerance would leave to the network.
@@ -435,7 +436,7 @@ class TimeTable:
         n = xyz.shape[0]
         empty = torch.empty(0, n, CHANNELS, device=xyz.device)
         info = {"spec": spec.to_dict(), "keys": len(times), "gaussians": int(n), "network": int(network.numel())}
-        info.update(preview=True, network_by_order=off)
+        info.update(preview=True, network_by_order=off, scale_offset=scale_offset)
         table = cls(spec, base, empty, empty, torch.arange(n, device=xyz.device), network, info, Codec("fp32"))
         table.scale_offset = scale_offset
         return table
