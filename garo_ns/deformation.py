@@ -33,10 +33,20 @@ def log_scale_offset(log_scales: Tensor, d_scale: Tensor, mode: ScaleOffset) -> 
     at SCALE_FLOOR."""
     if mode == "log":
         return d_scale
-    if mode != "linear":
+    check_scale_offset(mode)
+    return torch.log(linear_scales(torch.exp(log_scales) + d_scale)) - log_scales
+
+
+def linear_scales(scales: Tensor) -> Tensor:
+    """Activated scales with their `linear` offsets added, as the rasterizer takes them: by magnitude and floored
+    at SCALE_FLOOR (see `log_scale_offset`)."""
+    return scales.abs().clamp_min(SCALE_FLOOR)
+
+
+def check_scale_offset(mode: str) -> None:
+    """Raise ValueError unless `mode` is one of SCALE_OFFSETS."""
+    if mode not in SCALE_OFFSETS:
         raise ValueError(f"scale offset must be one of {SCALE_OFFSETS}, got {mode!r}")
-    scales = torch.exp(log_scales) + d_scale
-    return torch.log(scales.abs().clamp_min(SCALE_FLOOR)) - log_scales
 
 
 def as_log_offsets(offsets: Tensor, log_scales: Optional[Tensor], mode: ScaleOffset) -> Tensor:
