@@ -3,8 +3,8 @@
 nerfstudio imports plugin entry points before it parses arguments or loads a checkpoint, so
 importing `garo_ns.config` is early enough for all of them: checkpoints that load under torch >= 2.6,
 one-line input errors, a bad dataset or checkpoint reported before ns-train prints and saves its
-configuration (no run folder left behind, nor after a failed set-up), and crash-safe checkpoint writing
-and loading (`garo_ns.checkpoints`).
+configuration (no run folder left behind, nor after a failed set-up), a run folder of each run's own (`claim_run_dir`),
+and crash-safe checkpoint writing and loading (`garo_ns.checkpoints`).
 """
 
 from __future__ import annotations
@@ -13,12 +13,12 @@ import shutil
 import sys
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Optional, Type
+from typing import Any, Dict, Optional, Type
 
 import numpy as np
 import torch
 
-from garo_ns.errors import GaroError
+from garo_ns.errors import GaroError, GaroInputError
 
 _installed = False
 
@@ -92,6 +92,44 @@ def _remove_empty_run_dir(base_dir: Path, output_dir: Path) -> None:
             break
 
 
+_claimed: Dict[int, Path] = {}  # id of a config -> the run folder it claimed (a config saved twice stays in it)
+
+
+def claim_run_dir(config: Any) -> Path:
+    """Create `config`'s run folder for this run alone and return it.
+
+    nerfstudio names a run folder by a timestamp of one-second resolution and writes into it whether or not
+    another run already did: two runs started in the same second (a sweep in a shell loop) or given the same
+    `--timestamp` would share it, the second's config.yml over the first's and each run's checkpoint clean-up
+    deleting the other's checkpoints. Here the folder is made with an exclusive `mkdir`; where it exists, the run
+    takes the timestamp with `-2`, `-3`, ... appended (said in one line) and writes nothing into the existing one.
+    """
+    base = Path(config.get_base_dir())
+    if _claimed.get(id(config)) == base.resolve():
+        return base
+    stem = str(config.timestamp)
+    for attempt in range(1, 10_000):
+        if attempt > 1:
+            config.timestamp = f"{stem}-{attempt}"
+            base = Path(config.get_base_dir())
+        try:
+            base.parent.mkdir(parents=True, exist_ok=True)
+            base.mkdir()
+        except FileExistsError:
+            if base.is_dir():
+                continue  # another run's folder (or one from earlier): never written into
+            raise GaroInputError(f"{base} is a file, not a folder: choose another --output-dir") from None
+        except NotADirectoryError:
+            raise GaroInputError(
+                f"cannot create the run folder {base}: a part of its path is a file (--output-dir {config.output_dir})"
+            ) from None
+        if attempt > 1:
+            print(f"{base.parent / stem} belongs to another run: this run writes to {base}", file=sys.stderr)
+        _claimed[id(config)] = base.resolve()
+        return base
+    raise GaroInputError(f"{base.parent}: no free run folder for timestamp {stem}")
+
+
 def _patch_trainer_entry() -> bool:
     """Fail on a bad dataset before ns-train prints and saves its configuration, and clean up after a
     bad dataset found later (during Trainer.setup). Needs nerfstudio's trainer module fully imported."""
@@ -109,6 +147,13 @@ def _patch_trainer_entry() -> bool:
         original_print(self)
 
     ExperimentConfig.print_to_terminal = print_to_terminal
+    original_save = ExperimentConfig.save_config
+
+    def save_config(self: Any) -> None:
+        claim_run_dir(self)  # before the first file of the run is written
+        original_save(self)
+
+    ExperimentConfig.save_config = save_config
     trainer_cls = trainer_module.Trainer
     original_setup = trainer_cls.setup
 
