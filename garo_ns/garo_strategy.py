@@ -70,6 +70,9 @@ class GaroStrategy(DefaultStrategy):
         reset_at_start: also reset opacities at step 0. gsplat resets whenever
             step % reset_every == 0, step 0 included; 3DGS and D-3DGS first reset at reset_every,
             so by default (False) the initial opacities train untouched until then.
+        max_gaussians: the most Gaussians densification may grow to (None: no limit). Where a refinement's
+            candidates would pass it, only those of the highest gradients grow, as many as fit (`grow_budget`);
+            `state["budget_held"]` counts the candidates held back at the last refinement.
     """
 
     mode: Literal["off", "oaa", "gca", "full"] = "full"
@@ -84,6 +87,7 @@ class GaroStrategy(DefaultStrategy):
     activity_window: Literal["training", "garo_step"] = "garo_step"
     compaction: Optional[Compaction] = None
     reset_at_start: bool = False
+    max_gaussians: Optional[int] = None
 
     def initialize_state(self, scene_scale: float = 1.0) -> Dict[str, Any]:
         """gsplat's state plus the keys this strategy owns. Per-Gaussian rows (None until first
@@ -94,7 +98,7 @@ class GaroStrategy(DefaultStrategy):
         state = super().initialize_state(scene_scale)
         if self.mode != "off":
             state.update({"garo_grad": None, "garo_count": None, "garo_last": {}})
-        state.update({"static": None, "static_offset": None, "static_step": -1})
+        state.update({"static": None, "static_offset": None, "static_step": -1, "budget_held": 0})
         if self.compaction is not None:
             state[COMPACT_SUMMARY] = self.compaction.initial_state()
         return state
@@ -141,6 +145,21 @@ class GaroStrategy(DefaultStrategy):
             self._update_state(params, state, info, packed=packed)
             return
         super().step_post_backward(params, optimizers, state, step, info, packed)
+
+    def _grow_gs(
+        self, params: Params, optimizers: Dict[str, torch.optim.Optimizer], state: Dict[str, Any], step: int
+    ) -> Tuple[int, int]:
+        """gsplat's growth (clone small, split large Gaussians of high gradient), within `max_gaussians`."""
+        if self.max_gaussians is not None:
+            keep, held = grow_budget(
+                state["grad2d"] / state["count"].clamp_min(1),
+                self.grow_grad2d,
+                self.max_gaussians - len(params["means"]),
+            )
+            state["budget_held"] = held
+            if held:  # the record is cleared after this refinement anyway
+                state["grad2d"] = torch.where(keep, state["grad2d"], torch.zeros_like(state["grad2d"]))
+        return super()._grow_gs(params, optimizers, state, step)
 
     def gradient_norms(self, params: Params, info: Dict[str, Any], packed: bool = False) -> Tuple[Tensor, Tensor]:
         """This iteration's NDC view-space gradient norm of each Gaussian, summed over the cameras
@@ -364,6 +383,20 @@ def garo_scalars(state: Dict[str, Any], step: int) -> Dict[str, float]:
 
 # The rasterizer's info entries with one value per Gaussian and camera: [C, N, ...] unpacked, [nnz, ...] packed.
 _PER_VIEW_KEYS = ("radii", "depths", "conics", "opacities", "compensations")
+
+
+def grow_budget(grads: Tensor, threshold: float, room: int) -> Tuple[Tensor, int]:
+    """Which Gaussians may grow ([N] bool) when at most `room` may (each clone or split adds one), and how many of
+    those above `threshold` are held back: all of them when they fit, else the `room` of the highest gradients."""
+    high = grads > threshold
+    n_high = int(high.sum())
+    room = max(int(room), 0)
+    if n_high <= room:
+        return high, 0
+    keep = torch.zeros_like(high)
+    if room > 0:
+        keep[torch.topk(torch.where(high, grads, torch.full_like(grads, -1.0)), room).indices] = True
+    return keep, n_high - room
 
 
 def restrict_info(info: Dict[str, Any], keep: Tensor, packed: Optional[bool] = None) -> Dict[str, Any]:

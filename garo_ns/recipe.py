@@ -89,6 +89,10 @@ class D3dgsRecipe(SplatfactoModelConfig):
     time instead of 0.84 (benchmarks/results/train_profile_short_*_H100.json); the backward was unchanged."""
     scene_extent: Optional[float] = None
     """Scene extent for densification thresholds; None takes the dataparser's camera extent."""
+    max_gaussians: Optional[int] = None
+    """The most Gaussians densification may grow to (None: no limit): where a refinement would pass it, only the
+    candidates of the highest view-space gradients grow. It bounds training memory; GARO and the other pruning still
+    remove below it."""
 
     def validate_recipe(self) -> None:
         """Raise GaroConfigError for a recipe setting the renderer cannot honour: `use_absgrad` (the
@@ -97,6 +101,12 @@ class D3dgsRecipe(SplatfactoModelConfig):
             raise GaroConfigError(
                 "--pipeline.model.use-absgrad True is not supported: the renderer computes the plain view-space "
                 "gradient only (D-3DGS's densification signal)"
+            )
+        if self.max_gaussians is not None and (
+            isinstance(self.max_gaussians, bool) or not isinstance(self.max_gaussians, int) or self.max_gaussians < 1
+        ):
+            raise GaroConfigError(
+                f"--pipeline.model.max-gaussians must be None or an int >= 1, got {self.max_gaussians!r}"
             )
 
     def densification_arguments(self) -> Dict[str, Any]:
@@ -117,6 +127,7 @@ class D3dgsRecipe(SplatfactoModelConfig):
             absgrad=self.use_absgrad,
             revised_opacity=False,
             verbose=False,
+            max_gaussians=self.max_gaussians,
         )
 
     def extent_for(self, metadata: Mapping[str, Any]) -> float:

@@ -551,3 +551,51 @@ def test_a_packed_render_keeps_gsplats_packed_record_through_the_step():
     want = {"grad2d": None, "count": None, "radii": None}
     DefaultStrategy(refine_scale2d_stop_iter=0)._update_state(params, want, _packed_info(n), packed=True)
     assert torch.equal(state["grad2d"], want["grad2d"]) and torch.equal(state["count"], want["count"])
+
+
+def test_grow_budget_keeps_the_highest_gradients_that_fit():
+    from garo_ns.garo_strategy import grow_budget
+
+    grads = torch.tensor([5.0, 1.0, 9.0, 0.1, 7.0, 3.0])
+    keep, held = grow_budget(grads, 2.0, 10)  # all four above 2 fit
+    assert keep.tolist() == [True, False, True, False, True, True] and held == 0
+    keep, held = grow_budget(grads, 2.0, 2)
+    assert keep.tolist() == [False, False, True, False, True, False] and held == 2
+    keep, held = grow_budget(grads, 2.0, 0)
+    assert not keep.any() and held == 4
+    keep, held = grow_budget(grads, 2.0, -5)  # already past the budget (pruned below it later)
+    assert not keep.any() and held == 4
+
+
+@pytest.mark.parametrize("budget", [None, 1040, 1000, 900])
+def test_densification_never_grows_past_max_gaussians(budget):
+    points, quats, scales = plane_and_sphere()
+    params, optimizers = make_params(points, quats, scales)
+    strategy = GaroStrategy(
+        mode="off", refine_start_iter=0, refine_every=5, reset_every=10**6, prune_opa=0.0, max_gaussians=budget
+    )
+    state = strategy.initialize_state()
+    for step in range(1, 6):
+        n = len(params["means"])
+        info = fake_info(n)
+        info["means2d"].grad = torch.linspace(1e-5, 1e-3, n).reshape(1, n, 1).expand(1, n, 2).contiguous()
+        strategy.step_post_backward(params, optimizers, state, step, info)
+    n = len(params["means"])
+    grown = n - 1000
+    if budget is None:
+        assert grown > 100 and state["budget_held"] == 0
+    else:
+        assert n == max(budget, 1000) and all(len(p) == n for p in params.values())
+        assert state["budget_held"] > 0
+    for opt in optimizers.values():
+        assert opt.state[opt.param_groups[0]["params"][0]]["exp_avg"].shape[0] == n
+
+
+def test_max_gaussians_reaches_the_strategy_and_is_checked():
+    from garo_ns.errors import GaroConfigError
+    from garo_ns.garo_model import GaroModelConfig
+
+    assert GaroModelConfig(max_gaussians=1234).make_strategy().max_gaussians == 1234
+    for bad in (0, -1, 2.5, True):
+        with pytest.raises(GaroConfigError, match="max-gaussians"):
+            GaroModelConfig(max_gaussians=bad)

@@ -162,7 +162,8 @@ class BenchArgs:
     """Train the baseline and GARO (and ablations) on one scene and report speed against error."""
 
     scene: Path
-    """D-NeRF-layout scene directory."""
+    """A D-NeRF scene, or a real capture (a video processed by ns-process-data, a NeRF-DS / HyperNeRF capture): a
+    capture trains each variant's `-real` method and scores its held-out frames."""
     split: Literal["train", "val", "test"] = "test"
     """Split to score (lego: val)."""
     output: Path = Path("benchmarks/results/benchmark.json")
@@ -181,8 +182,9 @@ class BenchArgs:
     the end of training does; for arms trained, or imported, from before a switch existed)."""
     profile: bool = True
     """Add a per-stage breakdown of one frame (garo_ns.bench.frame_profile) to every variant."""
-    iterations: int = FULL_ITERATIONS
-    """Training steps of every variant; fewer than 40k is labelled shortened in the JSON."""
+    iterations: Optional[int] = None
+    """Training steps of every variant (None: the full schedule, 40k; a real capture's 20k); fewer than the full
+    schedule is labelled shortened in the JSON."""
     gpus: List[int] = field(default_factory=lambda: [0])
     """GPUs for the training processes (variants are assigned round-robin)."""
     device: Literal["cuda", "cpu"] = "cuda"
@@ -215,6 +217,22 @@ class BenchArgs:
             names = [m for n in names for m in [n] + [split_variant(n)[0] + row for row in SPEED_ROWS]]
         return list(dict.fromkeys(names))
 
+    def real(self) -> bool:
+        """Whether the scene is a real capture (trained with the `-real` methods)."""
+        from garo_ns.tools.eval import is_dnerf_scene
+
+        return not is_dnerf_scene(self.scene)
+
+    def full_schedule(self) -> int:
+        """The methods' own number of steps on this scene."""
+        from garo_ns.config import REAL_ITERATIONS
+
+        return REAL_ITERATIONS if self.real() else FULL_ITERATIONS
+
+    def steps(self) -> int:
+        """The steps every variant trains."""
+        return self.full_schedule() if self.iterations is None else self.iterations
+
     def trained_variants(self) -> List[str]:
         """The variants that need a training of their own."""
         return list(dict.fromkeys(split_variant(n)[0] for n in self.all_variants()))
@@ -233,19 +251,21 @@ def train_variant(args: BenchArgs, name: str, deadline: Optional[float]) -> Dict
     from garo_ns.tools.train import QuickSchedule, make_config, seed_everything
 
     method, overrides = variant_settings(name)
+    if args.real():
+        method += "-real"
     config = make_config(
         method,  # type: ignore[arg-type]
         args.scene,
         args.work_dir,
         device=args.device,
-        schedule=QuickSchedule(steps=args.iterations) if args.quick else None,
+        schedule=QuickSchedule(steps=args.steps()) if args.quick else None,
         alpha_color=args.background,
         eval_split="val" if args.split == "val" else "test",
         experiment_name=name,
     )
     config.timestamp = "bench"
-    config.max_num_iterations = args.iterations
-    config.steps_per_save = min(2000, args.iterations)
+    config.max_num_iterations = args.steps()
+    config.steps_per_save = min(2000, args.steps())
     for key, value in overrides.items():
         setattr(config.pipeline.model, key, value)
     config.logging.local_writer.enable = True  # progress lines in the worker's log
@@ -302,13 +322,14 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
     from garo_ns.bench.frame_profile import profile_frame
     from garo_ns.bench.timing import measure_fps, measure_same_time, model_size_mb
     from garo_ns.compaction.report import summary_for_json
-    from garo_ns.data.dnerf import read_split
-    from garo_ns.tools.eval import evaluate, load_run, load_split
+    from garo_ns.tools.eval import evaluate, load_run, split_views
+    from garo_ns.tools.eval import train_times as scene_train_times
 
     _, pipeline, _, step = load_run(Path(record["config"]))
     model = pipeline.model
-    cameras, _ = load_split(args.scene, args.split, model.background_color)
-    train_times = torch.unique(torch.as_tensor(read_split(args.scene, "train")[2], dtype=torch.float32))
+    cameras, _ = split_views(pipeline, args.scene, args.split)
+    all_train_times = scene_train_times(pipeline, args.scene)
+    train_times = all_train_times
     if len(train_times) > model.config.static_times:  # as training samples them
         train_times = train_times[torch.linspace(0, len(train_times) - 1, model.config.static_times).round().long()]
     trained_threshold = model.config.static_threshold
@@ -317,7 +338,7 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
     if args.remeasure_switches:
         from garo_ns.compaction.guard import TrainingViewGuard
 
-        model.train_times = torch.unique(torch.as_tensor(read_split(args.scene, "train")[2], dtype=torch.float32))
+        model.train_times = all_train_times
         guard = TrainingViewGuard.from_datamanager(pipeline.datamanager, model.config.switch_views)
         print(model.switches.measure_on_training_views(model, guard, int(step)), flush=True)
         print(model.switches.line(model.config, False, model.device), flush=True)
@@ -372,7 +393,7 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
             "train_seconds": record["train_seconds"],
             "train_steps_per_second": record["train_steps_per_second"],
             "iterations": record["iterations"],
-            "shortened": record["iterations"] < FULL_ITERATIONS,
+            "shortened": record["iterations"] < args.full_schedule(),
             "stopped_by_deadline": record["stopped_by_deadline"],
             "deformation_collapsed": record.get("deformation_collapsed"),
             "garo_mode": model.config.garo_mode,
@@ -406,7 +427,7 @@ def paired_timing(args: BenchArgs, records: Dict[str, Dict[str, Any]], names: Li
     """Every trained variant loaded at once and its plain render (fp32, no switches) timed in alternating
     passes over the split's views (garo_ns.bench.timing.paired_fps)."""
     from garo_ns.bench.timing import frame_pass, paired_fps
-    from garo_ns.tools.eval import load_run, load_split
+    from garo_ns.tools.eval import load_run, split_views
 
     frames, device = {}, None
     for name in names:
@@ -417,7 +438,7 @@ def paired_timing(args: BenchArgs, records: Dict[str, Dict[str, Any]], names: Li
         for key, value in settings.items():
             setattr(model.config, key, value)
         model.eval()
-        cameras, _ = load_split(args.scene, args.split, model.background_color)
+        cameras, _ = split_views(pipeline, args.scene, args.split)
         frames[name] = frame_pass(model, cameras)
         device = model.device
     timings = paired_fps(frames, device, passes=args.paired_passes)
@@ -578,8 +599,8 @@ def run(args: BenchArgs) -> Dict[str, Any]:
         record = transfer.import_run(export, args.work_dir, args.scene)
         if record["variant"] not in names:
             raise ValueError(f"{export} holds {record['variant']!r}, which this run does not evaluate ({names})")
-        if record["iterations"] != args.iterations:
-            raise ValueError(f"{export} trained {record['iterations']} steps, this run {args.iterations}")
+        if record["iterations"] != args.steps():
+            raise ValueError(f"{export} trained {record['iterations']} steps, this run {args.steps()}")
         imported[record["variant"]] = record
     procs = []
     for i, name in enumerate(n for n in names if n not in imported):
@@ -622,7 +643,7 @@ def run(args: BenchArgs) -> Dict[str, Any]:
         "scene": args.scene.name,
         "split": args.split,
         "background": args.background,
-        "iterations_full_schedule": FULL_ITERATIONS,
+        "iterations_full_schedule": args.full_schedule(),
         "fps_protocol": "mean over views of synchronised (deformation MLP + rasterization) time, "
         f"{args.warmup_views} warm-up views dropped, {args.timing_repeats} passes, full resolution, "
         "camera matrices prepared on the device before timing",

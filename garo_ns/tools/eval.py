@@ -1,10 +1,14 @@
-"""`garo-eval`: score a trained run on any split of its D-NeRF scene and write JSON.
+"""`garo-eval`: score a trained run on any split of its scene and write JSON.
 
 `ns-eval` always scores the `test` split; D-3DGS scores lego on `val`. This command renders the
-chosen split itself (cameras and times from the transforms file, images composited on the
-model's background) and writes PSNR, SSIM, LPIPS (null without offline weights), the number of
+chosen split itself and writes PSNR, SSIM, LPIPS (null without offline weights), the number of
 Gaussians, the split, the render switches used (and what each approximate one was measured to change
 against the plain render), and for a `garo-compact` run what its compaction decided.
+
+A D-NeRF scene's split comes from its transforms file (cameras and times, images composited on the model's
+background). A real capture (a video processed by ns-process-data, a NeRF-DS / HyperNeRF capture) has training
+frames and held-out frames: `val` and `test` both score the held-out ones, `train` the training ones, read
+through the run's own dataparser and undistorted as training saw them.
 """
 
 from __future__ import annotations
@@ -94,12 +98,47 @@ def load_split(data: Path, split: str, background: torch.Tensor) -> Tuple[Camera
     return cameras, images
 
 
+def is_dnerf_scene(data: Path) -> bool:
+    """Whether `data` is a D-NeRF scene (transforms_train.json), not a real capture."""
+    return (Path(data) / "transforms_train.json").is_file()
+
+
+def capture_views(pipeline: Any, split: str) -> Tuple[Cameras, List[torch.Tensor]]:
+    """A real capture's cameras and images [H, W, 3] in [0, 1] of `split` (`train`, or the held-out frames for
+    `val` / `test`), from the run's datamanager: its images undistorted as training read them, its cameras with
+    the matching intrinsics."""
+    dm = pipeline.datamanager
+    dataset, cache = (dm.train_dataset, dm.cached_train) if split == "train" else (dm.eval_dataset, dm.cached_eval)
+    images = []
+    for item in cache:  # read first: undistorting sets the cameras' intrinsics
+        image = item["image"].cpu()
+        image = image.float() / 255.0 if image.dtype == torch.uint8 else image.float()
+        images.append(image[..., :3])
+    return dataset.cameras, images
+
+
+def split_views(pipeline: Any, data: Path, split: str) -> Tuple[Cameras, List[torch.Tensor]]:
+    """Cameras and ground-truth images of `split`: a D-NeRF scene's from its transforms file (`load_split`), a
+    real capture's from the run's datamanager (`capture_views`)."""
+    if is_dnerf_scene(data):
+        return load_split(data, split, pipeline.model.background_color)
+    return capture_views(pipeline, split)
+
+
+def train_times(pipeline: Any, data: Path) -> torch.Tensor:
+    """The distinct times of the training frames, ascending."""
+    if is_dnerf_scene(data):
+        return torch.unique(torch.as_tensor(read_split(data, "train")[2], dtype=torch.float32))
+    times = pipeline.datamanager.train_dataset.cameras.times
+    return torch.unique(times.reshape(-1).float().cpu())
+
+
 @torch.no_grad()
 def evaluate(pipeline: Any, data: Path, split: str) -> Dict[str, Any]:
     """Render every frame of `split` and average PSNR, SSIM and (if available, and the images take it) LPIPS."""
     model = pipeline.model
     model.eval()
-    cameras, images = load_split(data, split, model.background_color)
+    cameras, images = split_views(pipeline, data, split)
     lpips = make_lpips()
     psnrs, ssims, lpipss = [], [], []
     for i, gt in enumerate(images):
