@@ -26,7 +26,9 @@ from garo_ns import compat
 compat.install()
 
 
-def train_arm(scene: Path, method: str, steps: int, overrides: Dict[str, Any], work: Path, device: str) -> Dict[str, Any]:
+def train_arm(
+    scene: Path, method: str, steps: int, overrides: Dict[str, Any], work: Path, device: str
+) -> Dict[str, Any]:
     """Train one arm and return its refinement rows."""
     from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
@@ -79,7 +81,9 @@ def train_arm(scene: Path, method: str, steps: int, overrides: Dict[str, Any], w
                         "gaussians": model.num_points,
                         "candidates": int(high.sum()),
                         "candidates_large": int((high & (size > strategy.grow_scale3d)).sum()),
-                        "candidate_distance_q10_50_90": [float(v) for v in torch.quantile(sample, q)] if len(sample) else [],
+                        "candidate_distance_q10_50_90": [float(v) for v in torch.quantile(sample, q)]
+                        if len(sample)
+                        else [],
                         "all_distance_q10_50_90": [float(v) for v in torch.quantile(far[:1_000_000].float(), q)],
                         "beyond_size_cull": int((size > strategy.prune_scale3d).sum()),
                         "visible_at_all": int((state["count"] > 0).sum()),
@@ -131,7 +135,9 @@ def main() -> None:
     result = {**environment(args.device), "scene": args.scene.name, "method": args.method, "steps": args.steps}
     result["arms"] = {}
     for name in names:
-        result["arms"][name] = train_arm(args.scene, args.method, args.steps, arms[name], args.work_dir / name, args.device)
+        result["arms"][name] = train_arm(
+            args.scene, args.method, args.steps, arms[name], args.work_dir / name, args.device
+        )
         args.output.parent.mkdir(parents=True, exist_ok=True)
         args.output.write_text(json.dumps(result, indent=1))
 
