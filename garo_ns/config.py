@@ -82,9 +82,16 @@ def optimizers(max_steps: int = ITERATIONS, spatial: float = SPATIAL_LR_SCALE) -
     }
 
 
+def default_device() -> str:
+    """The device a run trains on unless `--machine.device-type` says otherwise: the GPU where CUDA works, else the
+    CPU (the reference rasterizer), so that the README's commands run as printed on a machine without a GPU."""
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
 def trainer_config(method_name: str, garo_mode: str) -> TrainerConfig:
-    """A full training config of the deformable model with GARO in `garo_mode`."""
-    return TrainerConfig(
+    """A full training config of the deformable model with GARO in `garo_mode`. The viewer listens on this machine
+    alone (127.0.0.1; `--viewer.websocket-host 0.0.0.0` to serve others), where nerfstudio listens on every address."""
+    config = TrainerConfig(
         method_name=method_name,
         steps_per_eval_image=500,
         steps_per_eval_batch=0,
@@ -101,9 +108,11 @@ def trainer_config(method_name: str, garo_mode: str) -> TrainerConfig:
             model=GaroModelConfig(garo_mode=garo_mode),  # type: ignore[arg-type]
         ),
         optimizers=optimizers(),
-        viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
+        viewer=ViewerConfig(num_rays_per_chunk=1 << 15, websocket_host="127.0.0.1"),
         vis="viewer",
     )
+    config.machine.device_type = default_device()  # type: ignore[assignment]
+    return config
 
 
 def with_fast_field(config: TrainerConfig) -> TrainerConfig:

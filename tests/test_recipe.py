@@ -8,7 +8,7 @@ import pytest
 import torch
 from nerfstudio.data.scene_box import SceneBox
 
-from garo_ns.config import deform_splatfacto, deform_splatfacto_real, garo_deform
+from garo_ns.config import METHODS, deform_splatfacto, deform_splatfacto_real, garo_deform
 from garo_ns.deformation import DeformationField
 from garo_ns.garo_model import GaroModelConfig
 
@@ -119,3 +119,10 @@ def test_a_checkpoint_from_before_the_time_network_still_loads_and_renders_the_s
     new2.load_state_dict(with_net)
     assert new2.deformation.time_net is not None
     assert torch.equal(new2.deformation(xyz, 0.7)[0], again.deformation(xyz, 0.7)[0])
+
+
+@pytest.mark.parametrize("method", sorted(METHODS))
+def test_every_method_trains_where_the_machine_can_and_serves_the_viewer_on_loopback(method):
+    config = METHODS[method].config
+    assert config.machine.device_type == ("cuda" if torch.cuda.is_available() else "cpu")
+    assert config.viewer.websocket_host == "127.0.0.1"
