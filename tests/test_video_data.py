@@ -230,3 +230,19 @@ def test_pose_check_prints_the_counts_and_draws_the_path(tmp_path, capsys):
     (root / "transforms.json").unlink()
     assert main([str(root), str(tmp_path / "bad.png")]) == 1
     assert "COLMAP posed none of the 12 frames" in capsys.readouterr().err
+
+
+def test_pose_check_never_writes_over_a_file(tmp_path, capsys):
+    from garo_ns.tools.poses import main
+
+    root = make_folder(tmp_path / "v", n=12, downscales=1)
+    frame = next((root / "images").iterdir())
+    before = frame.read_bytes()
+    assert main([str(root), str(frame)]) == 1  # a capture's own image
+    assert frame.read_bytes() == before and "exists" in capsys.readouterr().err
+    assert main([str(root)]) == 0  # the default goes beside the capture, not into the working folder
+    assert (root / "camera_path.png").is_file() and not Path("camera_path.png").exists()
+    drawn = (root / "camera_path.png").read_bytes()
+    assert main([str(root)]) == 1  # and is not replaced by a second check
+    assert (root / "camera_path.png").read_bytes() == drawn
+    assert not [p for p in root.iterdir() if "partial" in p.name]

@@ -28,6 +28,7 @@ from garo_ns.config import METHODS as METHOD_SPECS
 from garo_ns.data.dnerf import read_split, split_cameras
 from garo_ns.errors import GaroInputError
 from garo_ns.metrics import lpips_fits, make_lpips
+from garo_ns.tools.files import check_new_file, written_atomically
 
 compat.install()
 
@@ -180,6 +181,7 @@ class EvalArgs:
 
 def run(args: EvalArgs) -> Dict[str, Any]:
     """Evaluate and write JSON; returns the result."""
+    check_new_file(args.output_path, "--output-path", overwrite=True)  # before the whole evaluation runs
     config, pipeline, ckpt, step = load_run(args.load_config)
     result = evaluate(pipeline, args.data or scene_dir(config), args.split)
     result.update({"method": config.method_name, "step": int(step), "checkpoint": str(ckpt)})
@@ -188,7 +190,8 @@ def run(args: EvalArgs) -> Dict[str, Any]:
     # What compaction decided during training (None for a run without it).
     result["compaction"] = summary_for_json(pipeline.model.strategy_state.get("compact"))
     args.output_path.parent.mkdir(parents=True, exist_ok=True)
-    args.output_path.write_text(json.dumps(result, indent=2))
+    with written_atomically(args.output_path) as partial:
+        partial.write_text(json.dumps(result, indent=2))
     return result
 
 

@@ -2,7 +2,8 @@
 
 Reads the folder as the `-real` methods will (garo_ns.data.nerfds), prints how many frames COLMAP posed and how
 they split into training and held-out frames, and writes a picture of the camera path (`camera_path.png` in the
-current folder unless told otherwise): seen from above and from the side, coloured by time, held-out frames ringed.
+capture's folder unless told otherwise; an existing file is never replaced): seen from above and from the side,
+coloured by time, held-out frames ringed.
 A good capture's path is one smooth curve in time order; jumps, a path folding back on itself or two separate
 pieces mean COLMAP went wrong there, and training on it will not fix that.
 """
@@ -17,6 +18,7 @@ import numpy as np
 
 from garo_ns import compat
 from garo_ns.errors import GaroError
+from garo_ns.tools.files import check_new_file, written_atomically
 
 compat.install()
 
@@ -50,7 +52,8 @@ def plot_camera_path(capture: Any, path: Path) -> Path:
         ax.grid(alpha=0.3)
     fig.colorbar(dots, ax=list(axes), label="time")
     fig.suptitle(f"camera path: {path_summary(capture)} (red rings)", fontsize=9)
-    fig.savefig(path, dpi=100)
+    with written_atomically(path) as partial:
+        fig.savefig(partial, dpi=100, format="png")
     plt.close(fig)
     return path
 
@@ -64,8 +67,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         print("usage: python -m garo_ns.tools.poses DATA [OUTPUT.png]", file=sys.stderr)
         return 2
     data = Path(args[0])
-    output = Path(args[1]) if len(args) == 2 else Path("camera_path.png")
+    output = Path(args[1]) if len(args) == 2 else data / "camera_path.png"
     try:
+        check_new_file(output, "OUTPUT")
         capture = load_capture(data, NerfDSDataParserConfig(data=data))
     except GaroError as err:
         print(f"error: {err}", file=sys.stderr)
