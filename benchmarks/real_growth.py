@@ -1,14 +1,15 @@
 """Where densification grows on a real capture: one row per refinement, for arms that differ by model settings.
 
-    python benchmarks/real_growth.py --scene CAPTURE --steps 8000 --output benchmarks/results/real_growth_<GPU>.json \
-        --arms '{"recipe": {}, "budget": {"max_gaussians": 300000}}'
+    python benchmarks/real_growth.py --scene CAPTURE --steps 8000 --arm budget --set max_gaussians=300000 \
+        --output runs/real_growth/pillow_budget.json
+    python benchmarks/real_growth.py --merge runs/real_growth/*.json --output benchmarks/results/real_growth_<GPU>.json
 
-Each arm trains `--method` on the capture in this process, one after another (or one arm per process with `--arm`,
-results merged by `--merge`). At every refinement, before it grows, a row records: the number of Gaussians; how many
-have a mean view-space gradient above the threshold (the candidates) and how many of those are large (split, not
-cloned); where the candidates lie, as quantiles of their distance from the cameras' centre in camera extents (far
-background or the object); the Gaussians larger than the size cull; the training PSNR over the last interval; step
-time and GPU memory. A run that fails (out of memory) keeps its rows and records the error.
+Each call trains one arm (`--method` with the model settings of `--set`) on the capture; `--merge` gathers arms'
+files into one, keyed by scene and arm. At every refinement, before it grows, a row records: the number of
+Gaussians; how many have a mean view-space gradient above the threshold (the candidates) and how many of those
+are large (split, not cloned); where the candidates lie, as quantiles of their distance from the cameras' centre
+in camera extents (far background or the object); the Gaussians larger than the size cull; the training PSNR over
+the last interval; step time and GPU memory. A run that fails (out of memory) keeps its rows and records the error.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import argparse
 import json
 import time
 from pathlib import Path
-from typing import Any, Dict, List
+from typing import Any, Dict, List, Tuple
 
 import torch
 
@@ -27,9 +28,9 @@ compat.install()
 
 
 def train_arm(
-    scene: Path, method: str, steps: int, overrides: Dict[str, Any], work: Path, device: str
+    scene: Path, method: str, steps: int, overrides: Dict[str, Any], work: Path, device: str, save: Any = None
 ) -> Dict[str, Any]:
-    """Train one arm and return its refinement rows."""
+    """Train one arm and return its refinement rows (`save(result)` after each, so a killed run keeps them)."""
     from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
     from garo_ns.tools.train import make_config, seed_everything
@@ -95,17 +96,19 @@ def train_arm(
                 )
                 psnrs.clear()
                 print(json.dumps(rows[-1]), flush=True)
+                if save is not None:
+                    save(result)
         original(step)
         if refine:
             clock.update(t=time.perf_counter(), step=step)
 
+    result: Dict[str, Any] = {"overrides": overrides, "scene_extent": model.scene_extent, "rows": rows}
     model.after_iteration = after
     model.get_loss_dict = loss_dict
     for callback in trainer.callbacks:
         if getattr(callback, "func", None) == original:
             callback.func = after
     trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], lambda step: None))
-    result: Dict[str, Any] = {"overrides": overrides, "scene_extent": model.scene_extent, "rows": rows}
     try:
         trainer.train()
         result["finished"] = True
@@ -116,30 +119,49 @@ def train_arm(
     return result
 
 
+def setting(text: str) -> Tuple[str, Any]:
+    """`key=value` with the value read as JSON where it parses (numbers, true, null), else as a string."""
+    key, _, value = text.partition("=")
+    try:
+        return key, json.loads(value)
+    except json.JSONDecodeError:
+        return key, value
+
+
 def main() -> None:
     """Command line (module docstring)."""
     from garo_ns.bench.benchmark import environment
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--scene", type=Path, required=True)
+    parser.add_argument("--scene", type=Path)
     parser.add_argument("--method", default="deform-splatfacto-real")
     parser.add_argument("--steps", type=int, default=8000)
-    parser.add_argument("--arms", default='{"recipe": {}}', help="JSON: arm name -> model settings")
-    parser.add_argument("--arm", default=None, help="train only this arm of --arms")
+    parser.add_argument("--arm", default="recipe")
+    parser.add_argument("--set", nargs="*", default=[], help="model settings of the arm: key=value ...")
     parser.add_argument("--work-dir", type=Path, default=Path("runs/real_growth"))
     parser.add_argument("--device", default="cuda")
+    parser.add_argument("--merge", nargs="*", type=Path, help="arms' files to gather into --output")
     parser.add_argument("--output", type=Path, required=True)
     args = parser.parse_args()
-    arms = json.loads(args.arms)
-    names = [args.arm] if args.arm else list(arms)
-    result = {**environment(args.device), "scene": args.scene.name, "method": args.method, "steps": args.steps}
-    result["arms"] = {}
-    for name in names:
-        result["arms"][name] = train_arm(
-            args.scene, args.method, args.steps, arms[name], args.work_dir / name, args.device
-        )
-        args.output.parent.mkdir(parents=True, exist_ok=True)
-        args.output.write_text(json.dumps(result, indent=1))
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    if args.merge:
+        merged: Dict[str, Any] = {"arms": {}}
+        for path in args.merge:
+            one = json.loads(path.read_text())
+            merged.update({k: v for k, v in one.items() if k != "arm" and k != "result"})
+            merged["arms"][f"{one['scene']}/{one['arm']}"] = {"method": one["method"], **one["result"]}
+        merged.pop("scene", None)
+        merged.pop("method", None)
+        args.output.write_text(json.dumps(merged, indent=1))
+        return
+    overrides = dict(setting(s) for s in args.set)
+    head = {**environment(args.device), "scene": args.scene.name, "method": args.method, "steps": args.steps}
+    head["arm"] = args.arm
+
+    def save(result: Dict[str, Any]) -> None:
+        args.output.write_text(json.dumps({**head, "result": result}, indent=1))
+
+    save(train_arm(args.scene, args.method, args.steps, overrides, args.work_dir / args.arm, args.device, save))
 
 
 if __name__ == "__main__":

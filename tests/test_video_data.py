@@ -246,3 +246,13 @@ def test_pose_check_never_writes_over_a_file(tmp_path, capsys):
     assert main([str(root)]) == 1  # and is not replaced by a second check
     assert (root / "camera_path.png").read_bytes() == drawn
     assert not [p for p in root.iterdir() if "partial" in p.name]
+
+
+@pytest.mark.parametrize("n", [5, 8, 13, 149, 150])
+def test_held_out_frames_lie_between_training_frames_in_time(tmp_path, n):
+    root = make_folder(tmp_path / "v", n=n, downscales=1)
+    capture = load_capture(root, _config(root, eval_every=4 if n < 10 else 8))
+    train = [capture.times[i] for i in capture.splits["train"]]
+    held = [capture.times[i] for i in capture.splits["val"]]
+    assert held and min(train) < min(held) and max(held) < max(train)
+    assert sorted(capture.times[i] for i in capture.ids) == [capture.times[i] for i in capture.ids]  # video order

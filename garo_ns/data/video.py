@@ -269,7 +269,10 @@ def read_video_capture(
         slot[cid] = position[i]
     assert size is not None
     ids.sort(key=lambda cid: time_of[cid])
-    held_out = [cid for cid in ids if slot[cid] % eval_every == eval_every // 2]
+    # Every eval_every-th frame of the capture order is held out, never the first or last posed one: a held-out
+    # frame's time then lies between training times (the field is asked to interpolate, not extrapolate).
+    ends = {ids[0], ids[-1]}
+    held_out = [cid for cid in ids if slot[cid] % eval_every == eval_every // 2 and cid not in ends]
     train = [cid for cid in ids if cid not in set(held_out)]
     if not held_out or len(train) < 2:
         raise GaroInputError(
