@@ -42,9 +42,18 @@ def allow_numpy_scalars_in_checkpoints() -> None:
     add(safe)
 
 
+OUT_OF_MEMORY = (
+    "out of GPU memory; the run's last complete checkpoint is kept (resume with --load-dir). Fewer Gaussians need "
+    "less: lower --pipeline.model.max-gaussians, or train at a smaller image size"
+)
+
+
 def _excepthook(kind: Type[BaseException], err: BaseException, tb: Optional[TracebackType]) -> None:
     if isinstance(err, GaroError):
         print(f"error: {err}", file=sys.stderr)
+        return
+    if isinstance(err, torch.OutOfMemoryError):  # one line: the traceback tells a user nothing they can act on
+        print(f"error: {OUT_OF_MEMORY} ({str(err).splitlines()[0][:160]})", file=sys.stderr)
         return
     _previous_hook(kind, err, tb)
 

@@ -43,6 +43,9 @@ compat.install()
 
 ITERATIONS = 40_000
 REAL_ITERATIONS = 20_000
+# The -real recipes' Gaussian budget (`max_gaussians`): on phone videos densification without one grew past 0.9M
+# Gaussians by step 8k and ran out of an 80 GB GPU's memory (benchmarks/results/real_growth_*.json).
+REAL_MAX_GAUSSIANS = 500_000
 SPATIAL_LR_SCALE = 5.0  # D-3DGS's fixed `spatial_lr_scale` (gaussian_model.py, deform_model.py)
 
 
@@ -164,7 +167,8 @@ def real_trainer_config(method_name: str, garo_mode: str) -> TrainerConfig:
     """The real-capture recipe (a NeRF-DS / HyperNeRF capture or an ns-process-data folder): D-3DGS's settings
     for real scenes and GARO's 20k-step NeRF-DS schedule. Time is encoded with 10 frequencies, the MLP's time input is
     perturbed early in training (D-3DGS's annealed time noise), and the Gaussians start from the
-    capture's points.npy (random in the unit cube when it has none)."""
+    capture's points.npy (random in the unit cube when it has none). Densification grows to at most
+    `REAL_MAX_GAUSSIANS`."""
     config = trainer_config(method_name, garo_mode)
     config.max_num_iterations = REAL_ITERATIONS
     config.optimizers = optimizers(max_steps=REAL_ITERATIONS)
@@ -177,6 +181,7 @@ def real_trainer_config(method_name: str, garo_mode: str) -> TrainerConfig:
     model.time_noise_steps = REAL_ITERATIONS
     model.random_init = False  # points.npy when present; random otherwise
     model.random_scale = 2.0
+    model.max_gaussians = REAL_MAX_GAUSSIANS
     return config
 
 

@@ -110,3 +110,15 @@ def test_any_error_during_setup_leaves_no_empty_run_folder(small_scene, tmp_path
     with pytest.raises(RuntimeError, match="no memory left"):
         trainer.setup()
     assert out.is_dir() and not any(out.iterdir())
+
+
+def test_running_out_of_gpu_memory_is_one_line_that_says_what_to_change():
+    code = (
+        "import garo_ns.config, torch\n"
+        "raise torch.OutOfMemoryError('CUDA out of memory. Tried to allocate 2.00 GiB\\nmore detail')\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    lines = [line for line in proc.stderr.splitlines() if line.strip() and "Warning" not in line and "warn" not in line]
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr
+    assert lines[-1].startswith("error: out of GPU memory") and "max-gaussians" in lines[-1]
+    assert "Tried to allocate 2.00 GiB" in lines[-1]
