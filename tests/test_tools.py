@@ -283,3 +283,40 @@ def test_truncated_checkpoint_is_one_line_and_left_alone(garo_run, tmp_path):
     assert len([line for line in out.stderr.splitlines() if "cannot load" in line]) == 1
     assert (target / ckpt.name).read_bytes() == before and not (tmp_path / "e.json").exists()
     assert ckpt.read_bytes() == data  # the original is untouched
+
+
+def _config_with_scene(garo_run, tmp_path, datamanager_data, dataparser_data) -> Path:
+    """The run's config.yml as `ns-train --data` writes it (the scene on the datamanager), saved elsewhere."""
+    import yaml
+
+    config = copy.deepcopy(garo_run["config"])
+    config.pipeline.datamanager.data = datamanager_data
+    config.pipeline.datamanager.dataparser.data = dataparser_data
+    path = tmp_path / "cfg" / "config.yml"
+    path.parent.mkdir(parents=True)
+    path.write_text(yaml.dump(config))
+    return path
+
+
+def test_camera_path_reads_the_scene_the_run_was_trained_with(garo_run, tmp_path, monkeypatch):
+    from garo_ns.tools import camera_path
+
+    scene = garo_run["config"].pipeline.datamanager.dataparser.data
+    cfg = _config_with_scene(garo_run, tmp_path, Path(scene), Path("data/dnerf/lego"))
+    monkeypatch.chdir(tmp_path)  # where no data/dnerf/lego exists
+    monkeypatch.setattr(sys, "argv", ["garo-camera-path", "--load-config", str(cfg), "--output", "p.json"])
+    camera_path.main()
+    first = json.loads((tmp_path / "p.json").read_text())["camera_path"][0]
+    assert first["render_time"] == 0.0 and len(first["camera_to_world"]) == 16
+
+
+def test_eval_data_replaces_a_scene_that_moved(garo_run, tmp_path):
+    from garo_ns.tools.eval import EvalArgs, run
+
+    scene = Path(garo_run["config"].pipeline.datamanager.dataparser.data)
+    gone = tmp_path / "moved-away"
+    cfg = _config_with_scene(garo_run, tmp_path, gone, gone)
+    result = run(EvalArgs(load_config=cfg, split="test", output_path=tmp_path / "eval.json", data=scene))
+    assert result["psnr"] == pytest.approx(garo_run["eval"]["psnr"], abs=1e-3)
+    with pytest.raises(GaroInputError, match="not a folder"):
+        run(EvalArgs(load_config=cfg, split="test", output_path=tmp_path / "e2.json", data=gone))

@@ -22,6 +22,8 @@ import numpy as np
 
 from garo_ns import compat
 from garo_ns.errors import GaroInputError
+from garo_ns.tools.eval import scene_dir
+from garo_ns.tools.files import check_new_file, written_atomically
 
 compat.install()
 
@@ -104,8 +106,12 @@ def main() -> None:
     args = tyro.cli(CameraPathArgs)
     if not args.load_config.is_file():
         raise GaroInputError(f"run config not found: {args.load_config}")
+    check_new_file(args.output, "--output", overwrite=True)
     config = yaml.load(args.load_config.read_text(), Loader=yaml.Loader)
-    outputs = config.pipeline.datamanager.dataparser.setup().get_dataparser_outputs("train")
+    # The scene the run trained on: ns-train's --data lands on the datamanager, not on the dataparser.
+    dataparser = config.pipeline.datamanager.dataparser
+    dataparser.data = scene_dir(config)
+    outputs = dataparser.setup().get_dataparser_outputs("train")
     cams = outputs.cameras
     if not 0 <= args.camera_index < len(cams):
         raise GaroInputError(f"camera_index must be in 0..{len(cams) - 1}, got {args.camera_index}")
@@ -125,7 +131,8 @@ def main() -> None:
         args.end_time,
     )
     args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(path, indent=1))
+    with written_atomically(args.output) as partial:
+        partial.write_text(json.dumps(path, indent=1))
     print(f"wrote {args.output}: {args.frames} frames, time {args.start_time} -> {args.end_time}")
 
 

@@ -45,8 +45,9 @@ def register_methods() -> None:
         descriptions.setdefault(name, spec.description)
 
 
-def load_run(config_path: Path) -> Tuple[Any, Any, Path, int]:
-    """Load a trained garo_ns run: (config, pipeline, checkpoint path, step).
+def load_run(config_path: Path, data: Optional[Path] = None) -> Tuple[Any, Any, Path, int]:
+    """Load a trained garo_ns run: (config, pipeline, checkpoint path, step); `data` replaces the scene folder the
+    run was trained on (a scene that moved since).
 
     Raises GaroInputError for a missing config, a run of another method, or an unreadable
     (e.g. truncated) checkpoint. Nothing on disk is modified.
@@ -65,8 +66,16 @@ def load_run(config_path: Path) -> Tuple[Any, Any, Path, int]:
     if method not in METHODS:
         raise GaroInputError(f"{config_path} is a run of '{method}', not of {' or '.join(METHODS)}")
     register_methods()
+
+    def moved(loaded: Any) -> Any:
+        loaded.pipeline.datamanager.data = Path(data)
+        loaded.pipeline.datamanager.dataparser.data = Path(data)
+        return loaded
+
+    if data is not None and not Path(data).is_dir():
+        raise GaroInputError(f"--data {data} is not a folder")
     try:
-        return eval_setup(config_path, test_mode="inference")
+        return eval_setup(config_path, test_mode="inference", update_config_callback=moved if data else None)
     except (RuntimeError, EOFError, OSError, KeyError, AssertionError) as err:
         if isinstance(err, AssertionError) and "does not exist" not in str(err):
             raise
@@ -182,8 +191,8 @@ class EvalArgs:
 def run(args: EvalArgs) -> Dict[str, Any]:
     """Evaluate and write JSON; returns the result."""
     check_new_file(args.output_path, "--output-path", overwrite=True)  # before the whole evaluation runs
-    config, pipeline, ckpt, step = load_run(args.load_config)
-    result = evaluate(pipeline, args.data or scene_dir(config), args.split)
+    config, pipeline, ckpt, step = load_run(args.load_config, args.data)
+    result = evaluate(pipeline, scene_dir(config), args.split)
     result.update({"method": config.method_name, "step": int(step), "checkpoint": str(ckpt)})
     # The switches these scores were rendered with, and their measured change against the plain render.
     result["render_switches"] = pipeline.model.render_switch_summary()
