@@ -95,6 +95,9 @@ def retime_ratios(results: Path, row: Dict[str, Any]) -> List[float]:
     for path in sorted(results.glob(f"{row['scene']}40k_retime_*.json")):
         for run in json.loads(path.read_text()).get("runs", []):
             v = run["variants"]
+            # Only a re-timing of these very checkpoints: the one the row's run made, at its commit.
+            if run.get("git_commit") != row["commit"]:
+                continue
             if BASELINE in v and row["garo_name"] in v:
                 ratios.append(v[row["garo_name"]]["fps"] / v[BASELINE]["fps"])
     return ratios
@@ -240,6 +243,13 @@ WHAT_IT_PRUNES = {
 }
 
 
+def _commits(value: Any) -> List[str]:
+    """A row's commit or commits (a pooled row names each run's)."""
+    if isinstance(value, str):
+        return [value]
+    return [c for c in value or [] if isinstance(c, str)]
+
+
 def ablation_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     """The paper's Table 3 (one scene: each criterion alone against both), from garo_ns.bench.ablation's files."""
     paths = sorted(p for p in results.glob("paper_table3_*.json") if ABLATION_FILE.fullmatch(p.name))
@@ -251,10 +261,13 @@ def ablation_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
         data = json.loads(path.read_text())
         arms = [arm for name in data["variants"] for arm in (data["rows"][name][name], data["rows"][name][BASELINE])]
         steps = sorted({f"{a['iterations']:,}" if a.get("iterations") else "mixed" for a in arms})
+        commits = sorted({c[:7] for name in data["variants"] for c in _commits(data["rows"][name].get("git_commit"))})
         out += [
             "",
             f"{data['scene']} ({data['split']}), {' / '.join(steps)} steps, {data['gpu']}; each variant against the "
-            f"baseline trained in its own run ({_link(path, readme_dir)}):",
+            f"baseline trained in its own run ({_link(path, readme_dir)}), at commit{'s' if len(commits) > 1 else ''} "
+            f"{', '.join(commits) or '?'}: "
+            "the recipe of those commits, older than the tables above ([docs/recipe.md](docs/recipe.md)):",
             "",
             "| variant | prunes by | runs | PSNR change | LPIPS base / variant | speed-up | Gaussians of base |",
             "|---|---|---|---|---|---|---|",
