@@ -538,8 +538,60 @@ def compaction_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     return "\n".join(out + [""])
 
 
+REAL_FILE = re.compile(r"real_(?P<gpu>[^_]+)\.json")
+REAL_CAPTURES = ("pillow", "teddy", "cat-pikachu-7", "nerfies-cake")
+"""The real captures of ../shared/data/real that the real-capture block is meant to cover."""
+REAL_ARMS = ("deform-splatfacto", "garo-deform", "garo-compact")
+
+
+def real_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
+    """The `-real` methods on real captures' held-out frames, from `real_<GPU>.json` (garo_ns.bench.summary over
+    one benchmark file per capture, each capture's arms trained in one run) and, for training time and memory,
+    the per-capture files it names."""
+    paths = sorted(p for p in results.glob("real_*.json") if REAL_FILE.fullmatch(p.name))
+    if not paths:
+        return "\nNo real capture has been measured yet.\n"
+    out: List[str] = []
+    for path in paths:
+        data = json.loads(path.read_text())
+        out += [
+            "",
+            f"Held-out frames of real captures, the `-real` methods (20k steps), {', '.join(data['gpus'])} "
+            f"({_link(path, readme_dir)}); FPS of the plain render, and of the switches the model picks (`+auto`):",
+            "",
+            "| capture | method | PSNR | SSIM | LPIPS | FPS / `+auto` | Gaussians | train min | train peak GB |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
+        for row in data["rows"]:
+            source = json.loads((results / row["source"]).read_text())["variants"]
+            for arm in REAL_ARMS:
+                v, auto, trained = row[arm], row[f"{arm}+auto"], source[arm]
+                out.append(
+                    f"| {row['scene']} | `{arm}-real` | {v['psnr']:.2f} | {v['ssim']:.3f} | {_lpips(v.get('lpips'))} "
+                    f"| {v['fps']:.0f} / {auto['fps']:.0f} | {v['num_gaussians']:,} "
+                    f"| {trained['train_seconds'] / 60:.1f} | {trained['peak_memory_mb']['training'] / 1024:.1f} |"
+                )
+        claim = data["paper_claim"]
+        fast = claim["garo-compact+auto"]
+        avg = data["average"]["garo-compact+auto"]
+        out += [
+            "",
+            f"`garo-compact-real+auto` against the baseline: {avg['fps_ratio']:.2f}x FPS at a PSNR change of "
+            f"{-avg['psnr_drop_db']:+.2f} dB on average ({len(fast['scenes_meeting'])} of {len(data['rows'])} captures "
+            f"within the paper's {claim['fps_ratio_min']:.0f}x at <= {claim['psnr_drop_max_db']} dB loss); "
+            f"`garo-deform-real`: {data['average']['garo-deform']['fps_ratio']:.2f}x at "
+            f"{-data['average']['garo-deform']['psnr_drop_db']:+.2f} dB. "
+            "The arms of a capture trained side by side on one GPU, so training minutes are not a one-GPU time.",
+        ]
+        missing = [c for c in REAL_CAPTURES if c not in {r["scene"] for r in data["rows"]}]
+        if missing:
+            out += ["", f"Not measured yet: {', '.join(missing)}."]
+    return "\n".join(out + [""])
+
+
 BLOCKS = {
     "results": render_block,
+    "real": real_block,
     "ablation": ablation_block,
     "compaction": compaction_block,
     "demo": demo_block,
