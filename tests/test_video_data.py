@@ -256,3 +256,27 @@ def test_held_out_frames_lie_between_training_frames_in_time(tmp_path, n):
     held = [capture.times[i] for i in capture.splits["val"]]
     assert held and min(train) < min(held) and max(held) < max(train)
     assert sorted(capture.times[i] for i in capture.ids) == [capture.times[i] for i in capture.ids]  # video order
+
+
+def test_the_flags_the_errors_name_are_flags_ns_train_takes(tmp_path):
+    import re
+
+    import tyro
+    from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
+
+    from garo_ns.errors import GaroInputError
+
+    root = make_folder(tmp_path / "v", n=6, downscales=0)  # images/ only, no images_2/
+    with pytest.raises(GaroInputError) as missing:
+        load_capture(root, NerfDSDataParserConfig(data=root))
+    with pytest.raises(GaroInputError) as short:
+        load_capture(root, NerfDSDataParserConfig(data=root, downscale_factor=1, eval_every=40))
+    hints = [re.search(r"`?(nerfds-data --[a-z-]+(?: \d+)?)", str(e.value)).group(1) for e in (missing, short)]
+    assert hints[0] == "nerfds-data --downscale-factor 1"
+    parsed = tyro.cli(AnnotatedBaseConfigUnion, args=["garo-deform-real", "--data", str(root), *hints[0].split()])
+    parser = parsed.pipeline.datamanager.dataparser
+    assert parser.downscale_factor == 1
+    assert load_capture(root, parser.__class__(data=root, downscale_factor=1)).size == (H, W)
+    flag = hints[1].split()[1]
+    parsed = tyro.cli(AnnotatedBaseConfigUnion, args=["garo-deform-real", "nerfds-data", flag, "3"])
+    assert parsed.pipeline.datamanager.dataparser.eval_every == 3

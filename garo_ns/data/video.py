@@ -145,7 +145,7 @@ def read_video_capture(
     from garo_ns.data.nerfds import Capture
 
     if not isinstance(eval_every, int) or isinstance(eval_every, bool) or eval_every < 2:
-        raise GaroInputError(f"--pipeline.datamanager.dataparser.eval-every must be an int >= 2, got {eval_every!r}")
+        raise GaroInputError(f"nerfds-data --eval-every must be an int >= 2, got {eval_every!r}")
     data = Path(data)
     path = data / "transforms.json"
     images_dir = data / "images"
@@ -222,7 +222,7 @@ def read_video_capture(
     if len(usable) < min_posed_fraction * total or len(usable) < 3:
         raise GaroInputError(
             f"{data}: COLMAP posed only {len(usable)} of the {total} frames (fewer than "
-            f"{min_posed_fraction:.0%}; --pipeline.datamanager.dataparser.min-posed-fraction): {_FILM_AGAIN}"
+            f"{min_posed_fraction:.0%}; nerfds-data --min-posed-fraction): {_FILM_AGAIN}"
         )
 
     # Cameras: nerfstudio's orientation and centring, then the farthest camera at distance 1.
@@ -244,7 +244,7 @@ def read_video_capture(
         image = data / name if downscale == 1 else data / f"{name.parts[0]}_{downscale}" / name.name
         if not image.is_file():
             hint = (
-                "pass --pipeline.datamanager.dataparser.downscale-factor 1 to read the full-size images"
+                "end the ns-train command with `nerfds-data --downscale-factor 1` to read the full-size images"
                 if downscale > 1
                 else "re-run ns-process-data"
             )
@@ -277,7 +277,7 @@ def read_video_capture(
     if not held_out or len(train) < 2:
         raise GaroInputError(
             f"{data}: {len(ids)} posed frames leave {len(train)} to train on and {len(held_out)} to evaluate "
-            f"(every {eval_every}th held out): film a longer video, or set --pipeline.datamanager.dataparser.eval-every"
+            f"(every {eval_every}th held out): film a longer video, or set nerfds-data --eval-every"
         )
 
     points, colors = None, None
