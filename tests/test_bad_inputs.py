@@ -201,6 +201,22 @@ def unlink(path: Path) -> None:
     path.unlink()
 
 
+def as_mode(path: Path, mode: str) -> None:
+    """Re-save an image in PIL's pixel `mode` (P: a palette PNG, as PNG compressors write; LA: grey+alpha)."""
+    from PIL import Image
+
+    with Image.open(path) as im:
+        converted = im.convert("RGBA").convert(mode) if mode != "P" else im.convert("RGB").quantize(16)
+    converted.save(path)
+
+
+def as_fifo(path: Path) -> None:
+    import os
+
+    path.unlink()
+    os.mkfifo(path)
+
+
 def wrong_size_image(d: Path) -> None:
     other = generate_scene(d.parent / "bigger", SceneSpec(resolution=20, n_train=1, n_val=1, n_test=1))
     shutil.copy(other / "train" / "r_000.png", d / "train" / "r_001.png")
@@ -368,6 +384,21 @@ CASES: List[Tuple[str, str, Build]] = [
             lambda d: (d / "train" / "r_000.png").write_text("not a picture"),
             lambda d: [str(d / "train" / "r_000.png")],
         ),
+    ),
+    (
+        "D-NeRF",
+        "image a palette PNG",
+        dnerf_case(lambda d: as_mode(d / "train" / "r_001.png", "P"), lambda d: [str(d / "train" / "r_001.png")]),
+    ),
+    (
+        "D-NeRF",
+        "image grey+alpha",
+        dnerf_case(lambda d: as_mode(d / "train" / "r_001.png", "LA"), lambda d: [str(d / "train" / "r_001.png")]),
+    ),
+    (
+        "D-NeRF",
+        "image a FIFO",
+        dnerf_case(lambda d: as_fifo(d / "train" / "r_001.png"), lambda d: [str(d / "train" / "r_001.png")]),
     ),
     (
         "D-NeRF",

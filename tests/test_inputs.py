@@ -9,6 +9,7 @@ import subprocess
 import sys
 
 import pytest
+import torch
 
 from garo_ns.data.dnerf import GaroDNeRFDataParserConfig
 from garo_ns.errors import GaroInputError, GaroTrainingError
@@ -186,3 +187,24 @@ def test_nerfstudio_dnerf_parser_background_extent_and_ns_eval(small_scene, tmp_
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "psnr" in _json.loads(out.read_text())["results"]
+
+
+def test_garo_eval_reads_a_16_bit_png_on_its_own_scale_and_refuses_what_training_would_misread(tmp_path):
+    import numpy as np
+    from PIL import Image
+
+    from garo_ns.tools.eval import load_split
+
+    scene = generate_scene(tmp_path / "s", SceneSpec(resolution=16, n_train=2, n_val=1, n_test=1))
+    path = scene / "test" / "r_000.png"
+    rgba = np.asarray(Image.open(path).convert("RGBA"))
+    grey = rgba[..., :3].mean(-1).astype(np.uint16) * 257  # a grey 16-bit PNG: 65535 is white
+    Image.fromarray(grey).save(path)
+    _, images = load_split(scene, "test", torch.zeros(3))
+    np.testing.assert_allclose(images[0].numpy(), np.repeat(grey[..., None] / 65535.0, 3, -1), atol=1e-6)
+    for mode in ("P", "LA"):  # nerfstudio's loader reads a palette's indices as grey and asserts on two channels
+        image = Image.fromarray(rgba)
+        (image.convert("RGB").quantize(8) if mode == "P" else image.convert("LA")).save(path)
+        with pytest.raises(GaroInputError, match="save it as RGB or RGBA") as err:
+            load_split(scene, "test", torch.zeros(3))
+        assert str(path) in str(err.value)

@@ -67,6 +67,16 @@ def read_json_object(path: Path, what: str = "transforms file") -> Dict[str, Any
     return meta
 
 
+# Pixel formats nerfstudio's image loader takes apart wrong: it reads a palette image's indices as grey levels and
+# asserts on two channels. garo-eval reads them right, but training would not.
+UNREADABLE_MODES = {
+    "P": "palette (indexed-colour)",
+    "PA": "palette (indexed-colour)",
+    "LA": "grey+alpha",
+    "La": "grey+alpha",
+}
+
+
 def image_size(path: Path) -> Tuple[int, int]:
     """(height, width) of an image file; GaroInputError when it cannot be read, is cut short or corrupt.
 
@@ -75,13 +85,21 @@ def image_size(path: Path) -> Tuple[int, int]:
     """
     from PIL import Image
 
+    if Path(path).exists() and not Path(path).is_file():  # a FIFO would block the read forever
+        raise GaroInputError(f"cannot read image {path}: not a regular file")
     try:
         with Image.open(path) as im:
             size = im.size[1], im.size[0]
+            mode = im.mode
             im.verify()
-        return size
     except Exception as err:  # unreadable, truncated or corrupt image
         raise GaroInputError(f"cannot read image {path}: {err}") from None
+    if mode in UNREADABLE_MODES:
+        raise GaroInputError(
+            f"{path}: a {UNREADABLE_MODES[mode]} image, which nerfstudio's loader reads wrong; save it as RGB or RGBA "
+            "(e.g. mogrify -type TrueColorAlpha on the frames)"
+        )
+    return size
 
 
 def number(value: Any) -> bool:

@@ -99,7 +99,10 @@ def load_split(data: Path, split: str, background: torch.Tensor) -> Tuple[Camera
     images = []
     bg = background.float().cpu()
     for path in paths:
-        img = torch.from_numpy(np.asarray(imageio.imread(path))).float() / 255.0
+        pixels = np.asarray(imageio.imread(path))
+        # Scaled by the file's own range: a 16-bit PNG's 65535 is white, as training reads it.
+        scale = float(np.iinfo(pixels.dtype).max) if np.issubdtype(pixels.dtype, np.integer) else 1.0
+        img = torch.from_numpy(pixels.astype(np.float32)) / scale
         if img.ndim == 2:
             img = img[..., None].expand(-1, -1, 3)
         if img.shape[-1] == 4:
