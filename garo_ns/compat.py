@@ -76,7 +76,11 @@ def check_inputs(config: Any) -> None:
     """Everything `ns-train` can check before it creates the run folder: the dataset (`check_dataset`) and
     the checkpoint it is asked to load, if any (present, whole, nerfstudio's). Raises GaroInputError."""
     from garo_ns import checkpoints
+    from garo_ns.errors import GaroConfigError
 
+    steps = getattr(config, "max_num_iterations", 1)
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise GaroConfigError(f"--max-num-iterations must be an int >= 1, got {steps!r}")
     check_dataset(config)
     path = checkpoints.checkpoint_to_load(config)
     if path is not None:

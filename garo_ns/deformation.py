@@ -9,13 +9,14 @@ first passes the time encoding through a small network of its own (one hidden la
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Dict, List, Literal, Optional, Tuple
+from typing import Any, Callable, Dict, List, Literal, Optional, Tuple
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 from garo_ns.dense import aligned, dense
+from garo_ns.errors import check_ranges
 
 HeadInit = Literal["zero", "default"]
 HEAD_INITS = ("zero", "default")
@@ -414,6 +415,23 @@ class DeformationSettings:
     cancel a small scale, and the rounding of the offset becomes the rounding of the scale; the heads are about 0.5% of
     the field's products. The same parameters and checkpoints; it changes nothing outside bf16 autocast. On in
     `garo-deform`, with `linear` (its 40k A/B on the three scenes: benchmarks/results/ab_fp32_heads_H200.json)."""
+
+    def validate_deformation(self) -> None:
+        """Raise GaroConfigError, naming the flag, for a field size that cannot be built."""
+
+        def count(value: Any, low: int) -> bool:
+            return isinstance(value, int) and not isinstance(value, bool) and value >= low
+
+        check_ranges(
+            self,
+            {
+                "deform-width": (count(self.deform_width, 1), "an int >= 1"),
+                "deform-depth": (count(self.deform_depth, 1), "an int >= 1"),
+                "deform-skip": (count(self.deform_skip, 0), "an int >= 0"),
+                "deform-pos-freqs": (count(self.deform_pos_freqs, 0), "an int >= 0"),
+                "deform-time-freqs": (count(self.deform_time_freqs, 0), "an int >= 0"),
+            },
+        )
 
     def make_deformation(self) -> DeformationField:
         """The deformation field these settings describe (untrained)."""

@@ -62,6 +62,7 @@ class GaroModelConfig(
     def __post_init__(self) -> None:
         # A recipe, compaction or GARO setting out of range fails here, before any training.
         self.validate_recipe()
+        self.validate_deformation()
         self.compaction()
         self.validate_garo()
 

@@ -102,6 +102,11 @@ class D3dgsRecipe(SplatfactoModelConfig):
                 "--pipeline.model.use-absgrad True is not supported: the renderer computes the plain view-space "
                 "gradient only (D-3DGS's densification signal)"
             )
+        if isinstance(self.num_random, bool) or not isinstance(self.num_random, int) or self.num_random < 4:
+            raise GaroConfigError(
+                f"--pipeline.model.num-random must be an int >= 4 (each Gaussian takes its size from 3 neighbours), "
+                f"got {self.num_random!r}"
+            )
         if self.max_gaussians is not None and (
             isinstance(self.max_gaussians, bool) or not isinstance(self.max_gaussians, int) or self.max_gaussians < 1
         ):

@@ -180,6 +180,16 @@ def checkpoint_case(change: Callable[[Path], None], names: Callable[[Path], List
     return build
 
 
+def data_elsewhere(data: Callable[[Inputs], Path]) -> Build:
+    """garo-deform with `--data` naming something other than a D-NeRF scene's folder."""
+
+    def build(inputs: Inputs) -> Tuple[List[str], List[str]]:
+        target = data(inputs)
+        return ["garo-deform", *COMMON, *MODEL, "--data", str(target)], [str(target)]
+
+    return build
+
+
 def flag_case(flags: List[str], names: List[str], real: bool = False) -> Build:
     def build(inputs: Inputs) -> Tuple[List[str], List[str]]:
         args = inputs.nerfds_args() if real else inputs.dnerf_args()
@@ -362,6 +372,25 @@ CASES: List[Tuple[str, str, Build]] = [
     ),
     (
         "D-NeRF",
+        "transform_matrix all zero",
+        dnerf_case(
+            lambda d: edit_json(train_json(d), train_frame(1, transform_matrix=np.zeros((4, 4)).tolist())), frame(1)
+        ),
+    ),
+    (
+        "D-NeRF",
+        "transform_matrix mirrored",
+        dnerf_case(
+            lambda d: edit_json(
+                train_json(d), train_frame(2, transform_matrix=np.diag([1.0, 1.0, -1.0, 1.0]).tolist())
+            ),
+            frame(2),
+        ),
+    ),
+    ("D-NeRF", "--data a file", data_elsewhere(lambda i: train_json(i.dnerf()))),
+    ("D-NeRF", "a real capture given to garo-deform", data_elsewhere(lambda i: i.nerfds())),
+    (
+        "D-NeRF",
         "image missing",
         dnerf_case(
             lambda d: unlink(d / "train" / "r_002.png"), lambda d: [*frame(2)(d), str(d / "train" / "r_002.png")]
@@ -491,6 +520,11 @@ CASES: List[Tuple[str, str, Build]] = [
     ),
     (
         "NeRF-DS",
+        "points.npy of 2 points",
+        nerfds_case(lambda d: np.save(d / "points.npy", np.zeros((2, 3))), lambda d: [str(d / "points.npy")]),
+    ),
+    (
+        "NeRF-DS",
         "points.npy of shape [N, 2]",
         nerfds_case(lambda d: np.save(d / "points.npy", np.zeros((5, 2))), lambda d: [str(d / "points.npy")]),
     ),
@@ -583,6 +617,26 @@ CASES: List[Tuple[str, str, Build]] = [
         "flag",
         "--pipeline.model.k-neighbors 0",
         flag_case(["--pipeline.model.k-neighbors", "0"], ["--pipeline.model.k-neighbors"]),
+    ),
+    (
+        "flag",
+        "--pipeline.model.deform-depth 0",
+        flag_case(["--pipeline.model.deform-depth", "0"], ["--pipeline.model.deform-depth"]),
+    ),
+    (
+        "flag",
+        "--pipeline.model.num-random 2",
+        lambda inputs: ([*inputs.dnerf_args(), "--pipeline.model.num-random", "2"], ["--pipeline.model.num-random"]),
+    ),
+    (
+        "flag",
+        "--pipeline.model.max-gaussians 0",
+        flag_case(["--pipeline.model.max-gaussians", "0"], ["--pipeline.model.max-gaussians"]),
+    ),
+    (
+        "flag",
+        "--max-num-iterations 0",
+        lambda inputs: ([*inputs.dnerf_args(), "--max-num-iterations", "0"], ["--max-num-iterations"]),
     ),
     (
         "flag",

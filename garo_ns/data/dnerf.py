@@ -136,9 +136,16 @@ def read_split(data: Path, split: str) -> Tuple[List[Path], np.ndarray, np.ndarr
     Returns image paths, camera-to-world [F, 4, 4], times [F], camera_angle_x, (height, width).
     Raises GaroInputError naming the file and frame of the first problem found.
     """
+    if data.exists() and not data.is_dir():
+        raise GaroInputError(f"--data {data} is a file: give the scene's folder (where transforms_train.json is)")
     if not data.is_dir():
         raise GaroInputError(f"data directory does not exist: {data}")
     path = data / f"transforms_{split}.json"
+    if not path.exists() and any((data / name).exists() for name in ("transforms.json", "dataset.json")):
+        raise GaroInputError(
+            f"{data} is a real capture (an ns-process-data folder or a NeRF-DS / HyperNeRF capture), not a D-NeRF "
+            "scene: train it with a -real method (ns-train garo-deform-real --data ...)"
+        )
     meta = read_json_object(path)
     angle = meta.get("camera_angle_x")
     if not number(angle) or not 0 < angle < math.pi:
@@ -162,13 +169,19 @@ def read_split(data: Path, split: str) -> Tuple[List[Path], np.ndarray, np.ndarr
         pose = matrix(frame.get("transform_matrix"), (4, 4))
         if pose is None:
             raise GaroInputError(f"{where}: transform_matrix must be a 4x4 matrix of finite numbers")
+        rotation = pose[:3, :3]
+        if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3) or np.linalg.det(rotation) < 0:
+            raise GaroInputError(
+                f"{where}: transform_matrix's rotation is not a rotation (det {np.linalg.det(rotation):.4f}; mirrored, "
+                "scaled or all zero): a camera-to-world pose has an orthonormal rotation of determinant 1"
+            )
         rel = frame.get("file_path")
         if not isinstance(rel, str) or not rel:
             raise GaroInputError(f"{where}: missing file_path")
         image = inside(data, rel)
         if image is None:
             raise GaroInputError(f"{where}: file_path {rel!r} leads outside the data directory")
-        if image.suffix.lower() != ".png":
+        if image.suffix.lower() not in (".png", ".jpg", ".jpeg"):  # D-NeRF names its frames without the suffix
             image = image.with_name(image.name + ".png")
         if not image.exists():
             raise GaroInputError(f"{where}: image listed but missing: {image}")

@@ -242,9 +242,10 @@ def capture_cameras(capture: Capture, ids: List[str]) -> Cameras:
 
 
 def read_points(data: Path, capture: Capture) -> Optional[np.ndarray]:
-    """points.npy in the normalised frame [N, 3], or None when absent."""
+    """points.npy (a video: COLMAP's sparse_pc.ply) in the normalised frame [N, 3], or None when absent; GaroInputError
+    for a file that cannot seed the Gaussians (unreadable, or 1 to 3 finite points: each needs 3 neighbours)."""
     if capture.points is not None:
-        return capture.points
+        return _enough_points(capture.points, Path(data) / "sparse_pc.ply")
     path = Path(data) / "points.npy"
     if not path.exists():
         return None
@@ -257,7 +258,16 @@ def read_points(data: Path, capture: Capture) -> Optional[np.ndarray]:
     if pts.dtype.kind not in "fiu":
         raise GaroInputError(f"{path}: points must be numbers, got dtype {pts.dtype}")
     pts = pts[np.isfinite(pts).all(-1)]
-    return ((pts - capture.center) * capture.scale).astype(np.float32)
+    return _enough_points(((pts - capture.center) * capture.scale).astype(np.float32), path)
+
+
+def _enough_points(points: np.ndarray, path: Path) -> np.ndarray:
+    if 0 < len(points) < 4:
+        raise GaroInputError(
+            f"{path}: {len(points)} seed points; the Gaussians need 4 or more (each takes its size from 3 neighbours): "
+            "add points, or start from random ones with nerfds-data --use-points False"
+        )
+    return points
 
 
 @dataclass
