@@ -375,3 +375,33 @@ def test_the_cameras_keep_fp32_precision_when_matrix_products_round_to_tf32(monk
     view = viewmat_from_c2w(c2w64.float())
     torch.testing.assert_close(view.double(), expected, rtol=0, atol=2e-6)
     torch.testing.assert_close(camera_centres(view).double(), c2w64[:, :, 3], rtol=0, atol=2e-6)
+
+
+def test_a_gsplat_that_fails_to_load_is_said_once_and_recorded(monkeypatch, capsys):
+    import builtins
+
+    from garo_ns.bench.benchmark import environment
+    from garo_ns.render import backend
+
+    real_import = builtins.__import__
+
+    def no_extension(name, *args, **kwargs):
+        if name.startswith("gsplat.cuda._backend"):
+            raise ImportError("libcudart.so.13: cannot open shared object file")
+        return real_import(name, *args, **kwargs)
+
+    backend.gsplat_cuda_available.cache_clear()
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(builtins, "__import__", no_extension)
+    try:
+        assert backend.gsplat_cuda_available() is False
+        assert backend.gsplat_cuda_available() is False  # cached: said once
+        said = capsys.readouterr().err
+        assert said.count("warning: gsplat's CUDA rasterizer cannot run") == 1 and "libcudart" in said
+        assert backend.rasterizer_in_use("cuda").startswith("reference (gsplat failed: ImportError: libcudart")
+        assert backend.rasterizer_in_use("cpu") == "reference"
+    finally:
+        backend.gsplat_cuda_available.cache_clear()
+        backend._cuda_failure["reason"] = None
+    monkeypatch.setattr(builtins, "__import__", real_import)
+    assert environment("cpu")["rasterizer"] == "reference"

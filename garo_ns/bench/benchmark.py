@@ -474,6 +474,8 @@ def environment(device: str) -> Dict[str, Any]:
     """GPU, torch and commit of this run."""
     import torch
 
+    from garo_ns.render.backend import rasterizer_in_use
+
     # GARO_GIT_COMMIT wins: on the GPU machine the project arrives as a copy whose git metadata
     # need not match the files.
     commit = os.environ.get("GARO_GIT_COMMIT")
@@ -497,6 +499,8 @@ def environment(device: str) -> Dict[str, Any]:
         # Training processes sharing a GPU under CUDA MPS (benchmarks/device_run.sh starts it) run side by side;
         # timing happens after training, one arm at a time, either way.
         "cuda_mps": device == "cuda" and os.environ.get("GARO_MPS_ON") == "1",
+        # A GPU run whose gsplat failed to load renders through the reference: its times say nothing of gsplat's.
+        "rasterizer": rasterizer_in_use(device),
     }
 
 

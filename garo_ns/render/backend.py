@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import math
+import sys
 from typing import Any, Callable, ContextManager, Dict, Literal, Optional, Tuple
 
 import torch
@@ -16,16 +17,41 @@ from garo_ns.render.view import camera_centres
 Backend = Literal["auto", "cuda", "reference"]
 
 
+# Why gsplat's CUDA rasterizer is not used on a machine that has CUDA (None: it is, or there is no CUDA).
+_cuda_failure: Dict[str, Optional[str]] = {"reason": None}
+
+
 @functools.lru_cache(maxsize=1)
 def gsplat_cuda_available() -> bool:
-    """True when a CUDA device exists and gsplat's CUDA extension loads (it may JIT-compile once)."""
+    """True when a CUDA device exists and gsplat's CUDA extension loads (it may JIT-compile once). Where CUDA exists
+    but the extension does not load, says so once on stderr: everything then renders through the reference, correct
+    but some hundred times slower, and a timing would otherwise not show why."""
     if not torch.cuda.is_available():
         return False
     try:
         from gsplat.cuda._backend import _C  # noqa: F401  (importing builds or loads the extension)
-    except Exception:  # any build or load failure means: use the reference
-        return False
-    return _C is not None
+    except Exception as err:  # any build or load failure means: use the reference
+        reason = f"{type(err).__name__}: {str(err).splitlines()[0][:200] if str(err) else ''}"
+    else:
+        if _C is not None:
+            return True
+        reason = "its CUDA extension did not build or load"
+    _cuda_failure["reason"] = reason
+    print(
+        f"warning: gsplat's CUDA rasterizer cannot run ({reason}); rendering with the pure-torch reference",
+        file=sys.stderr,
+    )
+    return False
+
+
+def rasterizer_in_use(device: str) -> str:
+    """Which rasterizer renders on `device` ("cuda" or "cpu"), in words, for result files: gsplat's CUDA kernels,
+    the reference, or the reference because gsplat failed to load (with the reason)."""
+    if device == "cuda" and gsplat_cuda_available():
+        return "gsplat CUDA"
+    if device == "cuda" and _cuda_failure["reason"]:
+        return f"reference (gsplat failed: {_cuda_failure['reason']})"
+    return "reference"
 
 
 def resolve_backend(backend: Backend, device: torch.device) -> Literal["cuda", "reference"]:
