@@ -36,7 +36,7 @@ from typing import Any, BinaryIO, Callable, Dict, List, Optional, Tuple, Union
 import torch
 from torch import Tensor, nn
 
-from garo_ns.errors import GaroInputError
+from garo_ns.errors import GaroInputError, GaroTrainingError
 
 CHECKPOINT_NAME = re.compile(r"^step-(\d+)\.ckpt$")
 PARTIAL_PREFIX = "partial-0."
@@ -203,6 +203,16 @@ def _slow_write_delay(step: int) -> float:
     return float(seconds) if step >= int(first) else 0.0
 
 
+def _disk_full(err: BaseException) -> bool:
+    """Whether a write failed for want of space: OSError ENOSPC, or torch's zip writer's message for it."""
+    import errno
+
+    if isinstance(err, OSError) and err.errno in (errno.ENOSPC, errno.EDQUOT):
+        return True
+    text = str(err)
+    return isinstance(err, RuntimeError) and ("unexpected pos" in text or "No space left" in text)
+
+
 def save_atomically(state: Dict[str, Any], folder: Path, step: int, keep_only_latest: bool) -> Path:
     """Write `state` as the checkpoint of `step` in `folder`; with `keep_only_latest`, then delete the others.
 
@@ -219,8 +229,15 @@ def save_atomically(state: Dict[str, Any], folder: Path, step: int, keep_only_la
             f.flush()
             os.fsync(f.fileno())
         os.replace(partial, final)
-    except BaseException:
+    except BaseException as err:
         partial.unlink(missing_ok=True)
+        if _disk_full(err):
+            kept = [p.name for _, p in list_checkpoints(folder)]
+            raise GaroTrainingError(
+                f"the disk holding {folder} is full: the checkpoint of step {step} could not be written"
+                + (f"; {kept[-1]} is kept" if kept else "")
+                + ". Free space and resume with --load-dir"
+            ) from None
         raise
     _fsync_dir(folder)
     if keep_only_latest:

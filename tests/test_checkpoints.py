@@ -196,3 +196,25 @@ def test_a_checkpoint_of_either_numpy_loads_weights_only(tmp_path, writer):
     data = data.replace(f"{here}\nscalar".encode(), f"{writer}\nscalar".encode())
     allow_numpy_scalars_in_checkpoints()
     assert torch.load(io.BytesIO(data), weights_only=True) == {"_last_lr": [0.25]}
+
+
+def test_a_full_disk_is_one_line_and_the_previous_checkpoint_stays(tmp_path, monkeypatch):
+    from garo_ns import checkpoints
+    from garo_ns.errors import GaroTrainingError
+
+    checkpoints.save_atomically({"step": 1, "x": torch.ones(3)}, tmp_path, 1, True)
+    real_save = torch.save
+
+    def full_disk(obj, f, *args, **kwargs):
+        f.write(b"PK\x03\x04 partial")
+        raise RuntimeError(
+            "[enforce fail at inline_container.cc:778] . PytorchStreamWriter failed writing file "
+            "data/0: file write failed; unexpected pos 448 vs 320"
+        )
+
+    monkeypatch.setattr(torch, "save", full_disk)
+    with pytest.raises(GaroTrainingError, match="disk .* is full.*step-000000001.ckpt is kept"):
+        checkpoints.save_atomically({"step": 2}, tmp_path, 2, True)
+    monkeypatch.setattr(torch, "save", real_save)
+    assert [p.name for p in tmp_path.iterdir()] == ["step-000000001.ckpt"]
+    assert checkpoints.is_complete(tmp_path / "step-000000001.ckpt")

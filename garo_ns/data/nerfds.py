@@ -72,7 +72,8 @@ class NerfDSDataParserConfig(DataParserConfig):
         if not capture.splits[self.eval_split]:
             raise GaroInputError(f"{root / 'dataset.json'}: no {self.eval_split}_ids to evaluate on")
         if self.use_points:
-            read_points(root, capture)
+            points_file = root / ("points.npy" if capture.points is None else "sparse_pc.ply")
+            check_seed_points(read_points(root, capture), points_file)
 
 
 def _finite(value: Any, shape: Tuple[int, ...], where: str, name: str) -> np.ndarray:
@@ -242,10 +243,9 @@ def capture_cameras(capture: Capture, ids: List[str]) -> Cameras:
 
 
 def read_points(data: Path, capture: Capture) -> Optional[np.ndarray]:
-    """points.npy (a video: COLMAP's sparse_pc.ply) in the normalised frame [N, 3], or None when absent; GaroInputError
-    for a file that cannot seed the Gaussians (unreadable, or 1 to 3 finite points: each needs 3 neighbours)."""
+    """points.npy (a video: COLMAP's sparse_pc.ply) in the normalised frame [N, 3], or None when absent."""
     if capture.points is not None:
-        return _enough_points(capture.points, Path(data) / "sparse_pc.ply")
+        return capture.points
     path = Path(data) / "points.npy"
     if not path.exists():
         return None
@@ -258,16 +258,17 @@ def read_points(data: Path, capture: Capture) -> Optional[np.ndarray]:
     if pts.dtype.kind not in "fiu":
         raise GaroInputError(f"{path}: points must be numbers, got dtype {pts.dtype}")
     pts = pts[np.isfinite(pts).all(-1)]
-    return _enough_points(((pts - capture.center) * capture.scale).astype(np.float32), path)
+    return ((pts - capture.center) * capture.scale).astype(np.float32)
 
 
-def _enough_points(points: np.ndarray, path: Path) -> np.ndarray:
-    if 0 < len(points) < 4:
+def check_seed_points(points: Optional[np.ndarray], path: Path) -> None:
+    """GaroInputError for seed points the Gaussians cannot start from: 1 to 3 of them (each takes its size from 3
+    neighbours; none means random points)."""
+    if points is not None and 0 < len(points) < 4:
         raise GaroInputError(
             f"{path}: {len(points)} seed points; the Gaussians need 4 or more (each takes its size from 3 neighbours): "
             "add points, or start from random ones with nerfds-data --use-points False"
         )
-    return points
 
 
 @dataclass
