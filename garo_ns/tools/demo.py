@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -169,8 +170,12 @@ def demo_config(args: DemoArgs, method: Method, scene: Path, out: Path, device: 
     return make_config(method, scene, out, device=device, schedule=schedule, experiment_name=method)
 
 
-def train_arm(args: DemoArgs, method: Method, scene: Path, out: Path, device: str) -> Dict[str, Any]:
-    """Train one arm with nerfstudio's trainer (progress lines shown) and measure it; returns its figures."""
+def train_arm(
+    args: DemoArgs, method: Method, scene: Path, out: Path, device: str, turn: Optional[Tuple[Any, Any]] = None
+) -> Dict[str, Any]:
+    """Train one arm with nerfstudio's trainer (progress lines shown) and measure it; returns its figures. `turn`
+    (a barrier of every arm and a lock), for arms trained at once: the render is timed once no arm trains any more,
+    one arm at a time, so that no arm's time includes another's training."""
     from garo_ns.bench.timing import measure_fps, model_size_mb
     from garo_ns.tools.eval import evaluate, load_split
     from garo_ns.tools.train import train
@@ -184,7 +189,16 @@ def train_arm(args: DemoArgs, method: Method, scene: Path, out: Path, device: st
     model = trainer.pipeline.model
     result = evaluate(trainer.pipeline, scene, "test")
     cameras, _ = load_split(scene, "test", model.background_color)
-    timing = measure_fps(model, cameras, warmup=1, repeats=1)
+    if turn is None:
+        timing = measure_fps(model, cameras, warmup=1, repeats=1)
+    else:
+        barrier, lock = turn
+        try:
+            barrier.wait()  # every arm has trained
+        except threading.BrokenBarrierError:  # another arm failed (the parent broke the barrier): time now
+            pass
+        with lock:
+            timing = measure_fps(model, cameras, warmup=1, repeats=1)
     result.update(
         {
             "method": method,
@@ -438,7 +452,9 @@ def figure_notes(arms: List[Dict[str, Any]], args: DemoArgs) -> str:
     )
 
 
-def _arm_process(args: DemoArgs, method: Method, scene: Path, out: Path, device: str, log: Optional[Path]) -> None:
+def _arm_process(
+    args: DemoArgs, method: Method, scene: Path, out: Path, device: str, log: Optional[Path], turn: Tuple[Any, Any]
+) -> None:
     """One arm in a process of its own: train and measure it, and leave its figures and strip frames in
     `out/<method>/arm.pt` for the parent. With `log`, its output goes there instead of the terminal."""
     import resource
@@ -451,7 +467,7 @@ def _arm_process(args: DemoArgs, method: Method, scene: Path, out: Path, device:
             os.dup2(sink.fileno(), 1)
             os.dup2(sink.fileno(), 2)
     torch.set_num_threads(1)  # one core per arm (see the module docstring)
-    result = train_arm(args, method, scene, out, device)
+    result = train_arm(args, method, scene, out, device, turn)
     result["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     torch.save(result, out / method / "arm.pt")
 
@@ -465,17 +481,19 @@ def train_arms_at_once(args: DemoArgs, scene: Path, out: Path, device: str) -> L
 
     context = multiprocessing.get_context("spawn")  # a fresh interpreter: no torch threads inherited by fork
     processes = []
+    turn = (context.Barrier(len(args.methods)), context.Lock())  # renders timed after training, one at a time
     for k, method in enumerate(args.methods):
         log = None if k == 0 else out / method / "train.log"
         if log is not None:
             print(f"{method} trains at the same time; its progress goes to {log}")
         (out / method / "arm.pt").unlink(missing_ok=True)
-        process = context.Process(target=_arm_process, args=(args, method, scene, out, device, log))
+        process = context.Process(target=_arm_process, args=(args, method, scene, out, device, log, turn))
         process.start()
         processes.append(process)
     for k, (method, process) in enumerate(zip(args.methods, processes)):
         process.join()
         if process.exitcode != 0:
+            turn[0].abort()  # the arms still waiting to time their renders go on
             where = "its output above" if k == 0 else out / method / "train.log"
             raise RuntimeError(f"training {method} failed (exit status {process.exitcode}); see {where}")
     return [torch.load(out / method / "arm.pt", weights_only=False) for method in args.methods]
@@ -532,7 +550,8 @@ def run(args: DemoArgs) -> Dict[str, Any]:
     print("open a trained model in the viewer (time slider in its Control tab), or score it:")
     for a in public:
         print(f"{a['method']}: {viewer} --load-config {a['config']} --viewer.websocket-host 127.0.0.1")
-        print(f"{' ' * len(a['method'])}  {scorer} --load-config {a['config']} --split test --output-path eval.json")
+        scores = f"eval-{a['method']}.json"  # one file per method: the second command must not overwrite the first's
+        print(f"{' ' * len(a['method'])}  {scorer} --load-config {a['config']} --split test --output-path {scores}")
     if viewer != "ns-viewer":
         print("(or `source .venv/bin/activate` first, then the bare command names work)")
     print(
