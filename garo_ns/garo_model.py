@@ -110,6 +110,8 @@ class GaroModel(SplatfactoModel):
         self.switch_guard: Optional[TrainingViewGuard] = None  # training views the render switches are measured on
         self.training_run = False  # set when the model gets training callbacks
         self.switches = SwitchDecision(lambda: self.step)  # what each approximate switch cost, and what that decides
+        self.frame = FramePath()
+        self.switches.table_failure = self.frame.table_failures.get
         for warning in checkpoints.upgrade_render_settings(cfg):  # an old config.yml naming a deleted setting
             CONSOLE.print(f"[yellow]{warning}[/yellow]")
         self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene_extent)
@@ -117,7 +119,6 @@ class GaroModel(SplatfactoModel):
         self.train_cameras: Optional[Cameras] = None
         self._last_step: Optional[int] = None
         self._metrics_every = 1  # the trainer's steps_per_log, once training starts
-        self.frame = FramePath()
         self.frame.scale_offset = cfg.deform_scale_offset
         self.frame.table_tf32 = cfg.time_table_tf32
         self.health_log: List[Dict[str, Any]] = []
@@ -398,7 +399,9 @@ class GaroModel(SplatfactoModel):
         starts over, and meanwhile no frame arrives)."""
         spec = self.switches.table_spec()
         if spec is not None and self.deformation_active() and self.render_settings().time_table:
-            self.frame.time_table(self.deformation, self.canonical(), spec)
+            if self.frame.time_table(self.deformation, self.canonical(), spec) is None:
+                line = self.switches.line(self.config, self.training_run, self.device)
+                CONSOLE.print(f"[yellow]{line}[/yellow]", soft_wrap=True)
 
     def get_extra_state(self) -> Dict[str, Any]:
         """The densification strategy's running state (the compaction's summary too) travels with the checkpoint, and

@@ -148,3 +148,29 @@ def test_the_ladder_builds_a_dense_table_only_where_its_preview_comes_within_the
     assert table["info"]["spec"]["intervals"] == int(taken)
     # The built table's change is its preview's plus the int16 keys' rounding: close to it.
     assert table["intervals_tried_db"][taken] == pytest.approx(previews[taken], rel=0.05, abs=1e-5)
+
+
+@pytest.mark.slow
+def test_a_table_that_cannot_be_built_is_reported_off_and_never_measured_as_passing(trained, monkeypatch, capsys):
+    from garo_ns.render.time_table import TimeTable
+
+    def out_of_memory(*args, **kwargs):
+        raise RuntimeError("CUDA out of memory. Tried to allocate 6.10 GiB")
+
+    monkeypatch.setattr(TimeTable, "build", out_of_memory)
+    monkeypatch.setattr(TimeTable, "preview", out_of_memory)
+    model, guard = _load(trained)  # the record says the table; its build at load fails
+    said = capsys.readouterr().out
+    assert "could not be built (RuntimeError: CUDA out of memory" in said and "through the network" in said
+    model.config.switch_bound_db = 1e9  # whatever was measured: the table would be on, were it built
+    assert not model.render_settings().time_table
+    summary = model.render_switch_summary()
+    assert not summary["in_use"]["time_table"] and "could not be built" in summary[TABLE]["off"]
+    assert "time_table (" not in model.switches.line(model.config, False, model.device)
+    # Measured again at the end of training: the table's trial is an infinite change, not the network's 0.0.
+    model.config.switch_bound_db = 0.02
+    model.train_times = torch.linspace(0, 1, 8)
+    line = model.switches.measure_on_training_views(model, guard, model.step)
+    assert "time_table inf dB" in line, line
+    assert "could not be built" in model.switches.record[TABLE]["off"]
+    assert not model.render_settings().time_table

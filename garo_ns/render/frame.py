@@ -123,6 +123,9 @@ class FramePath:
         # the network Gaussians' canonical rows, opacities and colours (the same every frame).
         self._table_rows: Optional[Tuple[Tensor, Optional[Tensor], Tensor, Tensor]] = None
         self.table_info: Optional[Dict[str, Any]] = None  # the last table built (or why it failed)
+        # Tables that could not be built, by spec, with why: the frame renders through the network instead, and the
+        # render switches say so (SwitchDecision.table_failure) rather than report the table in use.
+        self.table_failures: Dict[Any, str] = {}
         # Set while the render switches are measured: the table's frames put each time halfway between keys.
         self.halfway = False
         # Set while they preview a table (TimeTable.preview): what a table would render halfway, without its keys.
@@ -210,8 +213,10 @@ class FramePath:
                 self.table_info = {**built.info, "build_s": perf_counter() - start}  # type: ignore[union-attr]
                 # A preview renders halfway frames only (the reference path): no frame rows for it.
                 self._table_rows = None if self.preview else table_rows(canonical, built)  # type: ignore[arg-type]
+                self.table_failures.pop(spec, None)
             except (RuntimeError, MemoryError) as err:  # torch's out-of-memory is a RuntimeError
                 built, self.table_info = None, {"error": f"{type(err).__name__}: {err}"[:300]}
+                self.table_failures[spec] = self.table_info["error"]
             self._table = (key, built)
         return self._table[1]
 

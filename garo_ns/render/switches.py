@@ -288,6 +288,13 @@ class SwitchDecision:
         self._cache: Optional[Tuple[Any, Any, FrameSettings]] = None
         self._measuring: Optional[TableSpec] = None  # the table being measured at the end of training
         self.table_override: Optional[TableSpec] = None  # a table to render with instead of the record's
+        # Why a table could not be built (the model's frame path knows), or None: such a table is not in use.
+        self.table_failure: Callable[[TableSpec], Optional[str]] = lambda spec: None
+
+    def failed_table(self) -> Optional[str]:
+        """Why the table to render with could not be built, or None (built, not yet tried, or no table)."""
+        spec = self.table_spec()
+        return self.table_failure(spec) if spec is not None else None
 
     def distrust(self) -> Optional[str]:
         """Why the record is not trusted, or None (no record, or a trusted one)."""
@@ -340,6 +347,7 @@ class SwitchDecision:
             config.time_table_budget_mb,
             getattr(config, "deform_scale_offset", "log"),  # `_table_refusal` reads it
             self._step() if self._step else None,
+            self.failed_table(),
         )
         if self._cache is not None and self._cache[0] == key and self._cache[1] is self.record:
             return self._cache[2]
@@ -347,6 +355,8 @@ class SwitchDecision:
         measure = replay(record["tried"]) if record else None
         settings = resolve(requested, training_run, config.renders_on_cuda(device), measure, bound_db=bound)[0]
         if settings.time_table and requested.get(TABLE) is None and self._table_refusal(config):
+            settings = replace(settings, time_table=False)
+        if settings.time_table and self.failed_table():  # asked for or chosen, but the network renders
             settings = replace(settings, time_table=False)
         self._cache = (key, self.record, settings)
         return settings
@@ -358,7 +368,10 @@ class SwitchDecision:
         record = self.trusted_record()
         in_use = self.settings(config, training_run, device)
         table = dict((record or {}).get(TABLE) or {})
-        if in_use.time_table and self.table_spec() is None:
+        failure = self.failed_table()
+        if failure:
+            table["off"] = f"it could not be built ({failure}): frames render through the network"
+        elif in_use.time_table and self.table_spec() is None:
             table["off"] = "no table recorded for this model (trained before it existed, or not measured)"
         elif not in_use.time_table and record and not training_run:
             refusal = self._table_refusal(config)
@@ -442,7 +455,10 @@ class SwitchDecision:
                 switches = None if trial is None else replace(trial, cuda_graph=False, lean_raster=False)
                 if switches is not None and switches.time_table and spec is None:
                     return torch.full_like(guard.targets(model)[i], math.nan)  # an infinite change: off
-                return guard.render(model, i, switches)
+                image = guard.render(model, i, switches)
+                if switches is not None and switches.time_table and model.frame.table_failures.get(spec):
+                    return torch.full_like(image, math.nan)  # not built: the network rendered, not the table
+                return image
 
             targets = guard.targets(model)
             ladder: Dict[str, float] = {}  # the rungs built, each measured as built
@@ -478,7 +494,11 @@ class SwitchDecision:
             line = self.measure(cfg, model.device, render, targets, step)
             built = model.frame.table_info
             if self.record is not None and cfg.time_table is None:
-                entry = {"spec": built["spec"], "info": built} if spec and built else {"off": why}
+                failure = model.frame.table_failures.get(spec) if spec else None
+                if failure:
+                    entry: Dict[str, Any] = {"off": f"it could not be built ({failure})"}
+                else:
+                    entry = {"spec": built["spec"], "info": built} if spec and built else {"off": why}
                 rungs = {"intervals_tried_db": ladder, "build_s": build_s}
                 rungs.update(intervals_previewed_db=previews, preview_s=preview_s)
                 self.record[TABLE] = {**entry, **rungs} if previews or ladder else entry
