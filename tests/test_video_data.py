@@ -12,7 +12,7 @@ import math
 import subprocess
 import sys
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Callable, Dict, List, Optional
 
 import numpy as np
 import pytest
@@ -161,11 +161,19 @@ def _no_frames(root: Path) -> None:
     (root / "transforms.json").write_text(json.dumps({**meta, "frames": []}))
 
 
-def _no_poses(root: Path) -> None:
-    meta = json.loads((root / "transforms.json").read_text())
-    for frame in meta["frames"]:
-        frame["transform_matrix"] = [[1, 0, 0]]
-    (root / "transforms.json").write_text(json.dumps(meta))
+def _poses(value: object, frames: int = 0) -> Callable[[Path], None]:
+    """Set the transform_matrix of the first `frames` frames (0: every frame) to `value`."""
+
+    def change(root: Path) -> None:
+        meta = json.loads((root / "transforms.json").read_text())
+        for frame in meta["frames"][: frames or None]:
+            frame["transform_matrix"] = value
+        (root / "transforms.json").write_text(json.dumps(meta))
+
+    return change
+
+
+_no_poses = _poses([[float("nan")] * 4] * 4)  # what a frame without a pose holds
 
 
 BAD = {
@@ -173,6 +181,16 @@ BAD = {
     "COLMAP posed too few": (lambda r: make_folder(r, n=10, posed=[1, 2, 5, 9]), None, "posed only 4 of the 10"),
     "no frames": (lambda r: make_folder(r, n=10), _no_frames, "no usable frames"),
     "no usable poses": (lambda r: make_folder(r, n=10), _no_poses, "no usable frames"),
+    "a ragged pose": (
+        lambda r: make_folder(r, n=10),
+        _poses([[1, 0, 0, 0], [0, 1, 0], [0, 0, 1, 0], [0, 0, 0, 1]], 1),
+        "transform_matrix must be a 4x4 matrix of numbers",
+    ),
+    "a pose of strings": (
+        lambda r: make_folder(r, n=10),
+        _poses([["1", "0", "0", "0"]] * 4, 1),
+        "transform_matrix must be a 4x4 matrix of numbers",
+    ),
     "unnumbered photos": (
         lambda r: make_folder(r, n=8, names={k: f"photo_{chr(96 + k)}.png" for k in range(1, 9)}),
         None,

@@ -27,7 +27,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 import torch
 
-from garo_ns.data.dnerf import image_size, read_json_object
+from garo_ns.data.dnerf import image_size, matrix, read_json_object
 from garo_ns.errors import GaroInputError
 
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
@@ -50,6 +50,16 @@ def frame_number(file_path: str) -> Optional[int]:
     """The frame number in a file name (its last run of digits: `frame_00012.png` -> 12), or None."""
     digits = re.findall(r"\d+", Path(file_path).stem)
     return int(digits[-1]) if digits else None
+
+
+def _numbers_4x4(value: Any) -> bool:
+    """Whether `value` is 4 rows of 4 JSON numbers (finite or not)."""
+    return (
+        isinstance(value, list)
+        and len(value) == 4
+        and all(isinstance(row, list) and len(row) == 4 for row in value)
+        and all(isinstance(x, (int, float)) and not isinstance(x, bool) for row in value for x in row)
+    )
 
 
 def _number(meta: Dict[str, Any], frame: Dict[str, Any], key: str, where: str) -> Optional[float]:
@@ -173,9 +183,14 @@ def read_video_capture(
     usable, poses, index = [], [], []
     for i, frame in enumerate(frames):
         rel = frame.get("file_path")
-        pose = np.asarray(frame.get("transform_matrix", np.nan), dtype=np.float64)
-        if not isinstance(rel, str) or not rel or pose.shape != (4, 4) or not np.isfinite(pose).all():
-            continue  # a frame without an image or a pose cannot be used
+        value = frame.get("transform_matrix")
+        pose = matrix(value, (4, 4))
+        if pose is None and value is not None and not _numbers_4x4(value):  # a broken file, not an unposed frame
+            raise GaroInputError(
+                f"{path}, frame {i} ({rel}): transform_matrix must be a 4x4 matrix of numbers, got {str(value)[:80]}"
+            )
+        if not isinstance(rel, str) or not rel or pose is None:
+            continue  # a frame without an image or a (finite) pose cannot be used
         usable.append(frame)
         poses.append(pose)
         index.append(i)
