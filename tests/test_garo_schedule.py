@@ -48,7 +48,7 @@ def _train(scene, out, name: str, **model) -> Dict[str, object]:
         trainer = train(config)
     finally:
         GaroStrategy.prune_redundant = original  # type: ignore[method-assign]
-        del GaroStrategy._grow_gs  # gsplat's own again (GaroStrategy inherits it)
+        GaroStrategy._grow_gs = grow  # type: ignore[method-assign]  # its own (the Gaussian budget) again
     model_ = trainer.pipeline.model
     return {
         "pruned": pruned,
