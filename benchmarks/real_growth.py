@@ -38,8 +38,14 @@ def train_arm(
     config = make_config(method, scene, work, device=device)  # type: ignore[arg-type]
     config.max_num_iterations = steps
     config.steps_per_save = 10**9
-    for key, value in overrides.items():
-        setattr(config.pipeline.model, key, value)
+    for key, value in overrides.items():  # a dotted key reaches into a nested config (camera_optimizer.mode)
+        *path, name = key.split(".")
+        target = config.pipeline.model
+        for part in path:
+            target = getattr(target, part)
+        if not hasattr(target, name):
+            raise SystemExit(f"real_growth.py: the model config has no setting {key}")
+        setattr(target, name, value)
     config.set_timestamp()
     config.save_config()
     seed_everything(config.machine.seed)
@@ -137,7 +143,7 @@ def main() -> None:
     parser.add_argument("--method", default="deform-splatfacto-real")
     parser.add_argument("--steps", type=int, default=8000)
     parser.add_argument("--arm", default="recipe")
-    parser.add_argument("--set", nargs="*", default=[], help="model settings of the arm: key=value ...")
+    parser.add_argument("--set", nargs="*", default=[], help="model settings: key=value (dotted keys nest)")
     parser.add_argument("--work-dir", type=Path, default=Path("runs/real_growth"))
     parser.add_argument("--device", default="cuda")
     parser.add_argument("--merge", nargs="*", type=Path, help="arms' files to gather into --output")

@@ -202,7 +202,9 @@ class _StepReplay(torch.autograd.Function):
         attach_gradients(graph.params, graph.grads)
         graph.backward_graph.replay()
         increment_version(graph.written)
-        return (None, *(None if g is None else g.detach() for g in graph.input_grads))
+        # Copies, not the fixed buffers: autograd adopts a returned tensor as a leaf's `.grad`, and the next replay
+        # would rewrite that `.grad` in place before adding to it (g2 + g2 where g1 + g2 is right).
+        return (None, *(None if g is None else g.clone() for g in graph.input_grads))
 
 
 class GraphedSplats:

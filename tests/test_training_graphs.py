@@ -162,6 +162,34 @@ def test_a_graphed_backward_accumulates_into_grad_as_autograd_does():
     assert frozen.grad is None and graphed.captures == 1
 
 
+def test_two_graphed_backwards_of_different_gradients_add_up():
+    """Two backward passes without a zero between them (gradient accumulation) give the sum of two different
+    gradients, for the canonical tensors (their gradients leave the graph through autograd) and the field's
+    parameters (added into their buffers). Two equal gradients could not tell g1 + g2 from g2 + g2."""
+    from garo_ns.deformation import DeformationField
+    from garo_ns.train_graphs import GraphedSplats
+
+    torch.manual_seed(0)
+    field = DeformationField(time_net=30).cuda().train()
+    canonical = _canonical(2000, 3)
+    graphed = GraphedSplats(lambda: field, enabled=True, own_grads=True)
+    leaves = list(canonical) + [p for p in field.parameters() if p.requires_grad]
+
+    def loss(time: float):
+        return sum(o.square().sum() for o in graphed(canonical, time, "log")[:5])
+
+    first = _backward_grads(loss(0.2), leaves)
+    second = _backward_grads(loss(0.7), leaves)
+    assert any(not torch.allclose(a, b) for a, b in zip(first, second))  # the two gradients differ
+    for x in leaves:
+        x.grad = None
+    loss(0.2).backward()
+    loss(0.7).backward()
+    for x, a, b in zip(leaves, first, second):
+        assert torch.allclose(x.grad, a + b, rtol=1e-4, atol=1e-6 * float((a + b).abs().max().clamp_min(1.0)))
+    assert graphed.captures == 1
+
+
 def _stream_waits(step) -> int:
     """cudaStreamWaitEvent calls while `step` runs (after one call outside the count)."""
     step()

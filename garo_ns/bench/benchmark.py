@@ -202,6 +202,10 @@ class BenchArgs:
     export_dir: Optional[Path] = None
     """Also write each trained variant here as soon as it has trained (garo_ns.bench.transfer): its record,
     config and a checkpoint without optimizer state, so a later run can evaluate it beside its own arms."""
+    renders_dir: Optional[Path] = None
+    """Also write a few held-out views of each plain variant here as PNGs (`<variant>/<view>.png`, the ground truth
+    as `ground-truth/`), spread over time, for a strip of renders (garo_ns.bench.strip)."""
+    renders_views: int = 5
     pretrained: List[Path] = field(default_factory=list)
     """Exports of variants trained by an earlier run (same scene, same schedule): these are not trained
     again but evaluated and timed in this run's phase 2, one at a time like the rest. For pairs that do
@@ -406,6 +410,10 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
         }
         if args.profile:
             out["profile"] = profile_frame(model, cameras)
+        if args.renders_dir is not None and "+" not in name:
+            from garo_ns.bench.strip import save_views
+
+            save_views(pipeline, args.scene, args.split, args.renders_dir, name, args.renders_views)
         return out
 
     for name in names:
