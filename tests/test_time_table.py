@@ -125,6 +125,29 @@ def test_a_preview_renders_halfway_as_its_table_does_less_the_keys_rounding(prec
         assert float(gap.max()) > 0  # the rounding is there, and the preview leaves it out
 
 
+@pytest.mark.parametrize("order", ["linear", "cubic"])
+@pytest.mark.parametrize("precision", ["fp32", "int16"])
+def test_the_probe_that_decides_measures_the_table_that_renders(order, precision):
+    """The render switches record the change `offsets_halfway` makes; what a user sees is the built table's
+    `offsets_at`. At evenly spaced training times (each halfway between two keys) the two must be the same
+    offsets, up to the keys' rounding, so that the recorded change is the rendered one: a probe that sampled a
+    denser table (a quarter of the spacing) would record a change many times smaller."""
+    field = _field(amp=0.05)
+    xyz = _xyz()
+    table = TimeTable.build(_spec(2 * 9, order=order, precision=precision), field, xyz)
+    table.spec = TableSpec(**{**table.spec.to_dict(), "order": order})
+    step = table.codec.scale if table.codec.scale is not None else torch.zeros(64, 10)
+    for j in range(10):
+        t = j / 9  # the training times the table's keys straddle
+        assert table.spec.segment(t)[1] == pytest.approx(0.5)
+        rendered, probed = table.offsets_at(t), table.offsets_halfway(field, xyz, t)
+        exact = torch.cat(field(xyz, t), dim=-1)
+        rendered_err, probed_err = (rendered - exact).abs().amax(), (probed - exact).abs().amax()
+        assert bool(((rendered - probed).abs() <= 1.25 * step + 1e-6).all()), t
+        assert float(probed_err) == pytest.approx(float(rendered_err), rel=0.05, abs=2e-6), t
+        assert float(rendered_err) > 1e-5  # an interpolation error there is to measure
+
+
 def test_a_preview_costs_the_same_few_field_passes_however_many_keys_its_table_has():
     xyz = _xyz()
     calls = {}
