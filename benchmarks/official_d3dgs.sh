@@ -47,13 +47,50 @@
 # shears), alpha_0999 (gsplat's cap on one Gaussian's alpha), log_scale (the scale offset on the log-scale),
 # valid_ssim (the loss's SSIM without zero padding). All four at once make the official code's terms ours.
 # The patches are named in SOURCES.json's "patches" and in the result's file name (official_d3dgs_<P+P>_<GPU>.json).
-# Phases: assemble | start SCENE PORT | status | wait SECONDS | stop-after ITER SECONDS | score
+#
+# REAL CAPTURES (issue #68 item 3: an `ns-process-data video` folder, on our frames, pixels and held-out split).
+# HERE, after assemble, once per capture (about 20 s; needs the capture's colmap/sparse/0 and images_2/):
+#   bash benchmarks/official_d3dgs.sh prepare-real /work/real/pillow pillow   (benchmarks/official_real.py)
+#        .d3dgs/scenes/NAME   the official COLMAP layout (13-14 MB for pillow, teddy): the posed frames as our
+#                             datamanager caches them (images_2/, undistorted by nerfstudio, uint8) renamed
+#                             00000.png... in video order (official time = place / (count - 1): ours where COLMAP
+#                             posed every frame), one PINHOLE camera (the undistorted intrinsics), COLMAP's own poses
+#                             and points, test_frames.txt (our reader's held-out frames), garo_frames.json (the
+#                             mapping and its checks). Not `colmap image_undistorter` or `-r 2`: other pixels than ours.
+# THERE, one capture per hold (20000 iterations of 183x239 frames), e.g. pillow:
+#   call 1  carry .d3dgs/code .d3dgs/garo_head .whl .d3dgs/scenes/pillow:
+#           bash benchmarks/official_d3dgs.sh start pillow 6011
+#   call 2  carry .device:  source .device/prelude.sh; bash benchmarks/official_d3dgs.sh wait 480
+#   call 3+ (nothing carried):  bash benchmarks/official_d3dgs.sh wait 480   (until it scores)
+#           (all in one call would carry about 55 MB of the 64 MiB; two leave room)
+# `start` sees test_frames.txt and then trains as the official README trains NeRF-DS / HyperNeRF:
+#   python train.py -s W/data/NAME -m W/out/NAME --eval --iterations 20000 (no --is_blender, no --is_6dof; saves and
+#   tests at 10k, 15k, 20k), on the official code patched twice (named in SOURCES.json): split_file (the test frames
+#   are test_frames.txt's, not every 8th by name) and principal_point (the camera projects with the PINHOLE cx, cy;
+#   the official camera is centred, and these frames' principal points lie 1.4 and 3.6 px (pillow) and 8.1 px
+#   (teddy) off centre). OFFICIAL_CENTRED=1 (on a fresh W: W/code keeps its patches) leaves principal_point out,
+#   to measure what it does (result tag `centred`). `score` scores the held-out frames as `garo-eval --split val`
+#   scores ours (official_score.py) into official_real_[TAG_]GPU.json and official_NAME.json;
+#   `python -m garo_ns.bench.summary ... --official FILE` puts each row under `official` in the capture's row of
+#   real_<GPU>.json, with the baseline's PSNR minus the official one (`psnr_gap_db`).
+# Phases: assemble | prepare-real CAPTURE NAME | start SCENE PORT | status | wait SECONDS | stop-after ITER SECONDS |
+#         score | patch P... (apply patches to W/code; OFFICIAL_WORK=DIR sets W, default /tmp/w)
 set -u
 phase=$1
 shift
-W=/tmp/w
+W=${OFFICIAL_WORK:-/tmp/w}
 ITERS="20000 30000 35000 40000"
+ITERS_REAL="10000 15000 20000"
 MIRROR=${MIRROR:-/work/.mirror}
+
+if [ "$phase" = prepare-real ]; then
+  set -e
+  cd "$(git rev-parse --show-toplevel)"
+  mkdir -p .d3dgs/scenes
+  ${PYTHON:-.venv/bin/python} benchmarks/official_real.py "$1" .d3dgs/scenes/"$2"
+  du -sh .d3dgs/scenes/"$2"
+  exit 0
+fi
 
 if [ "$phase" = assemble ]; then
   set -e
@@ -107,7 +144,7 @@ mkdir -p $W/data $W/out $W/results
 now() { date +%s; }
 deadline() { echo $(($(cat $W/t0) + ${DEADLINE_S:-1290})); }
 progress() { # last iteration of a run's progress bar
-  [ -e $W/$1.log ] && tr '\r' '\n' <$W/$1.log | grep -o '[0-9]*/40000 \[' | tail -1 | cut -d/ -f1
+  [ -e $W/$1.log ] && tr '\r' '\n' <$W/$1.log | grep -o '[0-9]*/[0-9]* \[' | tail -1 | cut -d/ -f1
 }
 status() {
   local s
@@ -147,7 +184,31 @@ apply_patch() {
   valid_ssim) # the loss's SSIM over the valid region only, as ours (pytorch_msssim's): no zero padding
     replace $c/utils/loss_utils.py 5 'padding=window_size // 2' 'padding=0' || return 1
     what="utils/loss_utils.py: SSIM without padding, the mean over the valid region" ;;
-  *) echo "unknown patch $1 (normalized_rotation, alpha_0999, log_scale, valid_ssim)"; return 1 ;;
+  split_file) # a real capture: test = the frames test_frames.txt names (our held-out frames), not idx % llffhold == 0
+    replace $c/scene/dataset_readers.py 1 'cam_infos) if idx % llffhold != 0\]' \
+      'cam_infos) if not garo_held_out(path, c, idx % llffhold == 0)]' &&
+      replace $c/scene/dataset_readers.py 1 'cam_infos) if idx % llffhold == 0\]' \
+        'cam_infos) if garo_held_out(path, c, idx % llffhold == 0)]' || return 1
+    cat >>$c/scene/dataset_readers.py <<'PY'
+
+
+def garo_held_out(path, cam, default):  # split_file (garo_ns benchmarks/official_d3dgs.sh)
+    names = os.path.join(path, "test_frames.txt")
+    return cam.image_name in open(names).read().split() if os.path.exists(names) else default
+PY
+    what="scene/dataset_readers.py: readColmapSceneInfo holds out the frames test_frames.txt names" ;;
+  principal_point) # the PINHOLE principal point the COLMAP reader reads, in the projection (the official: centred)
+    replace $c/scene/dataset_readers.py 1 '    depth: Optional\[np.array\] = None$' \
+      '    depth: Optional[np.array] = None\n    cxcy: Optional[tuple] = None' &&
+      replace $c/scene/dataset_readers.py 1 'width=width, height=height, fid=fid)$' \
+        'width=width, height=height, fid=fid, cxcy=tuple(intr.params[-2:]))' &&
+      replace $c/utils/camera_utils.py 1 'depth=cam_info.depth)$' 'depth=cam_info.depth, cxcy=cam_info.cxcy)' &&
+      replace $c/scene/cameras.py 1 'fid=None, depth=None):$' 'fid=None, depth=None, cxcy=None):' &&
+      replace $c/scene/cameras.py 1 'fovY=self.FoVy).transpose(0, 1).to(self.data_device)$' \
+        'fovY=self.FoVy).transpose(0, 1).to(self.data_device)\n        if cxcy is not None:  # P[0, 2], P[1, 2] (transposed): pixel centres at +0.5, as COLMAP\n            self.projection_matrix[2, 0] = 2 * cxcy[0] / self.image_width - 1\n            self.projection_matrix[2, 1] = 2 * cxcy[1] / self.image_height - 1' ||
+      return 1
+    what="scene/cameras.py projects with the PINHOLE camera's cx, cy (read in scene/dataset_readers.py, passed by utils/camera_utils.py)" ;;
+  *) echo "unknown patch $1 (normalized_rotation, alpha_0999, log_scale, valid_ssim, split_file, principal_point)"; return 1 ;;
   esac
   python3 - $c/SOURCES.json "$1: $what" <<'PY'
 import json, sys
@@ -157,15 +218,24 @@ json.dump(sources, open(sys.argv[1], "w"))
 PY
 }
 
+# A patch applied once to the machine's copy of the official code (copied from .d3dgs/code on first use).
+copy_code() { [ -e $W/code ] || { cp -r .d3dgs/code $W/code && cp -r .d3dgs/garo_head $W/garo_head; }; }
+ensure_patch() {
+  copy_code
+  grep -q "\"$1: " $W/code/SOURCES.json || apply_patch $1
+}
+
 case $phase in
+patch) # patch P...: apply patches to W/code (to check them on the CPU machine: OFFICIAL_WORK=/tmp/somewhere)
+  for p in "$@"; do ensure_patch $p || exit 1; done
+  ;;
 start)
   scene=$1 port=$2
   [ -e $W/t0 ] || now >$W/t0
-  if [ ! -e $W/code ]; then
-    cp -r .d3dgs/code $W/code
-    cp -r .d3dgs/garo_head $W/garo_head
+  if [ ! -e $W/build.state ]; then
+    copy_code
     for patch in $(echo "${OFFICIAL_PATCH:-}" | tr ',' ' '); do
-      apply_patch $patch || exit 1
+      ensure_patch $patch || exit 1
     done
     [ -n "${OFFICIAL_PATCH:-}" ] && echo "$OFFICIAL_PATCH" | tr ',' '+' > $W/patch
     python3 -m pip install -q --no-index --no-deps .whl/*.whl
@@ -183,7 +253,15 @@ start)
   fi
   rm -rf $W/data/$scene && cp -r .d3dgs/scenes/$scene $W/data/$scene
   grep -qx $scene $W/scenes 2>/dev/null || echo $scene >>$W/scenes
-  # The run: waits for the build, trains with the official defaults (40000 iterations), killed at the deadline.
+  # A real capture (prepare-real): our held-out frames, the principal point unless OFFICIAL_CENTRED=1, and the
+  # official README's real-scene command (no --is_blender, 20000 iterations: our -real recipes' length).
+  train_args="--eval --is_blender" its=$ITERS
+  if [ -e $W/data/$scene/test_frames.txt ]; then
+    ensure_patch split_file || exit 1
+    if [ "${OFFICIAL_CENTRED:-0}" = 1 ]; then echo centred >$W/patch; else ensure_patch principal_point || exit 1; fi
+    train_args="--eval --iterations 20000" its=$ITERS_REAL
+  fi
+  # The run: waits for the build, trains with the official defaults (D-NeRF: 40000 iterations), killed at the deadline.
   setsid nohup bash -c "
     echo \$\$ > $W/$scene.pid
     while [ ! -e $W/built ]; do grep -q FAILED $W/build.state && { echo 1 > $W/$scene.rc; date +%s.%N > $W/$scene.end; exit 1; }; sleep 2; done
@@ -191,7 +269,7 @@ start)
     date +%s.%N > $W/$scene.start
     left=\$(( $(deadline) - \$(date +%s) )); [ \$left -gt 1 ] || left=1
     CUDA_VISIBLE_DEVICES=${GPU:-0} timeout --foreground -s KILL \$left python3 train.py -s $W/data/$scene -m $W/out/$scene \
-      --eval --is_blender --port $port --test_iterations $ITERS --save_iterations $ITERS
+      $train_args --port $port --test_iterations $its --save_iterations $its
     echo \$? > $W/$scene.rc
     date +%s.%N > $W/$scene.end
   " >$W/$scene.log 2>&1 </dev/null &
@@ -247,16 +325,17 @@ score)
   export PYTHONPATH=$W/garo_head:${PYTHONPATH:-} # the committed evaluation code (SOURCES.json names the commit)
   gpu=$(nvidia-smi --query-gpu=name --format=csv,noheader | head -1 | grep -o 'H[0-9]\{3\}' || echo GPU)
   tag=; [ -e $W/patch ] && tag="$(cat $W/patch)_"
+  kind=d3dgs_; [ -e "$W/data/$(head -1 $W/scenes)/test_frames.txt" ] && kind=real_
   # Scored and timed on the GPU the runs trained on: on a 2-GPU machine the other may be timing our arms.
   CUDA_VISIBLE_DEVICES=${GPU:-0} python3 benchmarks/official_score.py --work $W --code $W/code --scenes $(cat $W/scenes) \
-    --sources $W/code/SOURCES.json --note "${SHARING_NOTE:-}" --output $W/results/official_d3dgs_$tag$gpu.json 2>&1 | tee $W/score.log
+    --sources $W/code/SOURCES.json --note "${SHARING_NOTE:-}" --output $W/results/official_$kind$tag$gpu.json 2>&1 | tee $W/score.log
   if [ -n "${OUT:-}" ]; then
     cp $W/results/*.json $OUT/
     for s in $(cat $W/scenes); do
       echo "== $s (rc $(cat $W/$s.rc), $(cat $W/$s.start 2>/dev/null) -> $(cat $W/$s.end))"
       tr '\r' '\n' <$W/$s.log | grep -v '^Training progress' | grep -v '^\s*$' | tail -12
       tr '\r' '\n' <$W/$s.log | grep '^Training progress' | tail -1
-    done >$OUT/official_d3dgs_$tag$gpu.log
+    done >$OUT/official_$kind$tag$gpu.log
     cp $W/score.log $OUT/score.log
   fi
   ;;

@@ -8,7 +8,8 @@ Per scene (`--work W`: data in W/data/SCENE, the run in W/out/SCENE, its log in 
 
 * Model: the latest iteration saved in both `point_cloud/iteration_N/point_cloud.ply` (official
   `GaussianModel.load_ply`) and `deform/iteration_N/deform.pth` (official `DeformModel`), normally
-  N = 40000; `iterations` records N, so a run stopped early shows as such.
+  N = the run's own --iterations (40000 for D-NeRF, 20000 for a real capture); `iterations` records N, so a run
+  stopped early shows as such (`shortened`).
 * Rendering: every `test` view at full resolution (official `readCamerasFromTransforms` +
   `cameraList_from_camInfos`, in transforms order), as the official code renders: under no_grad,
   `deform.step(xyz.detach(), fid expanded)` then the official `render` on a black background,
@@ -25,6 +26,14 @@ Per scene (`--work W`: data in W/data/SCENE, the run in W/out/SCENE, its log in 
   before and after each view; the first 5 views rendered and dropped; 3 passes over all views;
   FPS = 1 / mean seconds; then one more pass timing the MLP and the rasterization apart.
 
+A real capture (W/data/SCENE has test_frames.txt: `official_d3dgs.sh prepare-real`) is scored as `garo-eval
+--split val` scores our run of it (`garo_ns.tools.eval.capture_views`): the held-out frames test_frames.txt names,
+read by the official `readColmapSceneInfo` (patched with `split_file`, and `principal_point` unless the run was
+made without), rendered in float as above; ground truth = the scene's PNGs / 255, which prepare-real wrote from
+our datamanager's cached (undistorted, uint8) images; SSIM = `garo_ns.ssim.SSIM(data_range=1.0)` (what
+`GaroModel.ssim` is), LPIPS as above where `lpips_fits`. `gt_max_difference` checks that the official loader's
+ground truth is the same pixels (0.0).
+
 Writes W/results/official_SCENE.json per scene and `--output` with all rows.
 """
 
@@ -39,7 +48,7 @@ import sys
 from argparse import Namespace
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 import torch
@@ -81,6 +90,14 @@ def parse_log(log: Path) -> Dict[str, Any]:
     }
 
 
+def train_args(cfg: Namespace) -> str:
+    """The official run's training switches, from its cfg_args."""
+    kind = "--is_blender" if cfg.is_blender else "real scene (no --is_blender)"
+    six = " --is_6dof" if cfg.is_6dof else ""
+    bg = "white" if cfg.white_background else "black"
+    return f"--eval {kind}{six}, {cfg.iterations} iterations, {bg} background, official defaults otherwise"
+
+
 def read_float(path: Path) -> Optional[float]:
     try:
         return float(path.read_text().split()[0])
@@ -93,7 +110,7 @@ class OfficialRun:
 
     def __init__(self, run: Path, data: Path, iteration: int):
         from gaussian_renderer import render
-        from scene.dataset_readers import readCamerasFromTransforms
+        from scene.dataset_readers import readCamerasFromTransforms, readColmapSceneInfo
         from scene.deform_model import DeformModel
         from scene.gaussian_model import GaussianModel
         from utils.camera_utils import cameraList_from_camInfos
@@ -107,7 +124,11 @@ class OfficialRun:
         self.deform = DeformModel(cfg.is_blender, cfg.is_6dof)
         self.deform.load_weights(str(run), iteration)
         self.deform.deform.eval()
-        infos = readCamerasFromTransforms(str(data), "transforms_test.json", False)
+        self.real = is_real(data)
+        if self.real:  # the held-out frames, as the (split_file-patched) official loader reads them for training
+            infos = readColmapSceneInfo(str(data), "images", True).test_cameras
+        else:
+            infos = readCamerasFromTransforms(str(data), "transforms_test.json", False)
         cam_args = SimpleNamespace(resolution=-1, data_device="cuda", load2gpu_on_the_fly=False)
         self.views = cameraList_from_camInfos(infos, 1.0, cam_args)
         self.names = [v.image_name for v in self.views]
@@ -129,18 +150,38 @@ class OfficialRun:
         return self.raster(view, self.deformation(view))
 
 
+def is_real(data: Path) -> bool:
+    """A real capture that `official_d3dgs.sh prepare-real` wrote (not a D-NeRF scene)."""
+    return (data / "test_frames.txt").is_file()
+
+
+def real_test_images(data: Path) -> Tuple[List[str], List[torch.Tensor]]:
+    """The held-out frames' names and images [H, W, 3] (PNG / 255: our datamanager's cached uint8 images)."""
+    import imageio.v2 as imageio
+
+    names = (data / "test_frames.txt").read_text().split()
+    images = []
+    for name in names:
+        pixels = np.asarray(imageio.imread(data / "images" / f"{name}.png"))[..., :3]
+        images.append(torch.from_numpy(pixels.astype(np.float32)) / 255.0)
+    return names, images
+
+
 @torch.no_grad()
 def score(model: OfficialRun, data: Path, ssim: Any, lpips: Any) -> Dict[str, Any]:
     """Metrics as garo_ns.tools.eval.evaluate, on renders made as the official code makes them."""
     from garo_ns.data.dnerf import read_split
+    from garo_ns.metrics import lpips_fits
     from garo_ns.tools.eval import load_split
 
-    paths = read_split(data, "test")[0]
-    _, images = load_split(data, "test", torch.zeros(3))
-    stems = [Path(p).stem for p in paths]
+    if model.real:
+        stems, images = real_test_images(data)
+    else:
+        stems = [Path(p).stem for p in read_split(data, "test")[0]]
+        _, images = load_split(data, "test", torch.zeros(3))
     if stems != model.names:
         raise SystemExit(f"{data}: official test views {model.names[:3]}... do not match ours {stems[:3]}...")
-    psnrs, ssims, lpipss, psnrs_off = [], [], [], []
+    psnrs, ssims, lpipss, psnrs_off, gt_diff = [], [], [], [], 0.0
     for view, gt in zip(model.views, images):
         pred = model.frame(view).clamp(0, 1).permute(1, 2, 0)  # [H, W, 3] like our model's "rgb"
         gt = gt.to(pred.device)
@@ -148,10 +189,11 @@ def score(model: OfficialRun, data: Path, ssim: Any, lpips: Any) -> Dict[str, An
         psnrs.append(float(-10.0 * torch.log10(mse.clamp_min(1e-12))))
         p, g = pred.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None]
         ssims.append(float(ssim(g, p)))
-        if lpips is not None:
+        if lpips is not None and (lpips_fits(pred) or not model.real):
             lpipss.append(float(lpips.to(pred.device)(g, p)))
         # the official loader's ground truth (8-bit composite), as its training log scores it
         off = view.original_image.clamp(0, 1).permute(1, 2, 0)
+        gt_diff = max(gt_diff, float((off - gt).abs().max()))
         psnrs_off.append(float(-10.0 * torch.log10(torch.mean((pred - off) ** 2).clamp_min(1e-12))))
     h, w = images[0].shape[:2]
     return {
@@ -159,6 +201,7 @@ def score(model: OfficialRun, data: Path, ssim: Any, lpips: Any) -> Dict[str, An
         "ssim": float(np.mean(ssims)),
         "lpips": float(np.mean(lpipss)) if lpipss else None,
         "psnr_official_gt": float(np.mean(psnrs_off)),
+        "gt_max_difference": gt_diff,
         "n_images": len(images),
         "resolution": [int(w), int(h)],
     }
@@ -181,7 +224,7 @@ def main() -> None:
     ap.add_argument("--scenes", nargs="+", required=True)
     ap.add_argument("--output", type=Path, required=True, help="combined JSON")
     ap.add_argument("--sources", type=Path, default=None, help="JSON naming the official commits used")
-    ap.add_argument("--target-iterations", type=int, default=40000)
+    ap.add_argument("--target-iterations", type=int, default=None, help="default: the run's own --iterations")
     ap.add_argument("--note", default="", help="how the GPU was shared during training (other runs beside these)")
     args = ap.parse_args()
 
@@ -193,6 +236,9 @@ def main() -> None:
     except ImportError:  # nerfstudio 1.1.5 re-exports pytorch_msssim's
         from pytorch_msssim import SSIM
     ssim = SSIM(data_range=1.0, size_average=True, channel=3)
+    from garo_ns.ssim import SSIM as GaroSSIM  # what GaroModel.ssim is: scores the real captures, as garo-eval does
+
+    real_ssim = GaroSSIM(data_range=1.0).cuda()
     lpips = make_lpips()
     sources = json.loads(args.sources.read_text()) if args.sources and args.sources.is_file() else {}
 
@@ -213,7 +259,8 @@ def main() -> None:
             continue
         torch.cuda.empty_cache()
         model = OfficialRun(run, data, it)
-        metrics = score(model, data, ssim, lpips)
+        metrics = score(model, data, real_ssim if model.real else ssim, lpips)
+        target = args.target_iterations or int(model.cfg.iterations)
         timing = measure_fps(model)
         official = {
             "psnr": metrics["psnr"],
@@ -223,10 +270,13 @@ def main() -> None:
             "fps": timing["fps"],
             "ms_deformation": timing["ms_deformation"],
             "iterations": it,
-            "split": "test",
+            "split": "val" if model.real else "test",  # a capture's held-out frames: garo-eval --split val
             "background": "black",
+            "kind": "real" if model.real else "dnerf",
+            "train_args": train_args(model.cfg),
             "train_seconds": (end - start) if start is not None and end is not None else None,
             "psnr_official_gt": metrics["psnr_official_gt"],
+            "gt_max_difference": metrics["gt_max_difference"],
             "n_images": metrics["n_images"],
             "resolution": metrics["resolution"],
             "timing": timing,
@@ -236,7 +286,7 @@ def main() -> None:
                 "official": official,
                 "official_reported_psnr": info["reported"].get(it),
                 "official_reported_psnr_by_iteration": {str(k): v for k, v in sorted(info["reported"].items())},
-                "shortened": it < args.target_iterations,
+                "shortened": it < target,
                 "training_complete": bool(info["complete"]),
                 "training_exit_code": None if rc is None else int(rc),
                 "last_progress_iteration": info["last_progress"],
@@ -262,7 +312,7 @@ def main() -> None:
         "official_branch": "paper",
         "official_commit": sources.get("official_commit"),
         "sources": sources,
-        "train_args": "--eval --is_blender (black background), 40000 iterations, official defaults otherwise",
+        "train_args": sorted({r["official"]["train_args"] for r in rows if r.get("official")}),
         "runs_together": list(args.scenes),
         "note": args.note,
         "protocol": {

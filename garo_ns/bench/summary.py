@@ -47,6 +47,9 @@ class SummaryArgs:
     """The variant the target is judged for (one of --variants), e.g. garo-compact+auto."""
     size_variant: Optional[str] = None
     """The row whose model size is the half-precision file (one of --variants), e.g. garo-compact+auto+fp16."""
+    official: List[Path] = field(default_factory=list)
+    """Results of the official D-3DGS code (benchmarks/official_score.py, e.g. official_real_<GPU>.json): each
+    scene's official arm goes under `official` in that scene's row, beside the baseline."""
 
 
 def _mean(values: List[Optional[float]]) -> Optional[float]:
@@ -184,6 +187,28 @@ def summarise(
     }
 
 
+def attach_official(summary: Dict[str, Any], official: List[Tuple[str, Dict[str, Any]]]) -> None:
+    """Put each official run's arm (official_score.py's row) under `official` in the row of its scene, with the
+    baseline's PSNR minus the official one (`psnr_gap_db`) and the GPU it was scored on."""
+    rows = {r["scene"]: r for r in summary["rows"]}
+    for source, result in official:
+        for orow in result.get("rows", []):
+            row, arm = rows.get(orow.get("scene")), orow.get("official")
+            if row is None or arm is None:
+                continue
+            if "official" in row:
+                raise ValueError(f"{row['scene']}: an official run in {row['official']['source']} and in {source}")
+            if arm.get("split") != row["split"]:
+                raise ValueError(f"{source}: {row['scene']} scored on {arm.get('split')}, ours on {row['split']}")
+            row["official"] = {
+                **{k: arm.get(k) for k in (*METRICS, "iterations", "train_args")},
+                "shortened": orow.get("shortened"),
+                "gpu": result.get("gpu"),
+                "source": source,
+                "psnr_gap_db": row[BASELINE]["psnr"] - arm["psnr"],
+            }
+
+
 def write_report(summary: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
     """Markdown table and a plot (per scene, an arrow from the baseline to each variant)."""
     import matplotlib
@@ -227,6 +252,15 @@ def write_report(summary: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
         )
     if summary["shortened_scenes"]:
         lines += ["", f"Shortened schedules in: {', '.join(summary['shortened_scenes'])}."]
+    for r in summary["rows"]:
+        if "official" in r:
+            o = r["official"]
+            lines += [
+                "",
+                f"{r['scene']}: the official D-3DGS code ({o['iterations']} it, {o['gpu']}, {o['source']}): PSNR "
+                f"{fmt(o['psnr'], '.2f')}, SSIM {fmt(o['ssim'], '.4f')}, LPIPS {fmt(o['lpips'], '.4f')}; "
+                f"{BASELINE} minus official: {o['psnr_gap_db']:+.2f} dB.",
+            ]
     if "target_check" in summary:
         lines += ["", *target_lines(summary["target_check"])]
     for r in summary["rows"]:
@@ -293,6 +327,7 @@ def main(args: SummaryArgs) -> Dict[str, Any]:
             summary["target_check"] = check_target(
                 summary, args.target_variant, TARGETS[args.target], args.size_variant
             )
+        attach_official(summary, read_results(args.official) if args.official else [])
     except ValueError as err:
         raise SystemExit(f"error: {err}") from None
     publish(summary, args.output, write_report)

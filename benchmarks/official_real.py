@@ -1,0 +1,218 @@
+"""A real capture (an `ns-process-data video` folder) in the official D-3DGS code's COLMAP layout, with our frames,
+pixels and held-out split: `bash benchmarks/official_d3dgs.sh prepare-real CAPTURE NAME` runs this here (CPU).
+
+    python benchmarks/official_real.py CAPTURE .d3dgs/scenes/NAME
+
+The pixels are the ones our runs train on and are scored against, taken from our own datamanager (the
+`deform-splatfacto-real` recipe's, on the CPU): `images_2/` read by `garo_ns.data.video`, undistorted by
+nerfstudio's full-image datamanager (OpenCV, `getOptimalNewCameraMatrix` with alpha 0, cropped to the valid
+region) and cached as uint8. Each is written as a lossless PNG, and the undistorted intrinsics become one PINHOLE
+camera. Not `colmap image_undistorter`: it resamples with its own warp to another size and principal point, so its
+frames could not be scored against ours pixel for pixel; and not full-size images with the official `-r 2`: PIL's
+resize of an undistorted full frame is not ns-process-data's downscale. The official reader then loads these
+bytes as we do (uint8 / 255, no resize below 1600 pixels wide).
+
+Layout written (what the official `readColmapSceneInfo` reads, plus two files of ours):
+  images/NNNNN.png      the posed frames renamed by their place in video order (00000 first), so the official
+                        time int(name) / (count - 1) is that place over the posed frames; ours is the place over
+                        every extracted frame, the same where COLMAP posed them all (`time_max_difference`)
+  sparse/0/cameras.txt  one PINHOLE camera: the undistorted size and intrinsics (COLMAP's convention: pixel
+                        centres at +0.5, as nerfstudio's)
+  sparse/0/images.txt   COLMAP's own poses of these frames (colmap/sparse/0/images.bin): the cameras our reader
+                        takes from transforms.json, in COLMAP's world frame instead of nerfstudio's
+  sparse/0/points3D.bin COLMAP's points, the ones ns-process-data wrote to sparse_pc.ply (our seed points)
+  test_frames.txt       the held-out frames (our reader's `val`: every 8th of the capture order, never the first or
+                        last posed frame), read by the official code patched with `split_file`
+  garo_frames.json      the mapping (our frame id, name, split, both times), the camera and the checks below
+
+Checks (a SystemExit naming the problem): the frames COLMAP's model holds are the ones our reader posed; the
+relative rotations and camera distances of transforms.json (as our reader oriented and scaled them) agree with
+COLMAP's; every frame has the same undistorted intrinsics; the PNGs read back equal the cached images.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import shutil
+import sys
+from pathlib import Path
+from typing import Any, Dict, List, Sequence, Tuple
+
+import numpy as np
+
+METHOD = "deform-splatfacto-real"  # the baseline's recipe: its datamanager and dataparser settings
+_CV_TO_GL = np.diag([1.0, -1.0, -1.0])
+
+
+def frame_plan(ids: Sequence[str], held_out: Sequence[str], times: Dict[str, float]) -> List[Dict[str, Any]]:
+    """Each posed frame in video order: our id, its official name (its place, 5 digits: string order is video
+    order), its split, our time and the official one (place / (count - 1))."""
+    order = sorted(ids, key=lambda cid: times[cid])
+    if len(set(order)) != len(order):
+        raise SystemExit("a frame id is given twice")
+    test = set(held_out)
+    if not test <= set(order):
+        raise SystemExit(f"held-out frames not among the posed ones: {sorted(test - set(order))[:3]}")
+    span = max(len(order) - 1, 1)
+    return [
+        {
+            "name": f"{i:05d}",
+            "ours": cid,
+            "split": "test" if cid in test else "train",
+            "time_ours": float(times[cid]),
+            "time_official": i / span,
+        }
+        for i, cid in enumerate(order)
+    ]
+
+
+def images_text(plan: List[Dict[str, Any]], poses: Dict[str, Tuple[np.ndarray, np.ndarray]]) -> str:
+    """COLMAP's images.txt for camera 1: each frame's world-to-camera quaternion (w, x, y, z) and translation, under
+    its official name; no 2D points (the official reader does not use them)."""
+    lines = ["# IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, then POINTS2D (none)"]
+    for i, frame in enumerate(plan, 1):
+        q, t = poses[frame["ours"]]
+        lines += [f"{i} {' '.join(repr(float(v)) for v in (*q, *t))} 1 {frame['name']}.png", ""]
+    return "\n".join(lines) + "\n"
+
+
+def cameras_text(width: int, height: int, fx: float, fy: float, cx: float, cy: float) -> str:
+    return f"# CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]\n1 PINHOLE {width} {height} {fx!r} {fy!r} {cx!r} {cy!r}\n"
+
+
+def qvec_to_rotation(q: np.ndarray) -> np.ndarray:
+    w, x, y, z = q
+    return np.array(
+        [
+            [1 - 2 * y * y - 2 * z * z, 2 * x * y - 2 * w * z, 2 * x * z + 2 * w * y],
+            [2 * x * y + 2 * w * z, 1 - 2 * x * x - 2 * z * z, 2 * y * z - 2 * w * x],
+            [2 * x * z - 2 * w * y, 2 * y * z + 2 * w * x, 1 - 2 * x * x - 2 * y * y],
+        ]
+    )
+
+
+def pose_agreement(
+    ours: Dict[str, np.ndarray], colmap: Dict[str, Tuple[np.ndarray, np.ndarray]], ids: Sequence[str]
+) -> Dict[str, float]:
+    """How far our cameras (OpenGL camera-to-world, oriented and scaled) are from COLMAP's (world-to-camera) up to
+    a similarity: the largest angle (degrees) between the two rotations from the first frame to each other one, and
+    the spread (max / min) of the ratio of the cameras' distances to their mean centre (cameras within a
+    thousandth of the largest distance left out: a phone held still at the start sits on the centre)."""
+    rotations, centres = {}, {}
+    for cid in ids:
+        q, t = colmap[cid]
+        r = qvec_to_rotation(np.asarray(q))
+        rotations[cid], centres[cid] = r.T, -r.T @ np.asarray(t)
+    first = ids[0]
+    worst = 0.0
+    for cid in ids[1:]:
+        rel_ours = ours[first][:3, :3].T @ ours[cid][:3, :3]
+        rel_colmap = _CV_TO_GL @ rotations[first].T @ rotations[cid] @ _CV_TO_GL
+        cos = (np.trace(rel_ours.T @ rel_colmap) - 1) / 2
+        worst = max(worst, float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))))
+    c_ours = np.stack([ours[cid][:3, 3] for cid in ids])
+    c_colmap = np.stack([centres[cid] for cid in ids])
+    d_ours = np.linalg.norm(c_ours - c_ours.mean(0), axis=1)
+    d_colmap = np.linalg.norm(c_colmap - c_colmap.mean(0), axis=1)
+    far = d_colmap > 1e-3 * d_colmap.max()
+    ratios = d_ours[far] / d_colmap[far]
+    return {"max_relative_rotation_deg": worst, "distance_ratio_spread": float(ratios.max() / ratios.min())}
+
+
+def our_views(capture: Path) -> Tuple[Any, Dict[str, Any]]:
+    """Our reader's capture and, per frame id, the cached uint8 image and undistorted intrinsics (fx, fy, cx, cy, w,
+    h), as our datamanager makes them (set up on the CPU)."""
+    from garo_ns.config import METHODS
+    from garo_ns.data.video import read_video_capture
+
+    config = copy.deepcopy(METHODS[METHOD].config.pipeline.datamanager)
+    parser = config.dataparser
+    config.data = parser.data = capture
+    dm = config.setup(device="cpu", test_mode="val")
+    views = {}
+    for dataset, cache in ((dm.train_dataset, dm.cached_train), (dm.eval_dataset, dm.cached_eval)):
+        cams = dataset.cameras
+        for i, cid in enumerate(dataset.metadata["ids"]):
+            k = tuple(float(getattr(cams, a)[i]) for a in ("fx", "fy", "cx", "cy"))
+            views[cid] = {
+                "image": cache[i]["image"][..., :3].cpu().numpy(),
+                "intrinsics": (*k, int(cams.width[i]), int(cams.height[i])),
+                "split": "train" if dataset is dm.train_dataset else "test",
+            }
+    ours = read_video_capture(capture, parser.downscale_factor, parser.eval_every, parser.min_posed_fraction)
+    return ours, views
+
+
+def prepare(capture: Path, out: Path) -> Dict[str, Any]:
+    import imageio.v2 as imageio
+    from nerfstudio.data.utils.colmap_parsing_utils import read_images_binary
+
+    ours, views = our_views(capture)
+    plan = frame_plan(ours.ids, ours.splits["val"], ours.times)
+    if {f["ours"]: f["split"] for f in plan} != {cid: v["split"] for cid, v in views.items()}:
+        raise SystemExit(f"{capture}: the datamanager's splits differ from the reader's")
+    model = capture / "colmap" / "sparse" / "0"
+    colmap = {Path(im.name).stem: (im.qvec, im.tvec) for im in read_images_binary(model / "images.bin").values()}
+    if set(colmap) != set(ours.ids):
+        raise SystemExit(
+            f"{model}: COLMAP's frames differ from those our reader posed (only COLMAP's: "
+            f"{sorted(set(colmap) - set(ours.ids))[:3]}, only ours: {sorted(set(ours.ids) - set(colmap))[:3]})"
+        )
+    agreement = pose_agreement(ours.c2w, colmap, [f["ours"] for f in plan])
+    if agreement["max_relative_rotation_deg"] > 0.1 or agreement["distance_ratio_spread"] > 1.001:
+        raise SystemExit(f"{capture}: transforms.json's cameras are not COLMAP's up to a similarity: {agreement}")
+    intrinsics = {v["intrinsics"] for v in views.values()}
+    if len(intrinsics) != 1:
+        raise SystemExit(f"{capture}: the undistorted frames differ in intrinsics: {sorted(intrinsics)[:2]}")
+    fx, fy, cx, cy, w, h = intrinsics.pop()
+
+    if out.exists():
+        shutil.rmtree(out)
+    (out / "images").mkdir(parents=True)
+    (out / "sparse" / "0").mkdir(parents=True)
+    for frame in plan:
+        pixels = views[frame["ours"]]["image"]
+        path = out / "images" / f"{frame['name']}.png"
+        imageio.imwrite(path, pixels)
+        if not np.array_equal(np.asarray(imageio.imread(path))[..., :3], pixels):
+            raise SystemExit(f"{path}: the PNG read back differs from the cached image")
+    (out / "sparse" / "0" / "cameras.txt").write_text(cameras_text(w, h, fx, fy, cx, cy))
+    (out / "sparse" / "0" / "images.txt").write_text(images_text(plan, colmap))
+    shutil.copyfile(model / "points3D.bin", out / "sparse" / "0" / "points3D.bin")
+    test = [f["name"] for f in plan if f["split"] == "test"]
+    (out / "test_frames.txt").write_text("\n".join(test) + "\n")
+    manifest = {
+        "capture": str(capture),
+        "pixels": f"{METHOD}'s datamanager: images_2/, undistorted and cropped as nerfstudio caches them",
+        "camera": {"model": "PINHOLE", "width": w, "height": h, "fx": fx, "fy": fy, "cx": cx, "cy": cy},
+        # The official camera is centred (its projection has no principal point): this far off, in pixels.
+        "principal_point_offset_px": [cx - w / 2, cy - h / 2],
+        "n_frames": len(plan),
+        "n_test": len(test),
+        "unposed": list(ours.unposed),
+        "time_max_difference": max(abs(f["time_ours"] - f["time_official"]) for f in plan),
+        "pose_agreement": agreement,
+        "frames": plan,
+    }
+    (out / "garo_frames.json").write_text(json.dumps(manifest, indent=1))
+    return manifest
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("capture", type=Path, help="an ns-process-data video folder (transforms.json, images_2/, colmap/)")
+    ap.add_argument("out", type=Path, help="the scene folder to write, .d3dgs/scenes/NAME")
+    args = ap.parse_args()
+    m = prepare(args.capture.resolve(), args.out)
+    c, off = m["camera"], m["principal_point_offset_px"]
+    print(
+        f"{args.out}: {m['n_frames']} frames ({m['n_test']} held out), {c['width']}x{c['height']} PINHOLE "
+        f"fx {c['fx']:.2f} fy {c['fy']:.2f}, principal point {off[0]:+.2f} {off[1]:+.2f} px off centre; times differ "
+        f"by at most {m['time_max_difference']:.3g}; poses: {m['pose_agreement']}"
+    )
+
+
+if __name__ == "__main__":
+    sys.exit(main())
