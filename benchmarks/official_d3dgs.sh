@@ -49,7 +49,8 @@
 # The patches are named in SOURCES.json's "patches" and in the result's file name (official_d3dgs_<P+P>_<GPU>.json).
 #
 # REAL CAPTURES (issue #68 item 3: an `ns-process-data video` folder, on our frames, pixels and held-out split).
-# HERE, after assemble, once per capture (about 20 s; needs the capture's colmap/sparse/0 and images_2/):
+# HERE, after assemble (SCENES=" " assembles without D-NeRF scenes), once per capture (about 20 s; needs the
+# capture's colmap/sparse/0 and images_2/):
 #   bash benchmarks/official_d3dgs.sh prepare-real /work/real/pillow pillow   (benchmarks/official_real.py)
 #        .d3dgs/scenes/NAME   the official COLMAP layout (13-14 MB for pillow, teddy): the posed frames as our
 #                             datamanager caches them (images_2/, undistorted by nerfstudio, uint8) renamed
