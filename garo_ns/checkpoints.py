@@ -279,17 +279,54 @@ def _resolve_load_step(config: Any) -> Optional[int]:
 
 
 _patched = False
+_eval_patched = False
+
+
+def _patch_eval_loader() -> bool:
+    """Make nerfstudio's `eval_load_checkpoint` (ns-viewer, ns-eval, ns-render, garo-eval) load the newest complete
+    checkpoint and check it first, so a truncated or foreign file is one line naming it, not torch's traceback.
+    Needs nerfstudio's eval_utils module fully imported; returns whether it is patched."""
+    global _eval_patched
+    if _eval_patched:
+        return True
+    module = sys.modules.get("nerfstudio.utils.eval_utils")
+    original = getattr(module, "eval_load_checkpoint", None)
+    if original is None:
+        return False
+    _eval_patched = True
+
+    def eval_load_checkpoint(config: Any, pipeline: Any) -> Tuple[Path, int]:
+        pinned = _resolve_load_step(config)
+        try:
+            path = checkpoint_to_load(config)
+            if path is not None:
+                model_config = getattr(getattr(config, "pipeline", None), "model", None)
+                check_checkpoint_file(path, model_config)
+            try:
+                return original(config, pipeline)
+            except GaroInputError as err:  # the model's state does not fit (check_fit)
+                raise GaroInputError(f"cannot load the checkpoint {path}: {err}") from None
+        finally:
+            if pinned is not None:
+                config.load_step = None
+
+    module.eval_load_checkpoint = functools.update_wrapper(eval_load_checkpoint, original)
+    return True
 
 
 def install() -> bool:
-    """Patch nerfstudio's Trainer once its module is fully imported; returns whether it is patched.
+    """Patch nerfstudio's Trainer once its module is fully imported, and its eval loader once eval_utils is;
+    returns whether the Trainer is patched.
 
     `garo_ns.compat.install` calls this on every import of the plugin's entry points. The first call can
     come while nerfstudio is still importing the trainer module (its dataparser registry loads plugins
     from inside that import), when the patch cannot be applied yet; the method registry, which loads
     `garo_ns.config` before any training starts, comes later, after the trainer module is complete.
+    ns-viewer, ns-eval and ns-render load the plugin from inside the import of eval_utils, so its loader is
+    patched from the model's set-up (`GaroModel.populate_modules` calls this), which runs before it loads.
     """
     global _patched
+    _patch_eval_loader()
     if _patched:
         return True
     trainer_module = sys.modules.get("nerfstudio.engine.trainer")

@@ -79,6 +79,7 @@ class GaroModel(SplatfactoModel):
 
     # ------------------------------------------------------------------ set-up
     def populate_modules(self) -> None:
+        checkpoints.install()  # ns-viewer's checkpoint loader exists only now (see checkpoints.install)
         cfg = self.config
         metadata: Dict[str, Any] = dict(self.kwargs.get("metadata") or {})
         self.scene_extent = cfg.extent_for(metadata)

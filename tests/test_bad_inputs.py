@@ -1,11 +1,13 @@
-"""Bad input ends in one line: broken datasets, checkpoints and flags as a user feeds them to `ns-train`.
+"""Bad input ends in one line: broken datasets, checkpoints and flags as a user feeds them to `ns-train` (and a
+broken run to `ns-viewer`).
 
 Each row of `CASES` breaks a fresh copy of a valid input one way and runs what the `ns-train` command runs,
 in-process (`run_ns_train`: tyro's parse of the arguments, nerfstudio's `main`, then the plugin's handler
-for an uncaught error, as the interpreter would call it). Every row must end with a non-zero exit status,
-exactly one line on stderr that starts with "error: " and names the file (with its frame, id or key), no
-traceback, no run folder, within seconds. A row also runs as a real `ns-train` process, to show that the
-in-process run says what the command says. The table in docs/testing.md is generated from the rows.
+for an uncaught error, as the interpreter would call it; `run_ns_viewer` likewise for a row whose arguments start
+with "ns-viewer"). Every row must end with a non-zero exit status, exactly one line on stderr that starts with
+"error: " and names the file (with its frame, id or key), no traceback, no run folder (ns-viewer: no file of the
+run written), within seconds. Two rows also run as real processes, to show that the in-process run says what the
+command says. The table in docs/testing.md is generated from the rows.
 """
 
 from __future__ import annotations
@@ -67,6 +69,32 @@ def run_ns_train(args: List[str], out: Path) -> Outcome:
     from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
     from nerfstudio.scripts import train as ns_train
 
+    outcome = run_in_process(lambda: ns_train.main(tyro.cli(AnnotatedBaseConfigUnion, args=with_output(args, out))))
+    outcome.run_files = sorted(p for p in out.rglob("*")) if out.exists() else []
+    return outcome
+
+
+def files_of(folder: Path) -> Dict[Path, Tuple[int, int]]:
+    """Every file under `folder` with its size and modification time."""
+    return {p: (p.stat().st_size, p.stat().st_mtime_ns) for p in folder.rglob("*") if p.is_file()}
+
+
+def run_ns_viewer(args: List[str], run: Path) -> Outcome:
+    """`ns-viewer ARGS` (args[0] is "ns-viewer") in this process, as its entrypoint runs it, reported as
+    `run_ns_train` reports; `run_files` are the files under the run folder `run` it created or changed."""
+    import tyro
+    from nerfstudio.scripts.viewer.run_viewer import RunViewer
+
+    before = files_of(run)
+    outcome = run_in_process(lambda: tyro.cli(tyro.conf.FlagConversionOff[RunViewer], args=args[1:]).main())
+    after = files_of(run)
+    outcome.run_files = sorted(p for p in after if before.get(p) != after[p])
+    return outcome
+
+
+def run_in_process(command: Callable[[], Any]) -> Outcome:
+    """Run `command` with its output captured, as the interpreter runs a command: an uncaught error goes to the
+    plugin's excepthook (a traceback for anything not a GaroError), exit status 1."""
     stdout, stderr = io.StringIO(), io.StringIO()
     status = 0
     start = time.perf_counter()
@@ -75,7 +103,7 @@ def run_ns_train(args: List[str], out: Path) -> Outcome:
     try:
         with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
             try:
-                ns_train.main(tyro.cli(AnnotatedBaseConfigUnion, args=with_output(args, out)))
+                command()
             except SystemExit as err:
                 status = err.code if isinstance(err.code, int) else 1
                 if err.code is not None and not isinstance(err.code, int):
@@ -85,8 +113,7 @@ def run_ns_train(args: List[str], out: Path) -> Outcome:
                 status = 1
     finally:
         compat._previous_hook = previous
-    files = sorted(p for p in out.rglob("*")) if out.exists() else []
-    return Outcome(status, stdout.getvalue(), stderr.getvalue(), time.perf_counter() - start, files)
+    return Outcome(status, stdout.getvalue(), stderr.getvalue(), time.perf_counter() - start, [])
 
 
 # --- valid inputs, copied and broken one way per row -------------------------------------------------------------
@@ -113,6 +140,18 @@ class Inputs:
 
     def checkpoints(self) -> Path:
         return self._copy("checkpoints")
+
+    def run(self) -> Path:
+        """A copy of the trained run's folder, its config.yml pointing at the copy (as ns-viewer reads it)."""
+        import yaml
+
+        runs = self._copy("runs")
+        [path] = runs.glob("*/*/*/config.yml")
+        config = yaml.load(path.read_text(), Loader=yaml.Loader)
+        config.output_dir = runs
+        path.write_text(yaml.dump(config))
+        assert config.get_base_dir() == path.parent
+        return path.parent
 
     def dnerf_args(self) -> List[str]:
         return ["garo-deform", *COMMON, *MODEL, "--data", str(self.dnerf())]
@@ -176,6 +215,17 @@ def checkpoint_case(change: Callable[[Path], None], names: Callable[[Path], List
         folder = inputs.checkpoints()
         change(folder)
         return [*inputs.dnerf_args(), "--load-dir", str(folder), *extra], names(folder)
+
+    return build
+
+
+def viewer_case(change: Callable[[Path], None], names: Callable[[Path], List[str]]) -> Build:
+    """`ns-viewer` on a copy of the trained run, its checkpoint folder broken by `change`."""
+
+    def build(inputs: Inputs) -> Tuple[List[str], List[str]]:
+        run = inputs.run()
+        change(run / "nerfstudio_models")
+        return ["ns-viewer", "--load-config", str(run / "config.yml")], names(run / "nerfstudio_models")
 
     return build
 
@@ -586,6 +636,11 @@ CASES: List[Tuple[str, str, Build]] = [
     ),
     (
         "checkpoint",
+        "truncated, opened in ns-viewer",
+        viewer_case(lambda f: truncate(checkpoint_path(f)), lambda f: [str(checkpoint_path(f).name), str(f)]),
+    ),
+    (
+        "checkpoint",
         "--load-step of no checkpoint",
         checkpoint_case(lambda f: None, lambda f: [str(f), "step-000000007.ckpt"], "--load-step", "7"),
     ),
@@ -666,7 +721,7 @@ def templates(tmp_path_factory) -> Dict[str, Path]:
     ckpts = root / "runs" / "ok" / "garo-deform" / "t" / "nerfstudio_models"
     again = run_ns_train([*args[:-4], "--load-dir", str(ckpts)], root / "resumed")  # and loads back
     assert again.status == 0, again.stderr[-3000:]
-    return {"scene": scene, "capture": capture, "checkpoints": ckpts}
+    return {"scene": scene, "capture": capture, "checkpoints": ckpts, "runs": root / "runs"}
 
 
 ROWS: Dict[str, Tuple[str, str, str]] = {}  # case id -> (input, what, the line with paths as placeholders)
@@ -683,6 +738,8 @@ def run_case(case: Tuple[str, str, Build], templates: Dict[str, Path], work: Pat
     work.mkdir(parents=True, exist_ok=True)
     inputs = Inputs(templates, work)
     args, names = case[2](inputs)
+    if args[0] == "ns-viewer":
+        return run_ns_viewer(args, inputs.copies["runs"]), names, inputs
     return run_ns_train(args, work / "outputs"), names, inputs
 
 
@@ -716,7 +773,7 @@ def test_the_table_has_every_kind_of_input():
 def render_table(rows: Dict[str, Tuple[str, str, str]]) -> str:
     """The docs table: one row per case, in the order of CASES."""
     out = [
-        "| Input | Broken how | The one line ns-train prints (exit status 1, no run folder) |",
+        "| Input | Broken how | The one line ns-train (or ns-viewer) prints (exit status 1, nothing written) |",
         "| --- | --- | --- |",
     ]
     for case in CASES:
@@ -744,22 +801,31 @@ def test_docs_table_is_the_one_the_rows_print():
 # --- a few rows as the real command ------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", ["flag-pipeline-model-rho-max-2-out-of-range"])
+@pytest.mark.parametrize(
+    "name", ["flag-pipeline-model-rho-max-2-out-of-range", "checkpoint-truncated-opened-in-ns-viewer"]
+)
 def test_the_command_prints_what_the_in_process_run_prints(name, templates, tmp_path):
     """A flag row as the real command: parsed by tyro and reported by the installed excepthook, the path
-    the in-process run imitates most (dataset rows as commands: test_early_errors.py)."""
+    the in-process run imitates most (dataset rows as commands: test_early_errors.py). The ns-viewer row as
+    the command too: it imports the plugin in another order (from inside nerfstudio's eval_utils)."""
     case = next(c for c in CASES if case_id(c) == name)
     inputs = Inputs(templates, tmp_path / "command")
     args, names = case[2](inputs)
-    out = inputs.work / "outputs"
-    proc = subprocess.run(
-        # Deprecation warnings that torch and nerfstudio print at import are no part of the report.
-        [sys.executable, "-W", "ignore::FutureWarning", "-m", "nerfstudio.scripts.train", *with_output(args, out)],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    command = Outcome(proc.returncode, proc.stdout, proc.stderr, 0.0, sorted(out.rglob("*")) if out.exists() else [])
+    if args[0] == "ns-viewer":
+        watched = inputs.copies["runs"]
+        command_line = ["-m", "nerfstudio.scripts.viewer.run_viewer", *args[1:]]
+    else:
+        watched = inputs.work / "outputs"
+        command_line = ["-m", "nerfstudio.scripts.train", *with_output(args, watched)]
+    before = files_of(watched) if watched.exists() else {}
+    # Deprecation warnings that torch and nerfstudio print at import, and the one of a machine without LPIPS's
+    # weights (ns-viewer builds the model before it loads), are no part of the report (pytest keeps them from
+    # the in-process run's stderr too).
+    warnings = ["-W", "ignore::FutureWarning", "-W", "ignore::UserWarning"]
+    proc = subprocess.run([sys.executable, *warnings, *command_line], capture_output=True, text=True, timeout=600)
+    after = files_of(watched) if watched.exists() else {}
+    changed = sorted(p for p in after if before.get(p) != after[p])
+    command = Outcome(proc.returncode, proc.stdout, proc.stderr, 0.0, changed)
     line = placeholders(assert_one_line(command, names), inputs)
     outcome, names, in_process = run_case(case, templates, tmp_path / "in_process")
     assert line == placeholders(assert_one_line(outcome, names), in_process)
