@@ -29,9 +29,11 @@ from typing import Any, Callable, Dict, List, Tuple
 import numpy as np
 import pytest
 import torch
+from test_video_data import make_folder
 
 import garo_ns.config  # noqa: F401  (registers the methods and installs the plugin's nerfstudio hooks)
 from garo_ns import compat
+from garo_ns.data.nerfds import NerfDSDataParserConfig
 from garo_ns.tools.scene import SceneSpec, generate_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -141,6 +143,9 @@ class Inputs:
     def checkpoints(self) -> Path:
         return self._copy("checkpoints")
 
+    def video(self) -> Path:
+        return self._copy("video")
+
     def run(self) -> Path:
         """A copy of the trained run's folder, its config.yml pointing at the copy (as ns-viewer reads it)."""
         import yaml
@@ -158,6 +163,9 @@ class Inputs:
 
     def nerfds_args(self) -> List[str]:
         return ["garo-deform-real", *COMMON, *MODEL, "nerfds-data", "--data", str(self.nerfds())]
+
+    def video_args(self) -> List[str]:
+        return ["garo-deform-real", *COMMON, *MODEL, "nerfds-data", "--data", str(self.video())]
 
 
 def edit_json(path: Path, change: Callable[[Any], Any]) -> None:
@@ -206,6 +214,15 @@ def nerfds_case(change: Callable[[Path], None], names: Callable[[Path], List[str
         capture = inputs.nerfds()
         change(capture)
         return inputs.nerfds_args(), names(capture)
+
+    return build
+
+
+def video_case(change: Callable[[Path], None], names: Callable[[Path], List[str]]) -> Build:
+    def build(inputs: Inputs) -> Tuple[List[str], List[str]]:
+        folder = inputs.video()
+        change(folder)
+        return inputs.video_args(), names(folder)
 
     return build
 
@@ -300,6 +317,7 @@ def without_field(state: Dict[str, Any]) -> None:  # what a splatfacto run's che
 
 
 CAM = "camera/train_001.json"
+VIDEO_FRAME = "images/frame_00002.png"
 CASES: List[Tuple[str, str, Build]] = [
     # D-NeRF layout (garo-dnerf-data)
     (
@@ -591,6 +609,15 @@ CASES: List[Tuple[str, str, Build]] = [
             lambda d: [str(d / "dataset.json"), "val_ids"],
         ),
     ),
+    # A video after ns-process-data, with a time per frame (nerfds-data)
+    (
+        "video",
+        "a file_path listed twice",
+        video_case(
+            lambda d: edit_json(d / "transforms.json", lambda m: m["frames"][3].update(file_path=VIDEO_FRAME)),
+            lambda d: [str(d / "transforms.json"), "frame 3", VIDEO_FRAME],
+        ),
+    ),
     # Checkpoints (ns-train --load-dir)
     (
         "checkpoint",
@@ -715,13 +742,15 @@ def templates(tmp_path_factory) -> Dict[str, Path]:
     root = tmp_path_factory.mktemp("valid")
     scene = generate_scene(root / "scene", SPEC)
     capture = generate_scene(root / "capture", SPEC, layout="nerfds")
+    video = make_folder(root / "video", n=10, times={k: k / 10 for k in range(1, 11)}, downscales=1)
+    NerfDSDataParserConfig(data=video).check_data()  # the valid folder passes
     args = ["garo-deform", *COMMON, *MODEL, "--data", str(scene), "--experiment-name", "ok", "--timestamp", "t"]
     outcome = run_ns_train(args, root / "runs")
     assert outcome.status == 0, outcome.stderr[-3000:]
     ckpts = root / "runs" / "ok" / "garo-deform" / "t" / "nerfstudio_models"
     again = run_ns_train([*args[:-4], "--load-dir", str(ckpts)], root / "resumed")  # and loads back
     assert again.status == 0, again.stderr[-3000:]
-    return {"scene": scene, "capture": capture, "checkpoints": ckpts, "runs": root / "runs"}
+    return {"scene": scene, "capture": capture, "video": video, "checkpoints": ckpts, "runs": root / "runs"}
 
 
 ROWS: Dict[str, Tuple[str, str, str]] = {}  # case id -> (input, what, the line with paths as placeholders)
@@ -766,7 +795,7 @@ def test_bad_input_ends_in_one_line_naming_it(case, templates, tmp_path):
 
 def test_the_table_has_every_kind_of_input():
     kinds = {kind for kind, _, _ in CASES}
-    assert kinds == {"D-NeRF", "NeRF-DS", "checkpoint", "flag"}
+    assert kinds == {"D-NeRF", "NeRF-DS", "video", "checkpoint", "flag"}
     assert len(CASES) >= 30 and len({case_id(c) for c in CASES}) == len(CASES)
 
 

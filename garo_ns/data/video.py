@@ -200,6 +200,18 @@ def read_video_capture(
             "re-run ns-process-data on the video"
         )
 
+    # A frame's image names its camera: one listed twice would stand for two cameras (and times) at once.
+    first: Dict[str, int] = {}
+    for k, frame in enumerate(usable):
+        stem = Path(frame["file_path"]).stem
+        if stem in first:
+            j = first[stem]
+            raise GaroInputError(
+                f"{path}, frame {index[k]} ({frame['file_path']}): the same image as frame {index[j]} "
+                f"({usable[j]['file_path']}); list each frame once"
+            )
+        first[stem] = k
+
     # Capture order and time.
     with_time = sum("time" in f for f in usable)
     if 0 < with_time < len(usable):
