@@ -572,3 +572,31 @@ def test_a_frame_builds_its_table_anew_in_tf32_when_asked(device, monkeypatch):
     assert scale > 0
     difference = float((tf32.base - plain.base).abs().max())
     assert difference == 0.0 if device == "cpu" else difference <= 1e-2 * scale
+
+
+def test_a_time_outside_the_tables_range_renders_through_the_network():
+    """A table keys the training times' range only; past it the frame takes the field's own offsets instead of
+    freezing the edge pose."""
+    from garo_ns.deformation import DeformationField
+    from garo_ns.render.frame import FramePath, FrameSettings
+
+    g = torch.Generator().manual_seed(2)
+    n = 256
+    field = DeformationField(pos_freqs=4, time_freqs=3, depth=2, width=32, skip=1).eval()
+    for p in field.parameters():  # heads that move every Gaussian
+        p.data.normal_(0, 0.3, generator=g)
+    canonical = Canonical(
+        torch.rand(n, 3, generator=g), torch.randn(n, 4, generator=g), 0.1 * torch.randn(n, 3, generator=g),
+        torch.zeros(n, 1), torch.zeros(n, 3), torch.zeros(n, 15, 3),
+    )
+    spec = TableSpec(t_lo=0.2, t_hi=0.8, intervals=12, precision="fp32", tolerance=1.0)
+    tabled, plain = FrameSettings(time_table=True), FrameSettings()
+    frame = FramePath()
+    with torch.no_grad():
+        exact = {t: frame.splats(field, canonical, None, None, t, plain) for t in (0.05, 0.8, 0.95)}
+        for t in (0.05, 0.95):  # outside: the network's frame, not the edge key's
+            got = frame.splats(field, canonical, None, None, t, tabled, spec)
+            assert torch.equal(got.means, exact[t].means), t
+        edge = frame.splats(field, canonical, None, None, 0.8, tabled, spec)
+    assert frame.table is not None  # inside the range the table renders
+    assert not torch.equal(exact[0.95].means, edge.means)  # the field moves past the range: freezing would show

@@ -148,7 +148,10 @@ class FramePath:
         when `settings.time_table` is on (None, or a table that cannot be built: the network renders)."""
         if static is not None and (static_offset is None or static.shape[0] != canonical.means.shape[0]):
             static = None
-        if settings.time_table and table is not None and not torch.is_grad_enabled():
+        # Outside the training times' range a table has no keys that bracket the time: such a frame (a viewer's
+        # time slider past the last training frame, a held-out last frame) goes through the network, exact.
+        inside = table is not None and table.t_lo <= float(time) <= table.t_hi
+        if settings.time_table and inside and not torch.is_grad_enabled():
             tabled = self.time_table(field, canonical, table)
             if tabled is not None:
                 table_key = self._table[0]  # type: ignore[index]  # the spec, the parameters' versions, the scales
