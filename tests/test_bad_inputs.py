@@ -722,6 +722,11 @@ CASES: List[Tuple[str, str, Build]] = [
     ),
     (
         "flag",
+        "garo-dnerf-data --scale-factor 0",
+        lambda inputs: ([*inputs.dnerf_args(), "garo-dnerf-data", "--scale-factor", "0"], ["--scale-factor"]),
+    ),
+    (
+        "flag",
         "nerfds-data --downscale-factor 0",
         flag_case(["--downscale-factor", "0"], ["--downscale-factor"], real=True),
     ),

@@ -23,7 +23,7 @@ from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserCo
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.utils.colors import get_color
 
-from garo_ns.errors import GaroInputError
+from garo_ns.errors import GaroConfigError, GaroInputError, finite_number
 from garo_ns.render.view import camera_extent
 
 
@@ -48,6 +48,9 @@ class GaroDNeRFDataParserConfig(DataParserConfig):
         `ns-train` calls this before it prints or saves its configuration (see `garo_ns.compat`), so a
         bad dataset stops with one line and leaves no run folder. Raises GaroInputError.
         """
+        # The camera origins are multiplied by it: 0 puts every camera at one point, a negative one mirrors the scene.
+        if not finite_number(self.scale_factor) or self.scale_factor <= 0:
+            raise GaroConfigError(f"garo-dnerf-data --scale-factor must be a number > 0, got {self.scale_factor!r}")
         root = Path(data if data is not None else self.data)
         read_split(root, "train")
         read_split(root, self.eval_split)
