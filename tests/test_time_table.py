@@ -586,8 +586,12 @@ def test_a_time_outside_the_tables_range_renders_through_the_network():
     for p in field.parameters():  # heads that move every Gaussian
         p.data.normal_(0, 0.3, generator=g)
     canonical = Canonical(
-        torch.rand(n, 3, generator=g), torch.randn(n, 4, generator=g), 0.1 * torch.randn(n, 3, generator=g),
-        torch.zeros(n, 1), torch.zeros(n, 3), torch.zeros(n, 15, 3),
+        torch.rand(n, 3, generator=g),
+        torch.randn(n, 4, generator=g),
+        0.1 * torch.randn(n, 3, generator=g),
+        torch.zeros(n, 1),
+        torch.zeros(n, 3),
+        torch.zeros(n, 15, 3),
     )
     spec = TableSpec(t_lo=0.2, t_hi=0.8, intervals=12, precision="fp32", tolerance=1.0)
     tabled, plain = FrameSettings(time_table=True), FrameSettings()
@@ -600,3 +604,37 @@ def test_a_time_outside_the_tables_range_renders_through_the_network():
         edge = frame.splats(field, canonical, None, None, 0.8, tabled, spec)
     assert frame.table is not None  # inside the range the table renders
     assert not torch.equal(exact[0.95].means, edge.means)  # the field moves past the range: freezing would show
+
+
+@pytest.mark.parametrize("tf32", [False, True])
+def test_the_probe_samples_the_field_with_the_products_the_table_was_built_with(tf32):
+    """A table built in TF32 is judged with its own rounding: the halfway probe that records its change samples
+    the field inside TF32 products too (the flag is what matters; a CPU ignores it)."""
+    from garo_ns.render.frame import FramePath
+
+    inner = _field()
+    flags = []
+
+    class Watched:
+        def __call__(self, xyz, t):
+            flags.append(torch.backends.cuda.matmul.allow_tf32)
+            return inner(xyz, t)
+
+        def parameters(self):
+            return iter(())
+
+    field = Watched()
+    xyz = _xyz()
+    zeros = (torch.zeros(64, 3), torch.zeros(64, 1), torch.zeros(64, 3), torch.zeros(64, 15, 3))
+    canonical = Canonical(xyz, torch.randn(64, 4), *zeros)
+    was = torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = False
+    try:
+        frame = FramePath()
+        frame.table_tf32 = tf32
+        table = frame.time_table(field, canonical, _spec(12))
+        flags.clear()
+        table.offsets_halfway(field, xyz, 0.5)
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = was
+    assert flags and all(f == tf32 for f in flags)

@@ -213,6 +213,7 @@ class FramePath:
                     built: Optional[TimeTable] = make(
                         spec, field, canonical.means.detach(), scale_offset=self.scale_offset
                     )
+                built.tf32 = self.table_tf32  # type: ignore[union-attr]
                 self.table_info = {**built.info, "build_s": perf_counter() - start}  # type: ignore[union-attr]
                 # A preview renders halfway frames only (the reference path): no frame rows for it.
                 self._table_rows = None if self.preview else table_rows(canonical, built)  # type: ignore[arg-type]

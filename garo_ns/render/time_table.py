@@ -171,8 +171,9 @@ encoding's layers made once): below it, making that share costs about what it sa
 @contextmanager
 def tf32_products(enabled: bool) -> Iterator[None]:
     """Inside, when `enabled`, CUDA's fp32 matrix products take TF32 inputs (10-bit mantissas, fp32 sums) on tensor
-    cores; the previous setting is back after. A table's build is mostly the field's products, and its change is
-    measured on the table as built, so a build in TF32 is judged with its own rounding. No effect on a CPU."""
+    cores; the previous setting is back after. A table's build is mostly the field's products; the probe that
+    measures its change (`offsets_halfway`) samples the field in TF32 too when the table was built so
+    (`TimeTable.tf32`), so a TF32 table is judged with its own rounding. No effect on a CPU."""
     was = torch.backends.cuda.matmul.allow_tf32
     torch.backends.cuda.matmul.allow_tf32 = was or bool(enabled)
     try:
@@ -310,6 +311,9 @@ class TimeTable:
         self.info = info
         self._anchor_keys = spec.anchor_keys()
         self.scale_offset: ScaleOffset = "log"  # how the stored scale offsets compose (`build`)
+        # Built with TF32 products (garo_ns.render.frame sets it): the probe that judges the table samples the field
+        # the same way, so the measured change includes TF32's rounding of the keys.
+        self.tf32 = False
         self._key_anchor: Optional[Tensor] = None  # made on the first `rows_at`
         self._anchor_at: Optional[Tensor] = None
         self._line = anchor_lines(anchors, self._anchor_keys)
@@ -578,7 +582,8 @@ class TimeTable:
         times = [time - 1.5 * h, time - 0.5 * h, time + 0.5 * h, time + 1.5 * h]
         out = self.base.clone()
         if self.moving.numel():
-            r = (field_offsets(field, xyz, times) - self.base)[:, self.moving]
+            with tf32_products(self.tf32):
+                r = (field_offsets(field, xyz, times) - self.base)[:, self.moving]
             probe = TimeTable(
                 TableSpec(**{**self.spec.to_dict(), "intervals": 4 - 2 * PAD, "anchor_every": 3}),
                 self.base,
