@@ -526,6 +526,14 @@ CASES: List[Tuple[str, str, Build]] = [
     ),
     (
         "NeRF-DS",
+        "an id listed twice in train_ids",
+        nerfds_case(
+            lambda d: edit_json(d / "dataset.json", lambda m: m["train_ids"].append(m["train_ids"][1])),
+            lambda d: [str(d / "dataset.json"), "train_ids", "'train_001'"],
+        ),
+    ),
+    (
+        "NeRF-DS",
         "metadata.json lacks an id",
         nerfds_case(
             lambda d: edit_json(d / "metadata.json", lambda m: m.pop("train_001")),

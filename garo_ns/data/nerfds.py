@@ -134,6 +134,9 @@ def read_capture(data: Path, downscale: int = 2) -> Capture:
         for i in ids:  # an id names files (camera/<id>.json, rgb/<s>x/<id>.png): never a path
             if i in ("", ".", "..") or "/" in i or "\\" in i:
                 raise GaroInputError(f"{data / 'dataset.json'}: {key} holds {i!r}, which is not a file name")
+        if len(set(ids)) < len(ids):  # an id listed twice would weigh its view double in training or in the scores
+            twice = next(i for k, i in enumerate(ids) if i in ids[:k])
+            raise GaroInputError(f"{data / 'dataset.json'}: {key} holds {twice!r} twice; list each id once")
         splits[key[: -len("_ids")]] = ids
     if not splits["train"]:
         raise GaroInputError(f"{data / 'dataset.json'}: no train_ids")
