@@ -131,10 +131,78 @@ def check_checkpoint_file(path: Path, model_config: Any = None) -> None:
     if not isinstance(state.get("step"), int) or isinstance(state.get("step"), bool):
         raise GaroInputError(f"cannot load the checkpoint {path}: it records no step")
     if callable(getattr(model_config, "make_deformation", None)):
+        given = model_state(state["pipeline"])
         try:
-            check_fit(expected_state(model_config, model_state(state["pipeline"])), model_state(state["pipeline"]))
+            check_fit(expected_state(model_config, given), given)
         except GaroInputError as err:
-            raise GaroInputError(f"cannot load the checkpoint {path}: {err}") from None
+            raise GaroInputError(
+                f"cannot load the checkpoint {path}: {resume_hint(path, model_config, given) or err}"
+            ) from None
+
+
+def run_config_of(checkpoint: Path) -> Optional[Path]:
+    """The config.yml of the run a checkpoint was written by (`RUN/nerfstudio_models/step-*.ckpt`), if it is there."""
+    path = Path(checkpoint).parent.parent / "config.yml"
+    return path if path.is_file() else None
+
+
+def shape_settings(trained: Any, current: Any, given: Optional[Dict[str, Any]] = None) -> Dict[str, Any]:
+    """The settings of `trained` (a model config) that a model built from `current` needs to have the Gaussians'
+    and the deformation field's tensor shapes of one built from `trained`: those the two differ in that change a
+    shape (the field's depth, width, skip layer, the SH degree, ...), name -> `trained`'s value. `given`: the
+    checkpoint's state, when there is one (see `expected_state`)."""
+    from dataclasses import fields, replace
+
+    differ = {}
+    for f in fields(current):
+        if f.init and not f.name.startswith("_") and hasattr(trained, f.name):
+            if getattr(trained, f.name) != getattr(current, f.name):
+                differ[f.name] = getattr(trained, f.name)
+
+    def shapes(settings: Dict[str, Any]) -> Optional[Dict[str, Tuple[int, ...]]]:
+        try:
+            state = expected_state(replace(current, **settings), given)
+        except Exception:  # a mix of the two configs that its own checks refuse
+            return None
+        return {k: tuple(v.shape) for k, v in state.items()}
+
+    target = shapes(differ)
+    # Needed: a setting left as `current` has it changes a shape (one that matters only together with another,
+    # such as the skip layer with the depth, too).
+    return {name: v for name, v in differ.items() if shapes({k: w for k, w in differ.items() if k != name}) != target}
+
+
+def as_flags(settings: Dict[str, Any]) -> str:
+    """Model settings as ns-train's flags (`--pipeline.model.deform-depth 4 ...`)."""
+    words = []
+    for name, value in settings.items():
+        text = " ".join(str(v) for v in value) if isinstance(value, (list, tuple)) else str(value)
+        words.append(f"--pipeline.model.{name.replace('_', '-')} {text}")
+    return " ".join(words)
+
+
+def resume_hint(path: Path, model_config: Any, given: Dict[str, Any]) -> Optional[str]:
+    """What to add to the command, in one line, where the checkpoint's own run (its config.yml) trained a model
+    of shapes the command's settings miss and those settings fit the checkpoint; None otherwise."""
+    from dataclasses import replace
+
+    import yaml
+
+    config_path = run_config_of(path)
+    if config_path is None:
+        return None
+    try:
+        trained = yaml.load(config_path.read_text(), Loader=yaml.Loader).pipeline.model
+        settings = shape_settings(trained, model_config, given)
+        check_fit(expected_state(replace(model_config, **settings), given), given)
+    except Exception:  # an unreadable or foreign config.yml, or settings that still do not fit: no hint
+        return None
+    if not settings:
+        return None
+    return (
+        f"its run ({config_path}) trained a model of other settings than this command's; to resume it, add "
+        f"{as_flags(settings)} to the command"
+    )
 
 
 def model_state(pipeline_state: Dict[str, Any]) -> Dict[str, Any]:
@@ -147,15 +215,16 @@ def model_state(pipeline_state: Dict[str, Any]) -> Dict[str, Any]:
     return state
 
 
-def expected_state(model_config: Any, given: Dict[str, Any]) -> Dict[str, Tensor]:
+def expected_state(model_config: Any, given: Optional[Dict[str, Any]] = None) -> Dict[str, Tensor]:
     """The Gaussians' (one of each) and the deformation field's tensors a model built from `model_config`
-    has, for a checkpoint holding `given` (a field without a time network for one written before it)."""
+    has, for a checkpoint holding `given` (a field without a time network for one written before it; None:
+    the field as configured)."""
     from dataclasses import replace
 
     from garo_ns.initialisation import initial_gaussians
 
     config = model_config
-    if getattr(config, "deform_time_net", 0) and not has_time_net(given):
+    if getattr(config, "deform_time_net", 0) and given is not None and not has_time_net(given):
         config = replace(config, deform_time_net=0)
     gaussians = initial_gaussians(None, True, 4, 1.0, config.sh_degree)
     expected = {f"gauss_params.{k}": v for k, v in gaussians.items()}

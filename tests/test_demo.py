@@ -131,3 +131,37 @@ def test_demo_ab_trains_a_base_and_an_arm_per_seed(tmp_path):
         (config,) = (tmp_path / "work" / f"{side}_3").rglob("config.yml")
         assert f"deform_scale_offset: {offset}" in config.read_text()
     assert "Mean change over 1 seeds" in result.with_suffix(".md").read_text()
+
+
+def test_the_printed_resume_command_builds_the_arm_s_model(tmp_path):
+    """The demo's arms train a smaller field than their method's: the resume command it prints passes the settings
+    that shape the checkpoint's tensors (and no other), so ns-train builds a model the checkpoint fits."""
+    import shlex
+
+    import tyro
+    import yaml
+    from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
+
+    from garo_ns.checkpoints import expected_state, shape_settings
+    from garo_ns.tools.demo import DemoArgs, demo_config, resume_command
+
+    args = DemoArgs()
+    config = demo_config(args, "garo-deform", tmp_path / "scene", tmp_path, "cpu")
+    config.set_timestamp()
+    config.save_config()
+    config_path = config.get_base_dir() / "config.yml"
+    command = resume_command("garo-deform", config_path, tmp_path / "scene", steps=7)
+    words = shlex.split(command)
+    assert words[1] == "garo-deform" and words[words.index("--load-dir") + 1] == str(config.get_checkpoint_dir())
+    flags = {w: words[i + 1] for i, w in enumerate(words) if w.startswith("--pipeline.model.")}
+    depth, width, skip = str(args.deform_depth), str(args.deform_width), str(args.deform_skip)
+    assert flags == {
+        "--pipeline.model.deform-depth": depth,
+        "--pipeline.model.deform-width": width,
+        "--pipeline.model.deform-skip": skip,
+    }
+    parsed = tyro.cli(AnnotatedBaseConfigUnion, args=words[1:])
+    trained = yaml.load(config_path.read_text(), Loader=yaml.Loader).pipeline.model
+    assert parsed.max_num_iterations == 7 and shape_settings(trained, parsed.pipeline.model) == {}
+    shapes = {k: v.shape for k, v in expected_state(trained).items()}
+    assert {k: v.shape for k, v in expected_state(parsed.pipeline.model).items()} == shapes

@@ -395,6 +395,23 @@ def psnr_axis(values: List[float], min_span: float = 2.0) -> Tuple[float, float]
     return low - pad, high + pad
 
 
+def resume_command(method: str, config_path: Path, scene: Path, steps: int = 1000) -> str:
+    """The `ns-train` command that resumes a demo arm's run (its config.yml) for `steps` more steps: with the settings
+    that shape its tensors where they are not the method's (the demo's field is smaller), the rest of the recipe
+    the method's own from the arm's last step on."""
+    import yaml
+
+    from garo_ns.checkpoints import as_flags, shape_settings
+    from garo_ns.config import METHODS
+
+    trained = yaml.load(Path(config_path).read_text(), Loader=yaml.Loader).pipeline.model
+    flags = as_flags(shape_settings(trained, METHODS[method].config.pipeline.model))
+    models = Path(config_path).parent / "nerfstudio_models"
+    return (
+        f"{shell_command('ns-train')} {method} --data {scene} {flags} --load-dir {models} --max-num-iterations {steps}"
+    )
+
+
 def shell_command(name: str) -> str:
     """How to call the console script `name` of this environment from the current folder: its bare name when the
     shell finds this environment's copy (an activated venv), else its path (e.g. `.venv/bin/ns-viewer`)."""
@@ -552,6 +569,9 @@ def run(args: DemoArgs) -> Dict[str, Any]:
         print(f"{a['method']}: {viewer} --load-config {a['config']} --viewer.websocket-host 127.0.0.1")
         scores = f"eval-{a['method']}.json"  # one file per method: the second command must not overwrite the first's
         print(f"{' ' * len(a['method'])}  {scorer} --load-config {a['config']} --split test --output-path {scores}")
+    print("or train one on for 1000 more steps (the method's own recipe from its last step on):")
+    for a in public:
+        print(f"{a['method']}: {resume_command(a['method'], Path(a['config']), scene)}")
     if viewer != "ns-viewer":
         print("(or `source .venv/bin/activate` first, then the bare command names work)")
     print(
