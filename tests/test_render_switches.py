@@ -22,7 +22,7 @@ from garo_ns.render.switches import (
     view_change_db,
     worst_view_change_db,
 )
-from garo_ns.render.time_table import table_bytes
+from garo_ns.render.time_table import build_bytes
 
 AUTO = {"static_skip": None, "cuda_graph": None, "lean_raster": None, "time_table": None}
 
@@ -366,13 +366,13 @@ def test_the_ladder_goes_on_in_int8_only_where_the_budget_caps_int16():
     assert int16 and int8 and capped == int16 + int8
     assert int16[-1].intervals < 32 * 199 and 1.7 * int16[-1].intervals < int8[-1].intervals < 64 * 199
     assert all(a.intervals < b.intervals for a, b in zip(capped, capped[1:]))  # sparsest first
-    for spec in capped:  # every rung within the budget
-        assert table_bytes(spec.intervals, model.num_points, spec.precision) <= config.time_table_budget_mb * 2**20
+    for spec in capped:  # every rung's build within the budget (the table and the copies its build makes)
+        assert build_bytes(spec.intervals, model.num_points, spec.precision) <= config.time_table_budget_mb * 2**20
     assert rung_name(int16[-1], config) == str(int16[-1].intervals)
     assert rung_name(int8[0], config) == f"{int8[0].intervals} int8"
-    # Capped only at the densest rung asked for (34k Gaussians: 8411 of 12736 intervals): int8 still follows.
-    last_two = table_ladder(LadderModel(), config)[0][-2:]
-    assert [(s.precision, s.intervals) for s in last_two] == [("int16", 8411), ("int8", 64 * 199)]
+    # 34k Gaussians: int16 capped at 4202 intervals (a build of 4202 int16 keys holds about 5.6 GB), int8 follows.
+    last_three = table_ladder(LadderModel(), config)[0][-3:]
+    assert [(s.precision, s.intervals) for s in last_three] == [("int16", 4202), ("int8", 32 * 199), ("int8", 7565)]
     # Turned off, or another precision asked for: no int8 rungs.
     assert table_ladder(model, RenderSettings(time_table_try_int8=False))[0] == int16
     assert {s.precision for s in table_ladder(model, RenderSettings(time_table_precision="fp16"))[0]} == {"fp16"}

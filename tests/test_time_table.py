@@ -8,7 +8,16 @@ import pytest
 import torch
 
 from garo_ns.render.frame import Canonical, activate, compose, table_rows
-from garo_ns.render.time_table import PAD, TableSpec, TimeTable, plan_intervals, spec_for, table_bytes, weights
+from garo_ns.render.time_table import (
+    PAD,
+    TableSpec,
+    TimeTable,
+    build_bytes,
+    plan_intervals,
+    spec_for,
+    table_bytes,
+    weights,
+)
 
 W = 2 * math.pi  # one period over the time range
 
@@ -188,8 +197,9 @@ def test_the_memory_budget_gives_fewer_keys_or_no_table():
     assert want == 2 * 149
     fewer = plan_intervals(150, 2, n, budget_mb=200, precision="fp16")
     assert 2 <= fewer < want
-    # The most that fit: one interval more would not.
-    assert table_bytes(fewer, n, "fp16") <= 200 * 2**20 < table_bytes(fewer + 1, n, "fp16")
+    # The most whose build fits (the table and the copies its build makes): one interval more would not.
+    assert build_bytes(fewer, n, "fp16") <= 200 * 2**20 < build_bytes(fewer + 1, n, "fp16")
+    assert build_bytes(fewer, n, "fp16") > table_bytes(fewer, n, "fp16")
     spec, why = spec_for(torch.linspace(0, 1, 150), 2, n, 5, "fp16", 1e-4, 1.0)
     assert spec is None and "memory budget" in why
     spec, why = spec_for(None, 2, n, 5, "fp16", 1e-4, 1.0)
@@ -203,15 +213,16 @@ def test_a_table_planned_for_a_budget_stays_within_it(precision, anchor_every):
     # per key where the keys round up to whole anchors) is the case this guards: the plan's bytes are the table's.
     n = 64
     field = _field(n, amp=0.5)  # every Gaussian moves
-    for budget_mb in (0.05, 0.137, 0.3):
+    for budget_mb in (0.1, 0.274, 0.6):  # a build holds about twice its table
         intervals = plan_intervals(400, 4, n, budget_mb, precision, anchor_every)
         assert intervals >= 2
         spec = _spec(intervals, precision=precision, anchor_every=anchor_every, tolerance=0.0)  # all on the network
         table = TimeTable.build(spec, field, _xyz(n))
         assert table.moving.numel() == n and table.network.numel() == n
-        assert table.nbytes() == table_bytes(intervals, n, precision, anchor_every) <= budget_mb * 2**20
+        assert table.nbytes() == table_bytes(intervals, n, precision, anchor_every)
+        assert build_bytes(intervals, n, precision, anchor_every) <= budget_mb * 2**20
         if intervals < 4 * 399:
-            assert table_bytes(intervals + 1, n, precision, anchor_every) > budget_mb * 2**20
+            assert build_bytes(intervals + 1, n, precision, anchor_every) > budget_mb * 2**20
 
 
 def test_int16_keys_resolve_each_gaussians_motion_evenly():
@@ -638,3 +649,25 @@ def test_the_probe_samples_the_field_with_the_products_the_table_was_built_with(
     finally:
         torch.backends.cuda.matmul.allow_tf32 = was
     assert flags and all(f == tf32 for f in flags)
+
+
+def test_a_builds_scratch_is_what_the_budget_leaves_and_the_table_is_the_same_without_it():
+    """A build holds the table, the copies it makes (`build_bytes`) and an fp32 scratch of every key's residuals:
+    the scratch gets what `time_table_budget_mb` leaves, and none at all makes the build take two passes of the
+    field to the same table."""
+    from garo_ns.render.frame import FramePath
+
+    n = 64
+    field, xyz = _field(n, amp=0.5), _xyz(n)
+    spec = _spec(40, precision="int16")
+    frame = FramePath()
+    need = build_bytes(spec.intervals, n, spec.precision, spec.anchor_every)
+    frame.table_budget_mb = (need + 1000) / 2**20
+    assert 0 < frame.scratch_bytes(spec, xyz) <= 1000
+    frame.table_budget_mb = need / 2**20
+    assert frame.scratch_bytes(spec, xyz) == 0
+    one_pass = TimeTable.build(spec, field, xyz, scratch_bytes=1 << 30)
+    calls = field.calls
+    two_passes = TimeTable.build(spec, field, xyz, scratch_bytes=0)
+    assert field.calls - calls > calls  # the keys sampled twice
+    assert torch.equal(one_pass.residual, two_passes.residual)

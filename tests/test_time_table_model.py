@@ -174,3 +174,57 @@ def test_a_table_that_cannot_be_built_is_reported_off_and_never_measured_as_pass
     assert "time_table inf dB" in line, line
     assert "could not be built" in model.switches.record[TABLE]["off"]
     assert not model.render_settings().time_table
+
+
+@pytest.mark.slow
+def test_a_trial_that_fails_turns_off_its_switch_only_and_a_bug_is_not_swallowed(trained):
+    model, guard = _load(trained)
+    model.train_times = torch.linspace(0, 1, 8)
+    model.config.switch_bound_db = 1e9  # every switch that renders passes
+    plain_render = guard.render
+
+    def failing(error):
+        def render(m, i, switches=None):
+            if switches is not None and switches.time_table:
+                raise error
+            return plain_render(m, i, switches)
+
+        return render
+
+    guard.render = failing(RuntimeError("CUDA error: an illegal memory access was encountered"))
+    line = model.switches.measure_on_training_views(model, guard, model.step)
+    record = model.switches.record
+    assert record["tried"][TABLE] == math.inf and "time_table (RuntimeError: CUDA error" in line, line
+    assert 0 <= record["tried"]["static_skip"] < math.inf  # the other switch's trial is kept
+    assert model.render_settings().static_skip and not model.render_settings().time_table
+    guard.render = failing(TypeError("a bug"))
+    with pytest.raises(TypeError, match="a bug"):
+        model.switches.measure_on_training_views(model, guard, model.step)
+
+
+@pytest.mark.slow
+def test_a_table_forced_on_for_training_is_recorded_and_used_on_load(trained):
+    model, guard = _load(trained)
+    model.train_times = torch.linspace(0, 1, 8)
+    model.config.time_table = True  # --pipeline.model.time-table True
+    model.switches.measure_on_training_views(model, guard, model.step)
+    table = model.switches.record[TABLE]
+    assert table.get("forced") and table["spec"]["intervals"] > 0
+    spec = model.switches.table_spec()
+    assert spec is not None and spec.to_dict() == table["spec"]
+    assert model.render_settings().time_table and "no table recorded" not in str(model.render_switch_summary())
+
+
+@pytest.mark.slow
+def test_on_a_cpu_a_dense_recorded_table_is_put_off_and_said(trained):
+    from garo_ns.render.switches import CPU_TABLE_PASSES
+
+    model, _ = _load(trained)
+    record = model.switches.record
+    spec = {**record[TABLE]["spec"], "intervals": 4 * CPU_TABLE_PASSES}  # as a GPU-trained dense table
+    model.switches.record = {**record, TABLE: {**record[TABLE], "spec": spec}}
+    model.config.switch_bound_db = 1e9  # measured within the bound: only the device turns it off
+    assert not model.render_settings().time_table  # on this CPU
+    line = model.switches.line(model.config, False, torch.device("cpu"))
+    assert "on a CPU its build would run the deformation field" in line and "time-table True" in line, line
+    assert model.switches.settings(model.config, False, torch.device("cuda")).time_table  # a GPU builds it

@@ -21,7 +21,15 @@ from torch import Tensor
 from garo_ns.deformation import DeformationField, ScaleOffset, log_scale_offset
 from garo_ns.render.backend import Backend, lean_front, rasterize
 from garo_ns.render.graphs import InputGraph, TimeGraph, graphs_available, versions
-from garo_ns.render.time_table import TableSpec, TimeTable, row_scales, scale_rows, tf32_products
+from garo_ns.render.time_table import (
+    TableSpec,
+    TimeTable,
+    build_bytes,
+    row_scales,
+    scale_rows,
+    scratch_limit,
+    tf32_products,
+)
 from garo_ns.render.view import RenderView
 
 
@@ -132,6 +140,9 @@ class FramePath:
         self.preview = False
         self.scale_offset: ScaleOffset = "log"  # the model's deform_scale_offset
         self.table_tf32 = False  # the model's time_table_tf32: tables built with TF32 products on CUDA
+        # The model's time_table_budget_mb: a build's fp32 scratch gets what the budget leaves after the table
+        # and its copies (`build_bytes`), so that the whole build stays within it (None: no cap but free memory).
+        self.table_budget_mb: Optional[float] = None
 
     def splats(
         self,
@@ -198,6 +209,16 @@ class FramePath:
         """The time table built last (None before any, or when it could not be built)."""
         return self._table[1] if self._table is not None else None
 
+    def scratch_bytes(self, spec: TableSpec, xyz: Tensor) -> int:
+        """The fp32 scratch a build of `spec` may hold: a quarter of free memory, and no more than the budget
+        leaves after the build's own tensors (0: the build takes two passes of the field instead)."""
+        free = scratch_limit(xyz.device)
+        if self.table_budget_mb is None:
+            return free
+        n = xyz.shape[0]
+        left = self.table_budget_mb * 2**20 - build_bytes(spec.intervals, n, spec.precision, spec.anchor_every)
+        return max(0, min(free, int(left)))
+
     def time_table(self, field: DeformationField, canonical: Canonical, spec: TableSpec) -> Optional[TimeTable]:
         """The table of `spec` for these parameters, built on first use (and again when they change); None
         when it cannot be built (out of memory, ...): the reason is in `table_info` and the network renders. While
@@ -208,11 +229,18 @@ class FramePath:
             self._table, self._table_rows = None, None  # the old table's memory first
             start = perf_counter()
             try:
-                make = TimeTable.preview if self.preview else TimeTable.build
+                xyz = canonical.means.detach()
                 with tf32_products(self.table_tf32):
-                    built: Optional[TimeTable] = make(
-                        spec, field, canonical.means.detach(), scale_offset=self.scale_offset
-                    )
+                    if self.preview:
+                        built: Optional[TimeTable] = TimeTable.preview(spec, field, xyz, scale_offset=self.scale_offset)
+                    else:
+                        built = TimeTable.build(
+                            spec,
+                            field,
+                            xyz,
+                            scale_offset=self.scale_offset,
+                            scratch_bytes=self.scratch_bytes(spec, xyz),
+                        )
                 built.tf32 = self.table_tf32  # type: ignore[union-attr]
                 self.table_info = {**built.info, "build_s": perf_counter() - start}  # type: ignore[union-attr]
                 # A preview renders halfway frames only (the reference path): no frame rows for it.

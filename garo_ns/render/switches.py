@@ -230,6 +230,9 @@ class RenderSettings:
         return resolve_backend(self.rasterizer, device) == "cuda"
 
 
+CPU_TABLE_PASSES = 256
+"""The most passes of the deformation field a time table's build may take on a CPU, where it is not asked for."""
+
 MEASURE_VERSION = "view_change_db"
 """Names the check a record's losses come from (`worst_view_change_db`). Records written before it
 (a one-sided PSNR loss on 16 views, which a render could pass by changing pixels without raising its
@@ -320,10 +323,20 @@ class SwitchDecision:
         spec = ((record or {}).get(TABLE) or {}).get("spec")
         return TableSpec(**spec) if spec else None
 
-    def _table_refusal(self, config: RenderSettings) -> Optional[str]:
+    def _table_refusal(self, config: RenderSettings, device: Optional[torch.device] = None) -> Optional[str]:
         """Why a recorded table is not used on load although it met the bound, or None."""
         table = (self.trusted_record() or {}).get(TABLE) or {}
         info = table.get("info") or {}
+        if table.get("spec") and device is not None and torch.device(device).type != "cuda":
+            # A CPU runs the field at a few frames a second: a table that samples it hundreds of times would keep
+            # the first frame waiting minutes (a dense one, hours) for frames that the network renders anyway.
+            passes = TimeTable.field_passes(TableSpec(**table["spec"]))
+            if passes > CPU_TABLE_PASSES:
+                return (
+                    f"on a CPU its build would run the deformation field {passes} times before the first frame "
+                    f"(more than {CPU_TABLE_PASSES}); frames render through the network "
+                    "(--pipeline.model.time-table True builds it anyway)"
+                )
         if table.get("spec") and "anchor_every" not in table["spec"]:
             return "it was measured with the table layout before anchors (whole int16 residuals); re-measure it"
         linear = getattr(config, "deform_scale_offset", "log") == "linear"
@@ -354,7 +367,7 @@ class SwitchDecision:
         record = self.trusted_record()
         measure = replay(record["tried"]) if record else None
         settings = resolve(requested, training_run, config.renders_on_cuda(device), measure, bound_db=bound)[0]
-        if settings.time_table and requested.get(TABLE) is None and self._table_refusal(config):
+        if settings.time_table and requested.get(TABLE) is None and self._table_refusal(config, device):
             settings = replace(settings, time_table=False)
         if settings.time_table and self.failed_table():  # asked for or chosen, but the network renders
             settings = replace(settings, time_table=False)
@@ -374,7 +387,7 @@ class SwitchDecision:
         elif in_use.time_table and self.table_spec() is None:
             table["off"] = "no table recorded for this model (trained before it existed, or not measured)"
         elif not in_use.time_table and record and not training_run:
-            refusal = self._table_refusal(config)
+            refusal = self._table_refusal(config, device)
             measured = record["tried"].get(TABLE)
             if refusal:
                 table["off"] = refusal
@@ -450,12 +463,23 @@ class SwitchDecision:
         self._measuring = spec
         model.frame.halfway = True
         try:
+            failed: Dict[str, str] = {}  # trials that could not render (out of memory, ...): off, said why
 
             def render(i: int, trial: Optional[FrameSettings]) -> Tensor:
                 switches = None if trial is None else replace(trial, cuda_graph=False, lean_raster=False)
                 if switches is not None and switches.time_table and spec is None:
                     return torch.full_like(guard.targets(model)[i], math.nan)  # an infinite change: off
-                image = guard.render(model, i, switches)
+                if switches is None:
+                    image = guard.render(model, i, switches)
+                else:
+                    # A trial that fails at run time counts as an infinite change (that switch off) and keeps
+                    # the others measured; a programming error is not caught.
+                    try:
+                        image = guard.render(model, i, switches)
+                    except (RuntimeError, MemoryError) as err:
+                        on = [k for k, v in asdict(switches).items() if v is True]
+                        failed[", ".join(on) or "trial"] = f"{type(err).__name__}: {str(err).splitlines()[0][:120]}"
+                        return torch.full_like(guard.targets(model)[i], math.nan)
                 if switches is not None and switches.time_table and model.frame.table_failures.get(spec):
                     return torch.full_like(image, math.nan)  # not built: the network rendered, not the table
                 return image
@@ -492,18 +516,28 @@ class SwitchDecision:
                     best = min(specs, key=lambda s: measured[rung_name(s, cfg)])
                     self._measuring = spec = best
             line = self.measure(cfg, model.device, render, targets, step)
+            if failed:
+                line += "; off, failed to render: " + "; ".join(f"{k} ({v})" for k, v in failed.items())
+                if self.record is not None:
+                    self.record["failed"] = dict(failed)
             built = model.frame.table_info
-            if self.record is not None and cfg.time_table is None:
+            if self.record is not None and cfg.time_table is not False:
                 failure = model.frame.table_failures.get(spec) if spec else None
                 if failure:
                     entry: Dict[str, Any] = {"off": f"it could not be built ({failure})"}
+                elif cfg.time_table and spec is not None:
+                    # Forced on: not measured against the bound, but the finished model must know which table
+                    # it trained for, or a load would find none to build.
+                    entry = {"spec": spec.to_dict(), "forced": True}
+                    if built and built.get("spec") == spec.to_dict():
+                        entry["info"] = built
                 else:
                     entry = {"spec": built["spec"], "info": built} if spec and built else {"off": why}
                 rungs = {"intervals_tried_db": ladder, "build_s": build_s}
                 rungs.update(intervals_previewed_db=previews, preview_s=preview_s)
                 self.record[TABLE] = {**entry, **rungs} if previews or ladder else entry
             return line
-        except Exception as err:
+        except (RuntimeError, MemoryError) as err:  # the plain renders themselves failed: nothing to compare with
             self.record = None
             return f"[yellow]Render switches not measured ({err}); they stay off unless set[/yellow]"
         finally:

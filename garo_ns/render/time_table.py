@@ -634,19 +634,31 @@ def table_bytes(intervals: int, gaussians: int, precision: str, anchor_every: in
     return row * 4 * (1 + anchors) + row * fine * keys + scale + gaussians * 8 * 2  # + moving and network indices
 
 
+def build_bytes(intervals: int, gaussians: int, precision: str, anchor_every: int = 16) -> int:
+    """The most bytes a `TimeTable.build` of such a table holds at once, its fp32 scratch aside (`scratch_bytes`,
+    which the budget's remainder caps): the table with every Gaussian's keys, and the copy of the moving Gaussians'
+    keys and anchors made while the whole keys are still held."""
+    spec = TableSpec(0.0, 1.0, intervals, precision=precision, anchor_every=anchor_every)  # type: ignore[arg-type]
+    row = gaussians * CHANNELS
+    fine = torch.empty(0, dtype=Codec(precision).dtype).element_size()
+    copy = row * fine * (intervals + 2 * PAD) + row * 4 * len(spec.anchor_keys())
+    return table_bytes(intervals, gaussians, precision, anchor_every) + copy
+
+
 def plan_intervals(
     frames: int, keys_per_frame: int, gaussians: int, budget_mb: float, precision: str, anchor_every: int = 16
 ) -> int:
     """Intervals of a table over `frames` training times with `keys_per_frame` keys per gap, reduced to the
-    most whose `table_bytes` fit `budget_mb` (0: not even two intervals fit)."""
+    most whose build (`build_bytes`: the table and what its build holds besides) fits `budget_mb` (0: not even two
+    intervals fit)."""
     want = max(1, keys_per_frame * max(frames - 1, 1))
     budget = budget_mb * 2**20
     lo, hi = 1, want  # the most intervals that fit lies in [lo, hi] once lo fits
-    if table_bytes(lo, gaussians, precision, anchor_every) > budget:
+    if build_bytes(lo, gaussians, precision, anchor_every) > budget:
         return 0
     while lo < hi:  # bytes grow with the intervals
         mid = (lo + hi + 1) // 2
-        if table_bytes(mid, gaussians, precision, anchor_every) <= budget:
+        if build_bytes(mid, gaussians, precision, anchor_every) <= budget:
             lo = mid
         else:
             hi = mid - 1
