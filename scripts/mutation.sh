@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Mutation testing of GARO's stages and strategy with mutmut: activity, normals, curvature, knn, select
 # (the joint selection) and garo_strategy (GaroStrategy's own logic, its compaction rounds and its
-# settings). Each mutant is run against the fast unit tests only (tests/test_redundancy_*.py,
+# settings), and compaction's own modules (schedule, decision, guard, importance, report; training.py, the
+# nerfstudio glue, is exercised by slow training tests only and is left out). Each mutant is run against the fast unit tests only (tests/test_redundancy_*.py,
 # tests/test_garo_strategy.py, and the tests of test_compaction.py and test_model_settings.py not marked
 # slow: seconds, no training through nerfstudio).
 #
@@ -9,6 +10,7 @@
 #   MUTATION_NAMES="garo_ns.redundancy.activity.* garo_ns.redundancy.normals.* garo_ns.redundancy.curvature.* garo_ns.redundancy.select.* garo_ns.garo_strategy.*" \
 #     bash scripts/mutation.sh                                # the first half only (about an hour)
 #   MUTATION_NAMES="garo_ns.redundancy.knn.*" bash scripts/mutation.sh   # the kNN half only (17 to 25 minutes)
+#   MUTATION_NAMES="garo_ns.compaction.*" bash scripts/mutation.sh        # compaction's modules only
 #   MUTATION_JOBS=8 bash scripts/mutation.sh
 #
 # Works in a scratch copy (build/mutation/, git-ignored) so the checkout is never mutated, then
@@ -44,6 +46,11 @@ only_mutate =
     garo_ns/redundancy/knn.py
     garo_ns/redundancy/select.py
     garo_ns/garo_strategy.py
+    garo_ns/compaction/schedule.py
+    garo_ns/compaction/decision.py
+    garo_ns/compaction/guard.py
+    garo_ns/compaction/importance.py
+    garo_ns/compaction/report.py
 pytest_add_cli_args_test_selection =
 $(printf '    %s\n' "${tests[@]}")
 pytest_add_cli_args =
@@ -57,9 +64,9 @@ EOF
 cd "$work"
 export TORCHDYNAMO_DISABLE=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
 export GARO_PROPERTY_EXAMPLES=${GARO_PROPERTY_EXAMPLES:-25}
-# Two passes (the stages and the strategy, then kNN): the first one's results are there sooner.
+# Three passes (the stages and the strategy, kNN, then compaction): the first one's results are there sooner.
 # MUTATION_NAMES (mutmut name globs, e.g. "garo_ns.redundancy.curvature.*") runs those mutants only.
-passes=("garo_ns.redundancy.activity.* garo_ns.redundancy.normals.* garo_ns.redundancy.curvature.* garo_ns.redundancy.select.* garo_ns.garo_strategy.*" "garo_ns.redundancy.knn.*")
+passes=("garo_ns.redundancy.activity.* garo_ns.redundancy.normals.* garo_ns.redundancy.curvature.* garo_ns.redundancy.select.* garo_ns.garo_strategy.*" "garo_ns.redundancy.knn.*" "garo_ns.compaction.*")
 if [ -n "${MUTATION_NAMES:-}" ]; then passes=("$MUTATION_NAMES"); fi
 start=$SECONDS
 for names in "${passes[@]}"; do

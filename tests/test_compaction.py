@@ -497,6 +497,42 @@ def test_a_round_over_the_bound_leaves_the_gaussians_their_optimizers_and_the_fi
     assert_model_unchanged(model, before)
 
 
+def test_the_guard_renders_on_the_model_s_background_clamped_and_scores_against_the_composited_truth():
+    """A guard view is the exact field's render (the render switches only where given), on the model's background,
+    clamped to [0, 1]; its truth is the training image composited on the same background."""
+    from garo_ns.compaction.guard import TrainingViewGuard, psnr
+    from garo_ns.render.frame import FrameSettings
+
+    model = tiny_model()
+    grey = torch.tensor([0.25, 0.5, 0.75])
+    model.background_color = grey
+    model.eval()
+    guard = TrainingViewGuard(model.train_cameras, images=[], indices=[0, 1, 2])
+    everything = torch.ones(model.num_points, dtype=torch.bool)
+    with torch.no_grad():
+        assert torch.equal(guard.render(model, 0, without=everything), grey.expand(16, 16, 3))
+        # Every Gaussian frozen where the static classification put it: only a render with the switches shows it.
+        model.strategy_state["static"] = torch.ones(model.num_points, dtype=torch.bool)
+        model.strategy_state["static_offset"] = torch.zeros(model.num_points, 10)  # position, rotation, scale
+        model.deformation.layers[0].bias.fill_(5.0)  # a field that moves every Gaussian
+        frozen = guard.render(model, 1, FrameSettings(static_skip=True))
+        assert not torch.equal(guard.render(model, 1), frozen)
+        model.gauss_params["features_dc"].fill_(10.0)  # colours far above 1
+        model.gauss_params["opacities"].fill_(10.0)
+        bright = guard.render(model, 1)
+    assert float(bright.max()) == 1.0 and float(bright.min()) >= 0.0
+    transparent = torch.cat([torch.ones(16, 16, 3), torch.zeros(16, 16, 1)], dim=-1)
+    guard.images = [transparent, transparent[..., :3], transparent]
+    targets = guard.targets(model)
+    assert torch.equal(targets[0], grey.expand(16, 16, 3)) and torch.equal(targets[1], torch.ones(16, 16, 3))
+    model.train()
+    with torch.no_grad():
+        scores = guard.psnrs(model)
+        model.eval()
+        expected = [psnr(guard.render(model, i), targets[i]) for i in range(3)]
+    assert scores.dtype == torch.float64 and scores.tolist() == pytest.approx(expected)
+
+
 def test_a_resumed_run_ends_and_measures_its_render_switches_at_its_real_last_step():
     """nerfstudio runs max_num_iterations steps after the loaded one: resumed at step 40 (a checkpoint of
     step 39) for 20 steps, training ends at 59, not 19; the switches' record the checkpoint brought (from
@@ -589,6 +625,61 @@ def test_importance_is_weight_times_relative_volume_to_beta():
     assert lowest(torch.tensor([1.0, 0.0, 0.0]), 1).tolist() == [False, True, False]  # ties: lower index
     with pytest.raises(ValueError):
         lowest(score, 5)
+
+
+def test_importance_names_a_count_mismatch_and_takes_no_gaussians_and_a_beta_of_one():
+    with pytest.raises(ValueError, match="^3 contributions for 2 Gaussians$"):
+        importance(torch.ones(3), torch.zeros(2, 3), 0.1)
+    assert importance(torch.zeros(0), torch.zeros(0, 3), 0.1).shape == (0,)  # an empty model: no volume to scale
+    contribution, log_scales = torch.tensor([1.0, 3.0]), torch.log(torch.tensor([[2.0, 2.0, 2.0], [1.0, 1.0, 1.0]]))
+    torch.testing.assert_close(importance(contribution, log_scales, 1.0), torch.tensor([1.0, 3.0 / 8.0]))
+
+
+def test_guard_psnr_is_garo_eval_s():
+    from garo_ns.compaction.guard import psnr
+
+    truth = torch.full((4, 4, 3), 0.5)
+    assert psnr(truth - 0.1, truth) == pytest.approx(20.0, abs=1e-4)  # MSE 0.01
+    assert psnr(truth + 0.1, truth) == pytest.approx(20.0, abs=1e-4)
+    assert psnr(truth, truth) == pytest.approx(120.0)  # an exact render: the MSE is floored at 1e-12
+
+
+def test_guard_views_of_equal_times_keep_their_order_and_one_view_is_kept():
+    """A stable order: the same views in every run when times tie (a capture without times reads all 0)."""
+    assert spread_indices(torch.zeros(5000), 5000, 3) == [0, 2500, 4999]
+    assert spread_indices(None, 1, 1) == [0]
+    assert spread_indices(None, 7, 1) == [0]
+
+
+class TrainViews:
+    """A training dataset as the guard reads it: cameras with times, and images by index (pixel value = index)."""
+
+    def __init__(self, times: torch.Tensor) -> None:
+        self.cameras = types.SimpleNamespace(times=times)
+
+    def __len__(self) -> int:
+        return len(self.cameras.times)
+
+    def __getitem__(self, i: int) -> Dict[str, torch.Tensor]:
+        return {"image": torch.full((2, 2, 3), float(i))}
+
+
+def test_the_guard_takes_its_views_and_images_from_the_training_split():
+    from garo_ns.compaction.guard import TrainingViewGuard
+
+    dataset = TrainViews(torch.tensor([[0.9], [0.1], [0.5], [0.3]]))
+    guard = TrainingViewGuard.from_datamanager(types.SimpleNamespace(train_dataset=dataset), 2)
+    assert guard.cameras is dataset.cameras and guard.indices == [1, 0]  # the earliest and the latest
+    assert [float(image[0, 0, 0]) for image in guard.images] == [1.0, 0.0]
+    cached = [{"image": torch.full((2, 2, 3), 10.0 + i)} for i in range(4)]  # a full-image datamanager's cache
+    guard = TrainingViewGuard.from_datamanager(types.SimpleNamespace(train_dataset=dataset, cached_train=cached), 2)
+    assert [float(image[0, 0, 0]) for image in guard.images] == [11.0, 10.0]
+    one = TrainingViewGuard.from_datamanager(types.SimpleNamespace(train_dataset=TrainViews(torch.ones(1, 1))), 5)
+    assert one.indices == [0] and len(one.images) == 1
+    assert TrainingViewGuard.from_datamanager(types.SimpleNamespace(), 2) is None
+    assert (
+        TrainingViewGuard.from_datamanager(types.SimpleNamespace(train_dataset=TrainViews(torch.ones(0, 1))), 2) is None
+    )
 
 
 def test_guard_views_spread_over_time():
