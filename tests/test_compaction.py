@@ -682,6 +682,48 @@ def test_the_guard_takes_its_views_and_images_from_the_training_split():
     )
 
 
+def test_a_round_keeps_a_cost_equal_to_its_bound_and_measures_a_single_gaussian_or_view():
+    from garo_ns.compaction.decision import decide
+
+    def flat(cost_db: float, views: int = 2):
+        return lambda mask: torch.full((views,), cost_db, dtype=torch.float64)
+
+    c = Compaction(fraction=0.5, min_fraction=0.5, round_bound_db=0.1, budget_db=0.3, min_gaussians=0)
+    scores = torch.tensor([3.0, 1.0])
+    kept = decide(scores, 2, c, 0.0, flat(0.1))  # exactly the bound: allowed
+    assert kept["mask"].tolist() == [False, True] and kept["stop"] is None and kept["detail"] is None
+    assert kept["tries"] == [{"share": 0.5, "count": 1, "cost_mean_db": 0.1, "cost_worst_db": 0.1}]
+    assert decide(scores, 2, c, 0.0, flat(0.0, views=1))["mask"].tolist() == [False, True]  # one guard view
+    none = decide(scores, 2, c, 0.0, lambda mask: torch.zeros(0, dtype=torch.float64))  # no views: never kept
+    assert none["mask"] is None and none["stop"] == "round_bound" and math.isnan(none["tries"][0]["cost_worst_db"])
+
+
+def test_the_round_and_stop_lines_say_what_happened_in_words():
+    nothing = {"round": 2, "step": 300, "share": None, "num_after": 40, "tries": []}
+    assert round_line(nothing) == "compaction round 2 at step 300: nothing tried, 40 Gaussians"
+    tries = [
+        {"share": 0.15, "count": 6, "cost_worst_db": 0.5, "cost_mean_db": 0.25},
+        {"share": 0.075, "count": 3, "cost_worst_db": 0.05, "cost_mean_db": 0.01},
+    ]
+    event = {"round": 1, "step": 200, "share": 0.075, "tries": tries, "removed": 3, "num_before": 40, "num_after": 37}
+    assert round_line(event) == (
+        "compaction round 1 at step 200: tried 0.15 (6) cost 0.500 dB worst view, 0.250 mean; "
+        "0.075 (3) cost 0.050 dB worst view, 0.010 mean: removed 3 of 40, 37 left"
+    )
+    summary = {  # an empty model, a reason of a later version, no budget recorded
+        "num_gaussians_start": 0,
+        "num_gaussians_end": 0,
+        "settings": {},
+        "reason": "later_reason",
+        "detail": "d",
+        "stopped_step": 9,
+    }
+    assert stop_line(summary) == (
+        "compaction stopped at step 9 (later_reason: later_reason; d): kept 0 of 0 Gaussians, "
+        "0.000 dB of the 0 dB budget"
+    )
+
+
 def test_guard_views_spread_over_time():
     times = torch.tensor([0.9, 0.1, 0.5, 0.3, 0.7, 0.0])
     assert spread_indices(times, 6, 3) == [5, 3, 0]  # earliest, middle (position 2.5 rounds to 2), latest
