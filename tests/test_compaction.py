@@ -415,10 +415,10 @@ def tiny_model(**settings):
 
     from garo_ns.garo_model import GaroModelConfig
 
-    cfg = GaroModelConfig(
-        num_random=200, deform_width=16, deform_depth=2, deform_skip=0, deform_warmup=0, sh_degree=0,
-        rasterizer="reference", **settings,
-    )  # fmt: skip
+    cfg = GaroModelConfig(**{
+        "num_random": 200, "deform_width": 16, "deform_depth": 2, "deform_skip": 0, "deform_warmup": 0,
+        "sh_degree": 0, "rasterizer": "reference", **settings,
+    })  # fmt: skip
     model = cfg.setup(scene_box=SceneBox(torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=3, metadata={})
     model.step = 100
     c2w = torch.eye(4)[:3].repeat(3, 1, 1)
@@ -515,12 +515,16 @@ def test_the_guard_renders_on_the_model_s_background_clamped_and_scores_against_
         model.strategy_state["static"] = torch.ones(model.num_points, dtype=torch.bool)
         model.strategy_state["static_offset"] = torch.zeros(model.num_points, 10)  # position, rotation, scale
         model.deformation.layers[0].bias.fill_(5.0)  # a field that moves every Gaussian
+        model.config.static_skip = True  # the model's own switches freeze them too; the guard's render does not
         frozen = guard.render(model, 1, FrameSettings(static_skip=True))
         assert not torch.equal(guard.render(model, 1), frozen)
-        model.gauss_params["features_dc"].fill_(10.0)  # colours far above 1
+        assert not torch.equal(guard.render(model, 1, FrameSettings(static_skip=False)), frozen)
         model.gauss_params["opacities"].fill_(10.0)
+        model.gauss_params["features_dc"].fill_(10.0)  # colours far above 1
         bright = guard.render(model, 1)
-    assert float(bright.max()) == 1.0 and float(bright.min()) >= 0.0
+        model.gauss_params["features_dc"].fill_(-10.0)  # and far below 0
+        dark = guard.render(model, 1)
+    assert float(bright.max()) == 1.0 and float(bright.min()) >= 0.0 and float(dark.min()) >= 0.0
     transparent = torch.cat([torch.ones(16, 16, 3), torch.zeros(16, 16, 1)], dim=-1)
     guard.images = [transparent, transparent[..., :3], transparent]
     targets = guard.targets(model)
@@ -531,6 +535,21 @@ def test_the_guard_renders_on_the_model_s_background_clamped_and_scores_against_
         model.eval()
         expected = [psnr(guard.render(model, i), targets[i]) for i in range(3)]
     assert scores.dtype == torch.float64 and scores.tolist() == pytest.approx(expected)
+
+
+def test_the_guard_renders_with_the_sh_degree_of_the_step():
+    """Before the first SH band is on (step 50 of 1000 per band) the guard's render ignores it, as training does."""
+    from garo_ns.compaction.guard import TrainingViewGuard
+
+    model = tiny_model(sh_degree=1, sh_degree_interval=1000)
+    model.step = 50
+    model.eval()
+    guard = TrainingViewGuard(model.train_cameras, images=[], indices=[0, 1, 2])
+    with torch.no_grad():
+        model.gauss_params["features_rest"].normal_(generator=torch.Generator().manual_seed(0))
+        banded = guard.render(model, 0)
+        model.gauss_params["features_rest"].zero_()
+        assert torch.equal(guard.render(model, 0), banded)
 
 
 def test_a_resumed_run_ends_and_measures_its_render_switches_at_its_real_last_step():
