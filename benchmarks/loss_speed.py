@@ -2,7 +2,7 @@
 
 One [H, W, 3] render against its ground truth (splatfacto's `main_loss`: 0.8 L1 + 0.2 (1 - SSIM), the recipe's
 lambda), the gradient taken to the render as in a training step; each way eager and replayed from the loss's CUDA
-graph (`loss_cuda_graph`, garo_ns.losses.ImageLoss). Device milliseconds per call from CUDA events around `calls`
+graph (`loss_cuda_graph`, garo_ns.engine.losses.ImageLoss). Device milliseconds per call from CUDA events around `calls`
 back-to-back calls (the median of `repeats` such blocks), and the largest difference of the fused loss and
 gradient from the convolutions'.
 
@@ -22,8 +22,8 @@ import torch
 def main() -> None:
     from garo_ns.bench.benchmark import environment
     from garo_ns.bench.timing import device_ms
-    from garo_ns.losses import ImageLoss
-    from garo_ns.ssim import SSIM
+    from garo_ns.engine.losses import ImageLoss
+    from garo_ns.engine.ssim import SSIM
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--height", type=int, default=800)

@@ -17,7 +17,7 @@ Per scene (`--work W`: data in W/data/SCENE, the run in W/out/SCENE, its log in 
 * Ground truth and metrics exactly as `garo_ns.tools.eval.evaluate`: images from
   `garo_ns.tools.eval.load_split` (RGBA PNG -> float / 255, composited on black in float), PSNR per view
   from the MSE (averaged over views), SSIM = nerfstudio's `SSIM(data_range=1.0, size_average=True,
-  channel=3)` as `GaroModel.ssim`, LPIPS = `garo_ns.metrics.make_lpips()` (torchmetrics AlexNet,
+  channel=3)` as `GaroModel.ssim`, LPIPS = `garo_ns.engine.metrics.make_lpips()` (torchmetrics AlexNet,
   normalize=True). `psnr_official_gt` scores the same renders against the official loader's own
   ground truth (composited, then truncated to 8 bits), for comparison with the PSNR that the
   official training script printed (`official_reported_psnr`, parsed from its log).
@@ -229,7 +229,7 @@ def main() -> None:
     args = ap.parse_args()
 
     sys.path.insert(0, str(args.code.resolve()))  # the official top-level packages (scene, utils, ...)
-    from garo_ns.metrics import make_lpips
+    from garo_ns.engine.metrics import make_lpips
 
     try:  # what GaroModel.ssim is
         from nerfstudio.models.splatfacto import SSIM
@@ -318,7 +318,7 @@ def main() -> None:
         "protocol": {
             "metrics": "garo_ns.tools.eval.evaluate: GT via garo_ns.tools.eval.load_split (RGBA/255 composited on "
             "black in float), PSNR from per-view MSE averaged over views, SSIM nerfstudio SSIM(data_range=1, "
-            "size_average=True, channel=3), LPIPS garo_ns.metrics.make_lpips() (AlexNet, normalize=True)",
+            "size_average=True, channel=3), LPIPS garo_ns.engine.metrics.make_lpips() (AlexNet, normalize=True)",
             "render": "official: no_grad, deform.step(xyz.detach(), fid) then gaussian_renderer.render, black bg, "
             "clamp [0, 1], full resolution",
             "fps": f"garo_ns.bench.timing protocol: MLP + rasterization per view, cameras prepared before timing, "

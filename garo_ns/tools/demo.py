@@ -233,7 +233,7 @@ def floor_check(model: Any, resolution: int, box_slide: float = 0.0) -> Optional
     import numpy as np
     import torch
 
-    from garo_ns.static import displacement, motion_statistics
+    from garo_ns.render.static import displacement, motion_statistics
     from garo_ns.tools import scene as S
 
     static = model.strategy_state.get("static") if hasattr(model, "strategy_state") else None
