@@ -405,10 +405,10 @@ class DeformationSettings:
     ReLU in each product's epilogue, the bias gradient as a matrix-vector product instead of a column sum over every
     Gaussian, the two odd input widths (93 and 349) zero-padded to multiples of 8 and the three heads as one product.
     The same sums up to their order, the same parameters and checkpoints. The field alone in bf16, graphed, ran
-    1.8x faster (benchmarks/field_layers.py, benchmarks/results/field_layers_H200.json); 40k steps on mutant took 252 s
-    instead of 278 (one pair, docs/benchmarks.md). `garo-deform` turns it on after its 40k A/B on the three scenes
-    (+0.14 dB on average; benchmarks/results/ab_fused_layers_H200.json); off elsewhere until their own A/B, as bf16
-    rounds the reordered sums differently."""
+    1.8x faster (benchmarks/field_layers.py at 7997206, benchmarks/results/field_layers_H200.json); 40k steps on mutant
+    took 252 s instead of 278 (one pair, docs/benchmarks.md). `garo-deform` turns it on after its 40k A/B on the three
+    scenes (+0.14 dB on average; benchmarks/results/ab_fused_layers_H200.json); off elsewhere until their own A/B, as
+    bf16 rounds the reordered sums differently."""
 
     deform_fp32_heads: bool = False
     """With `deform_train_bf16`: the three heads' product (the offsets) in fp32, from the last hidden layer's bf16

@@ -100,7 +100,7 @@ class DemoArgs:
     """How both arms compose the field's scale offset with a scale: `log` (the model's default) for both, so that the
     demo compares GARO with the same model without it. Both methods train with `linear` (the official code's, which
     matches it at 40k on D-NeRF), but on this schedule `linear` scored 0.3 to 0.9 dB below `log` in each of three
-    seeds (`python benchmarks/demo_ab.py`, benchmarks/results/demo_scale_term_cpu.json)."""
+    seeds (`benchmarks/demo_ab.py` at 7997206, benchmarks/results/demo_scale_term_cpu.json)."""
 
 
 def scene_spec(args: DemoArgs) -> Any:
