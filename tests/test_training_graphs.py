@@ -167,7 +167,7 @@ def test_two_graphed_backwards_of_different_gradients_add_up():
     gradients, for the canonical tensors (their gradients leave the graph through autograd) and the field's
     parameters (added into their buffers). Two equal gradients could not tell g1 + g2 from g2 + g2."""
     from garo_ns.deformation import DeformationField
-    from garo_ns.train_graphs import GraphedSplats
+    from garo_ns.engine.train_graphs import GraphedSplats
 
     torch.manual_seed(0)
     field = DeformationField(time_net=30).cuda().train()
