@@ -140,7 +140,7 @@ def _lines(paths) -> int:
 
 
 @pytest.mark.xfail(
-    strict=True, reason="issue 72's target not met yet: 31.6% after retiring eight scripts (strict: remove when met)"
+    strict=True, reason="issue 72's target, not met yet (the message gives the share); strict: remove this when met"
 )
 def test_the_harness_is_at_most_a_quarter_of_the_code():
     harness = _lines((PACKAGE / "bench").glob("*.py")) + _lines(
