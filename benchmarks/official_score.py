@@ -30,7 +30,7 @@ A real capture (W/data/SCENE has test_frames.txt: `official_d3dgs.sh prepare-rea
 --split val` scores our run of it (`garo_ns.tools.eval.capture_views`): the held-out frames test_frames.txt names,
 read by the official `readColmapSceneInfo` (patched with `split_file`, and `principal_point` unless the run was
 made without), rendered in float as above; ground truth = the scene's PNGs / 255, which prepare-real wrote from
-our datamanager's cached (undistorted, uint8) images; SSIM = `garo_ns.ssim.SSIM(data_range=1.0)` (what
+our datamanager's cached (undistorted, uint8) images; SSIM = `garo_ns.engine.ssim.SSIM(data_range=1.0)` (what
 `GaroModel.ssim` is), LPIPS as above where `lpips_fits`. `gt_max_difference` checks that the official loader's
 ground truth is the same pixels (0.0).
 
@@ -171,7 +171,7 @@ def real_test_images(data: Path) -> Tuple[List[str], List[torch.Tensor]]:
 def score(model: OfficialRun, data: Path, ssim: Any, lpips: Any) -> Dict[str, Any]:
     """Metrics as garo_ns.tools.eval.evaluate, on renders made as the official code makes them."""
     from garo_ns.data.dnerf import read_split
-    from garo_ns.metrics import lpips_fits
+    from garo_ns.engine.metrics import lpips_fits
     from garo_ns.tools.eval import load_split
 
     if model.real:
@@ -236,7 +236,9 @@ def main() -> None:
     except ImportError:  # nerfstudio 1.1.5 re-exports pytorch_msssim's
         from pytorch_msssim import SSIM
     ssim = SSIM(data_range=1.0, size_average=True, channel=3)
-    from garo_ns.ssim import SSIM as GaroSSIM  # what GaroModel.ssim is: scores the real captures, as garo-eval does
+    from garo_ns.engine.ssim import (
+        SSIM as GaroSSIM,  # what GaroModel.ssim is: scores the real captures, as garo-eval does
+    )
 
     real_ssim = GaroSSIM(data_range=1.0).cuda()
     lpips = make_lpips()

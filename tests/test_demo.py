@@ -116,7 +116,7 @@ def test_the_printed_resume_command_builds_the_arm_s_model(tmp_path):
     import yaml
     from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
 
-    from garo_ns.checkpoints import expected_state, shape_settings
+    from garo_ns.state.checkpoints import expected_state, shape_settings
     from garo_ns.tools.demo import DemoArgs, demo_config, resume_command
 
     args = DemoArgs()

@@ -401,8 +401,8 @@ def resume_command(method: str, config_path: Path, scene: Path, steps: int = 100
     the method's own from the arm's last step on."""
     import yaml
 
-    from garo_ns.checkpoints import as_flags, shape_settings
     from garo_ns.config import METHODS
+    from garo_ns.state.checkpoints import as_flags, shape_settings
 
     trained = yaml.load(Path(config_path).read_text(), Loader=yaml.Loader).pipeline.model
     flags = as_flags(shape_settings(trained, METHODS[method].config.pipeline.model))
