@@ -17,7 +17,7 @@ Per scene (`--work W`: data in W/data/SCENE, the run in W/out/SCENE, its log in 
 * Ground truth and metrics exactly as `garo_ns.tools.eval.evaluate`: images from
   `garo_ns.tools.eval.load_split` (RGBA PNG -> float / 255, composited on black in float), PSNR per view
   from the MSE (averaged over views), SSIM = nerfstudio's `SSIM(data_range=1.0, size_average=True,
-  channel=3)` as `GaroModel.ssim`, LPIPS = `garo_ns.metrics.make_lpips()` (torchmetrics AlexNet,
+  channel=3)` as `GaroModel.ssim`, LPIPS = `garo_ns.engine.metrics.make_lpips()` (torchmetrics AlexNet,
   normalize=True). `psnr_official_gt` scores the same renders against the official loader's own
   ground truth (composited, then truncated to 8 bits), for comparison with the PSNR that the
   official training script printed (`official_reported_psnr`, parsed from its log).
@@ -30,7 +30,7 @@ A real capture (W/data/SCENE has test_frames.txt: `official_d3dgs.sh prepare-rea
 --split val` scores our run of it (`garo_ns.tools.eval.capture_views`): the held-out frames test_frames.txt names,
 read by the official `readColmapSceneInfo` (patched with `split_file`, and `principal_point` unless the run was
 made without), rendered in float as above; ground truth = the scene's PNGs / 255, which prepare-real wrote from
-our datamanager's cached (undistorted, uint8) images; SSIM = `garo_ns.ssim.SSIM(data_range=1.0)` (what
+our datamanager's cached (undistorted, uint8) images; SSIM = `garo_ns.engine.ssim.SSIM(data_range=1.0)` (what
 `GaroModel.ssim` is), LPIPS as above where `lpips_fits`. `gt_max_difference` checks that the official loader's
 ground truth is the same pixels (0.0).
 
@@ -171,7 +171,7 @@ def real_test_images(data: Path) -> Tuple[List[str], List[torch.Tensor]]:
 def score(model: OfficialRun, data: Path, ssim: Any, lpips: Any) -> Dict[str, Any]:
     """Metrics as garo_ns.tools.eval.evaluate, on renders made as the official code makes them."""
     from garo_ns.data.dnerf import read_split
-    from garo_ns.metrics import lpips_fits
+    from garo_ns.engine.metrics import lpips_fits
     from garo_ns.tools.eval import load_split
 
     if model.real:
@@ -229,14 +229,16 @@ def main() -> None:
     args = ap.parse_args()
 
     sys.path.insert(0, str(args.code.resolve()))  # the official top-level packages (scene, utils, ...)
-    from garo_ns.metrics import make_lpips
+    from garo_ns.engine.metrics import make_lpips
 
     try:  # what GaroModel.ssim is
         from nerfstudio.models.splatfacto import SSIM
     except ImportError:  # nerfstudio 1.1.5 re-exports pytorch_msssim's
         from pytorch_msssim import SSIM
     ssim = SSIM(data_range=1.0, size_average=True, channel=3)
-    from garo_ns.ssim import SSIM as GaroSSIM  # what GaroModel.ssim is: scores the real captures, as garo-eval does
+    from garo_ns.engine.ssim import (
+        SSIM as GaroSSIM,  # what GaroModel.ssim is: scores the real captures, as garo-eval does
+    )
 
     real_ssim = GaroSSIM(data_range=1.0).cuda()
     lpips = make_lpips()
@@ -318,7 +320,7 @@ def main() -> None:
         "protocol": {
             "metrics": "garo_ns.tools.eval.evaluate: GT via garo_ns.tools.eval.load_split (RGBA/255 composited on "
             "black in float), PSNR from per-view MSE averaged over views, SSIM nerfstudio SSIM(data_range=1, "
-            "size_average=True, channel=3), LPIPS garo_ns.metrics.make_lpips() (AlexNet, normalize=True)",
+            "size_average=True, channel=3), LPIPS garo_ns.engine.metrics.make_lpips() (AlexNet, normalize=True)",
             "render": "official: no_grad, deform.step(xyz.detach(), fid) then gaussian_renderer.render, black bg, "
             "clamp [0, 1], full resolution",
             "fps": f"garo_ns.bench.timing protocol: MLP + rasterization per view, cameras prepared before timing, "

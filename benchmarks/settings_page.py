@@ -20,9 +20,9 @@ GROUPS: List[Tuple[str, str, str]] = [
     ("GaroSettings", "GARO", "garo_ns/garo_strategy.py"),
     ("CompactionSettings", "Compaction (`garo-compact`)", "garo_ns/compaction/schedule.py"),
     ("RenderSettings", "Rendering and its speed switches", "garo_ns/render/switches.py"),
-    ("StaticSettings", "Static classification", "garo_ns/static.py"),
+    ("StaticSettings", "Static classification", "garo_ns/render/static.py"),
     ("DeformationSettings", "Deformation field", "garo_ns/deformation.py"),
-    ("D3dgsRecipe", "D-3DGS recipe (splatfacto settings with D-3DGS's defaults)", "garo_ns/recipe.py"),
+    ("D3dgsRecipe", "D-3DGS recipe (splatfacto settings with D-3DGS's defaults)", "garo_ns/engine/recipe.py"),
 ]
 """Settings groups of GaroModelConfig: class name, heading, where it is declared."""
 

@@ -4,7 +4,7 @@ nerfstudio imports plugin entry points before it parses arguments or loads a che
 importing `garo_ns.config` is early enough for all of them: checkpoints that load under torch >= 2.6,
 one-line input errors, a bad dataset or checkpoint reported before ns-train prints and saves its
 configuration (no run folder left behind, nor after a failed set-up), a run folder of each run's own (`claim_run_dir`),
-and crash-safe checkpoint writing and loading (`garo_ns.checkpoints`).
+and crash-safe checkpoint writing and loading (`garo_ns.state.checkpoints`).
 """
 
 from __future__ import annotations
@@ -75,8 +75,8 @@ def check_dataset(config: Any) -> None:
 def check_inputs(config: Any) -> None:
     """Everything `ns-train` can check before it creates the run folder: the dataset (`check_dataset`) and
     the checkpoint it is asked to load, if any (present, whole, nerfstudio's). Raises GaroInputError."""
-    from garo_ns import checkpoints
     from garo_ns.errors import GaroConfigError
+    from garo_ns.state import checkpoints
 
     steps = getattr(config, "max_num_iterations", 1)
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
@@ -210,7 +210,7 @@ def install() -> None:
     """Apply the fixes once per process; those on nerfstudio's trainer as soon as its module is imported
     (the plugin's entry points can load while nerfstudio is still importing it)."""
     global _installed, _previous_hook, _entry_patched, _viewer_patched
-    from garo_ns import checkpoints
+    from garo_ns.state import checkpoints
 
     checkpoints.install()
     if not _entry_patched:

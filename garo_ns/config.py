@@ -34,9 +34,9 @@ from nerfstudio.plugins.types import MethodSpecification
 from torch.nn import Parameter
 
 from garo_ns import compat
-from garo_ns.adam import LeanAdam
 from garo_ns.data.dnerf import GaroDNeRFDataParserConfig
 from garo_ns.data.nerfds import NerfDSDataParserConfig
+from garo_ns.engine.adam import LeanAdam
 from garo_ns.garo_model import GaroModelConfig
 
 compat.install()
@@ -56,7 +56,7 @@ SPATIAL_LR_SCALE = 5.0  # D-3DGS's fixed `spatial_lr_scale` (gaussian_model.py, 
 class AdamConfig(AdamOptimizerConfig):
     """nerfstudio's Adam, fused (one kernel per parameter group) where its parameters are on CUDA: the same update
     as the multi-tensor path that nerfstudio uses, with far less host time in each step's eight updates, and that
-    fused step without torch's per-call bookkeeping (`garo_ns.adam.LeanAdam`)."""
+    fused step without torch's per-call bookkeeping (`garo_ns.engine.adam.LeanAdam`)."""
 
     def setup(self, params: Iterable[Parameter]) -> torch.optim.Optimizer:
         params = list(params)
@@ -123,7 +123,7 @@ def trainer_config(method_name: str, garo_mode: str) -> TrainerConfig:
 
 def with_fast_field(config: TrainerConfig) -> TrainerConfig:
     """`config` with the deformation MLP's training products in bf16 (`deform_train_bf16`) and its layers fused
-    (`deform_fused_layers`, garo_ns.dense): each measured at 40k on jumpingjacks, mutant and standup against the
+    (`deform_fused_layers`, garo_ns.ops.dense): each measured at 40k on jumpingjacks, mutant and standup against the
     recipe without it (docs/benchmarks.md: "bf16 training", "The field's layers fused")."""
     config.pipeline.model.deform_train_bf16 = True
     config.pipeline.model.deform_fused_layers = True

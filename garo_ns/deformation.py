@@ -15,8 +15,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from garo_ns.dense import aligned, dense
 from garo_ns.errors import check_ranges
+from garo_ns.ops.dense import aligned, dense
 
 HeadInit = Literal["zero", "default"]
 HEAD_INITS = ("zero", "default")
@@ -104,7 +104,7 @@ class DeformationField(nn.Module):
         fp32_heads: bool = False,
     ):
         super().__init__()
-        # Not parameters: how the products run (garo_ns.dense; the heads' precision under autocast), not what they
+        # Not parameters: how the products run (garo_ns.ops.dense; the heads' precision under autocast), not what they
         # compute.
         self.fused_layers = fused_layers
         self.fp32_heads = fp32_heads
@@ -195,7 +195,7 @@ class DeformationField(nn.Module):
 
     def hidden(self, xyz: Tensor, time: Tensor | float) -> List[Tensor]:
         """The ReLU output of every hidden layer [N, width] (before the skip concatenation). With `fused_layers` the
-        layers run through garo_ns.dense, the input padded with zero columns to a multiple of 8 (after the skip, the
+        layers run through garo_ns.ops.dense, the input padded with zero columns to a multiple of 8 (after the skip, the
         input and a hidden layer together) and the weights given zero columns to match."""
         in_dim = self.layers[0].in_features
         pad = aligned(in_dim) if self.fused_layers else 0
@@ -367,18 +367,19 @@ class DeformationSettings:
     `deform-splatfacto` trains with `linear` in fp32, as the official code does; `garo-deform` with `linear` in bf16
     with its heads in fp32 (`deform_fp32_heads`: +0.17 dB on average, ab_fp32_heads_H200.json). `log` stays the
     default elsewhere. A checkpoint records the composition it was trained with, and loading it adopts that one
-    (garo_ns.checkpoints.scale_offset_for), so a run trained before a method's default changed renders as trained."""
+    (garo_ns.state.checkpoints.scale_offset_for), so a run trained before a method's default changed renders as
+    trained."""
     deform_cuda_graph: bool = True
     """Training on CUDA: the step's Gaussians, from the canonical parameters to the rasterizer's inputs (the field,
     the composition, the activations), replay a CUDA graph captured for the current count of Gaussians (captured
-    anew when it changes; garo_ns.train_graphs.GraphedSplats): one autograd node instead of a few dozen each way,
+    anew when it changes; garo_ns.engine.train_graphs.GraphedSplats): one autograd node instead of a few dozen each way,
     the same kernels and numbers (tests/test_training_graphs.py). 40k jumpingjacks steps alone on an H100 took 394 s
     with it and 403 s with the field alone in the graph (benchmarks/results/train_profile_splats*). See
     `loss_cuda_graph` for what the two graphs save."""
     deform_graph_grads: bool = True
-    """With `deform_cuda_graph`: the graph is our own capture (garo_ns.train_graphs.StepGraph), whose backward adds the
-    field's gradients into each parameter's `.grad` itself instead of returning them for autograd to accumulate (one
-    node, allocation and copy per parameter, 26, every step); the same sums (tests/test_training_graphs.py). On
+    """With `deform_cuda_graph`: the graph is our own capture (garo_ns.engine.train_graphs.StepGraph), whose backward
+    adds the field's gradients into each parameter's `.grad` itself instead of returning them for autograd to accumulate
+    (one node, allocation and copy per parameter, 26, every step); the same sums (tests/test_training_graphs.py). On
     because its captures, one every refinement while densifying, reuse each other's memory on one stream. Off, torch's
     make_graphed_callables captures, and newer torch (2.14) captures it on a new stream each call: a freed block is
     reused only on its own stream, so the pool keeps the memory of up to 32 dropped graphs (StepGraph on a new
@@ -392,22 +393,22 @@ class DeformationSettings:
     either way (TF32 would move a camera 4 units out by about 2e-3)."""
     deform_train_bf16: bool = False
     """Training on CUDA: the deformation MLP's forward (and so its backward) under bf16 autocast, its weights kept
-    in fp32 and its offsets returned in fp32 (garo_ns.train_graphs.Bf16Field); the CPU stays fp32. On a fresh field
-    the offsets differ from fp32 by about 0.3% of their norm (tests/test_training_step.py). `garo-deform` turns it
+    in fp32 and its offsets returned in fp32 (garo_ns.engine.train_graphs.Bf16Field); the CPU stays fp32. On a fresh
+    field the offsets differ from fp32 by about 0.3% of their norm (tests/test_training_step.py). `garo-deform` turns it
     on after a 40k A/B on jumpingjacks, mutant and standup against fp32 runs (test PSNR -0.03 dB on average;
     benchmarks/results/train_profile_bf16_*). `deform-splatfacto` had it on too (+0.02 dB, train_profile_hx2_*) until it
     took the official scale composition, which gains in fp32 only (`deform_scale_offset`). Off elsewhere until their own
     A/B."""
 
     deform_fused_layers: bool = False
-    """The deformation MLP's layers through garo_ns.dense (training and rendering, CUDA and CPU): the bias and the ReLU
-    in each product's epilogue, the bias gradient as a matrix-vector product instead of a column sum over every
+    """The deformation MLP's layers through garo_ns.ops.dense (training and rendering, CUDA and CPU): the bias and the
+    ReLU in each product's epilogue, the bias gradient as a matrix-vector product instead of a column sum over every
     Gaussian, the two odd input widths (93 and 349) zero-padded to multiples of 8 and the three heads as one product.
     The same sums up to their order, the same parameters and checkpoints. The field alone in bf16, graphed, ran
-    1.8x faster (benchmarks/field_layers.py, benchmarks/results/field_layers_H200.json); 40k steps on mutant took 252 s
-    instead of 278 (one pair, docs/benchmarks.md). `garo-deform` turns it on after its 40k A/B on the three scenes
-    (+0.14 dB on average; benchmarks/results/ab_fused_layers_H200.json); off elsewhere until their own A/B, as bf16
-    rounds the reordered sums differently."""
+    1.8x faster (benchmarks/field_layers.py at 7997206, benchmarks/results/field_layers_H200.json); 40k steps on mutant
+    took 252 s instead of 278 (one pair, docs/benchmarks.md). `garo-deform` turns it on after its 40k A/B on the three
+    scenes (+0.14 dB on average; benchmarks/results/ab_fused_layers_H200.json); off elsewhere until their own A/B, as
+    bf16 rounds the reordered sums differently."""
 
     deform_fp32_heads: bool = False
     """With `deform_train_bf16`: the three heads' product (the offsets) in fp32, from the last hidden layer's bf16

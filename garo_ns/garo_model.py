@@ -15,7 +15,7 @@ from typing import Any, Dict, List, Optional, Tuple, Type, Union
 
 import torch
 from nerfstudio.cameras.cameras import Cameras
-from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
 from nerfstudio.engine.optimizers import Optimizers
 from nerfstudio.models.splatfacto import SplatfactoModel
 from nerfstudio.utils import writer
@@ -23,28 +23,29 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 from torch.nn import Parameter
 
-from garo_ns import checkpoints
-from garo_ns.adam import AdamGraph, install_grouped_step
-from garo_ns.collector import TrainingCollector
 from garo_ns.compaction.guard import TrainingViewGuard
-from garo_ns.compaction.schedule import CompactionSettings, last_training_step
+from garo_ns.compaction.schedule import CompactionSettings
 from garo_ns.compaction.training import fixed_ratio_round, run_round
-from garo_ns.deformation import DeformationSettings, collapse_warning, health_check, health_due, time_noise
+from garo_ns.deformation import DeformationSettings, time_noise
+from garo_ns.engine import scoring
+from garo_ns.engine.callbacks import after_strategy, check_health, refresh_static, training_callbacks
+from garo_ns.engine.initialisation import initial_gaussians
+from garo_ns.engine.losses import ImageLoss, NonFiniteWatch
+from garo_ns.engine.metrics import metric_modules
+from garo_ns.engine.recipe import D3dgsRecipe
+from garo_ns.engine.ssim import SSIM
+from garo_ns.engine.train_graphs import GraphedSplats
+from garo_ns.engine.training_data import adopt_training_data
 from garo_ns.garo_strategy import GaroSettings, GaroStrategy, garo_scalars
-from garo_ns.initialisation import initial_gaussians
-from garo_ns.losses import ImageLoss, NonFiniteWatch, psnr, step_losses
-from garo_ns.metrics import image_metrics, metric_modules
-from garo_ns.recipe import D3dgsRecipe
+from garo_ns.ops.collector import TrainingCollector
 from garo_ns.render.backend import Backend
 from garo_ns.render.contribution import summed_contribution
 from garo_ns.render.frame import Canonical, FramePath, FrameSettings, Splats, activate, compose, render_splats
 from garo_ns.render.outputs import camera_outputs
+from garo_ns.render.static import StaticSettings, static_fraction
 from garo_ns.render.switches import RenderSettings, SwitchDecision
 from garo_ns.render.view import HostCameras, RenderView, camera_numbers, camera_view
-from garo_ns.ssim import SSIM
-from garo_ns.static import StaticSettings, classification_due, classify, sample_times, static_fraction
-from garo_ns.train_graphs import GraphedSplats
-from garo_ns.training_data import adopt_training_data, reuse_step_cameras
+from garo_ns.state import checkpoints
 
 
 @dataclass
@@ -52,8 +53,8 @@ class GaroModelConfig(
     D3dgsRecipe, DeformationSettings, StaticSettings, RenderSettings, CompactionSettings, GaroSettings
 ):
     """Deformable splatfacto with D-3DGS's training recipe and optional GARO pruning. Each group of
-    settings is declared with what it configures: D-3DGS's schedule (garo_ns.recipe), the deformation
-    field (garo_ns.deformation), the static classification (garo_ns.static), rendering and its speed
+    settings is declared with what it configures: D-3DGS's schedule (garo_ns.engine.recipe), the deformation
+    field (garo_ns.deformation), the static classification (garo_ns.render.static), rendering and its speed
     switches (garo_ns.render.switches), compaction (garo_ns.compaction.schedule) and GARO
     (garo_ns.garo_strategy); the flags are flat (`--pipeline.model.<setting>`)."""
 
@@ -96,7 +97,8 @@ class GaroModel(SplatfactoModel):
             lambda: self.deformation, cfg.deform_cuda_graph, cfg.deform_train_bf16, cfg.deform_graph_grads
         )
         self.collector = TrainingCollector(cfg.gc_threshold)  # Python's collector paced to training (set on step 1)
-        # The dataset's cameras on the host: a training step reads its camera's numbers there (garo_ns.training_data).
+        # The dataset's cameras on the host: a training step reads its camera's numbers there
+        # (garo_ns.engine.training_data).
         self.step_cameras: Optional[HostCameras] = None
         self._lpips = [lpips]  # out of the module tree: LPIPS may be absent, checkpoints must not need it
         self.step = 0
@@ -104,7 +106,7 @@ class GaroModel(SplatfactoModel):
         self._warned_no_time = False
         # A buffer, so the background the model was trained on travels with its checkpoints.
         self.register_buffer("background_rgb", cfg.background_for(metadata).clone())
-        # Set by the config or the dataparser: the training cameras do not replace it (garo_ns.training_data).
+        # Set by the config or the dataparser: the training cameras do not replace it (garo_ns.engine.training_data).
         self.extent_fixed = cfg.scene_extent is not None or "camera_extent" in metadata
         self.strategy = cfg.make_strategy()
         self.compaction_guard: Optional[TrainingViewGuard] = None  # training views compaction is judged on
@@ -118,8 +120,8 @@ class GaroModel(SplatfactoModel):
         self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene_extent)
         self.train_times: Optional[Tensor] = None
         self.train_cameras: Optional[Cameras] = None
-        self._last_step: Optional[int] = None
-        self._metrics_every = 1  # the trainer's steps_per_log, once training starts
+        self.last_step: Optional[int] = None
+        self.metrics_every = 1  # the trainer's steps_per_log, once training starts
         self.frame.scale_offset = cfg.deform_scale_offset
         self.frame.table_tf32 = cfg.time_table_tf32
         self.frame.table_budget_mb = cfg.time_table_budget_mb
@@ -141,35 +143,14 @@ class GaroModel(SplatfactoModel):
         self.background_rgb.copy_(torch.as_tensor(value, dtype=torch.float32).reshape(3))
 
     def adopt_training_data(self, pipeline: Any) -> None:
-        """Make the model agree with its training data whatever the dataparser (garo_ns.training_data)."""
+        """Make the model agree with its training data whatever the dataparser (garo_ns.engine.training_data)."""
         adopt_training_data(self, pipeline)
 
     # ------------------------------------------------------------------ training callbacks
     def get_training_callbacks(
         self, training_callback_attributes: TrainingCallbackAttributes
     ) -> List[TrainingCallback]:
-        attributes = training_callback_attributes
-        self.training_run = True
-        self.adopt_training_data(attributes.pipeline)
-        trainer = attributes.trainer
-        if trainer is not None:  # the checkpoint is loaded by now: a resumed run starts after its step
-            self._last_step = last_training_step(getattr(trainer, "_start_step", 0), trainer.config.max_num_iterations)
-            logging = getattr(trainer.config, "logging", None)  # a trainer of nerfstudio's has one; stand-ins may not
-            self._metrics_every = max(int(getattr(logging, "steps_per_log", 1)), 1)
-        if attributes.optimizers is not None:
-            # Replayed once the parameters settle: for longer than densification's interval, as a graph captured on
-            # the 100th step after a refinement would be dropped by the next one (144 such in a 40k run).
-            settle = max(100, self.config.refine_every + 1)
-            graph = AdamGraph(stable_steps=settle) if self.config.adam_cuda_graph else None
-            install_grouped_step(attributes.optimizers, graph)  # CUDA runs: all groups' Adam updates at once
-        if getattr(attributes.pipeline, "datamanager", None) is not None:
-            reuse_step_cameras(attributes.pipeline.datamanager)  # one device camera per view, not one per step
-        before, after = TrainingCallbackLocation.BEFORE_TRAIN_ITERATION, TrainingCallbackLocation.AFTER_TRAIN_ITERATION
-        return [
-            TrainingCallback([before], self.step_cb, args=[attributes.optimizers]),
-            TrainingCallback([after], self.after_iteration),
-            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN], lambda step: self.collector.stop()),
-        ]
+        return training_callbacks(self, training_callback_attributes)
 
     def step_cb(self, optimizers: Optimizers, step: int) -> None:
         self.collector.start()  # from the first step on (a no-op after it); given back after the last
@@ -179,34 +160,17 @@ class GaroModel(SplatfactoModel):
     def after_iteration(self, step: int) -> None:
         """The strategy (densification, GARO, contribution pruning, compaction), then the static
         classification, then the deformation field's health check."""
-        cfg = self.config
         torch.backends.cuda.matmul.allow_tf32 = False  # the step's products are done (see get_outputs)
         self.strategy.step_post_backward(self.gauss_params, self.optimizers, self.strategy_state, step, self.info)
         for name, value in garo_scalars(self.strategy_state, step).items():
             writer.put_scalar(name=name, scalar=value, step=step)
         fixed_ratio_round(self, step)  # the expert knob prune_contribution_ratio, when set
-        run_round(self, step, self._last_step)  # compaction (garo_ns.compaction), when configured
-        if self.deformation_active() and classification_due(step, cfg.deform_warmup, cfg.static_every, self._last_step):
-            self.refresh_static()
-            fraction = self.static_fraction()
-            if fraction is not None:
-                writer.put_scalar("garo/static_fraction", fraction, step)
-        self.check_health(step)
-        if step == self._last_step and self.switch_guard is not None and self.deformation_active():
-            CONSOLE.print(self.switches.measure_on_training_views(self, self.switch_guard, step))
+        run_round(self, step, self.last_step)  # compaction (garo_ns.compaction), when configured
+        after_strategy(self, step)
 
     def check_health(self, step: int) -> None:
-        """Every `health_every` steps after the warm-up, measure whether the deformation field
-        still models motion; warn once when it has collapsed (no later step can undo it)."""
-        cfg = self.config
-        if self.num_points == 0 or not health_due(step, cfg.deform_warmup, cfg.health_every):
-            return
-        health = health_check(self.deformation, self.means, sample_times(self.train_times, 8), self.scene_extent, step)
-        self.health_log.append(health)
-        writer.put_scalar("garo/deform_time_sensitivity", health["time_sensitivity"], step)
-        writer.put_scalar("garo/deform_dead_fraction_max", max(health["dead_fraction"]), step)
-        if health["collapsed"] and not any(h["collapsed"] for h in self.health_log[:-1]):
-            CONSOLE.print(collapse_warning(health, cfg.deform_head_init))
+        """The deformation field's health check when due (garo_ns.engine.callbacks.check_health)."""
+        check_health(self, step)
 
     # ------------------------------------------------------------------ the Gaussians at a time
     def deformation_active(self) -> bool:
@@ -250,15 +214,9 @@ class GaroModel(SplatfactoModel):
         """Share of Gaussians currently classified static, or None before any classification."""
         return static_fraction(self.strategy_state.get("static"), self.num_points)
 
-    @torch.no_grad()
     def refresh_static(self, times: Optional[Tensor] = None) -> None:
-        """Re-decide which Gaussians are static from the current deformation field, at `times`
-        (default: up to `static_times` of the training times, evenly spread)."""
-        times = sample_times(self.train_times, self.config.static_times) if times is None else times
-        threshold = self.config.static_threshold * self.scene_extent
-        scale_offset = self.config.deform_scale_offset
-        static, offset = classify(self.deformation, self.means, self.scales, times, threshold, scale_offset)
-        self.strategy_state.update({"static": static, "static_offset": offset, "static_step": int(self.step)})
+        """Re-decide which Gaussians are static, at `times` (garo_ns.engine.callbacks.refresh_static)."""
+        refresh_static(self, times)
 
     def contribution(self, cameras: Cameras) -> Tensor:
         """Summed blending weight of every Gaussian over `cameras`, each at its own time [N]."""
@@ -330,48 +288,21 @@ class GaroModel(SplatfactoModel):
         background = self.background_color.to(self.device)
         return camera_outputs(render, alpha, background, render_mode == "RGB+ED", self.training)
 
-    # ------------------------------------------------------------------ losses and metrics
+    # ------------------------------------------------------------------ losses and metrics (garo_ns.engine.scoring)
     def ground_truth(self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]) -> Tensor:
         """The batch's image at the render's resolution, composited on the render's background [H, W, 3]."""
         return self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
 
     def get_metrics_dict(self, outputs, batch) -> Dict[str, Any]:
-        """PSNR (and the camera optimizer's metrics) against the batch; in training only on the steps the trainer
-        logs (its `steps_per_log`: it writes the metrics on those alone), for the host time of the rest."""
-        if self.training and self.step % self._metrics_every:
-            return {"gaussian_count": self.num_points}
-        metrics: Dict[str, Any] = {"psnr": psnr(outputs["rgb"], self.ground_truth(outputs, batch))}
-        if self.training:
-            self.camera_optimizer.get_metrics_dict(metrics)
-        metrics["gaussian_count"] = self.num_points
-        return metrics
+        return scoring.metrics_dict(self, outputs, batch)
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, Tensor]:
-        """Splatfacto's losses (garo_ns.losses: the same terms, no wait for the GPU); a non-finite loss stops
-        training (`loss_watch`)."""
-        cfg = self.config
-        mask = self._downscale_if_required(batch["mask"]).to(self.device) if "mask" in batch else None
-        regularise = cfg.use_scale_regularization and self.step % 10 == 0
-        losses = step_losses(
-            self.ground_truth(outputs, batch),
-            outputs["rgb"],
-            self.image_loss,
-            mask,
-            self.scales if regularise else None,
-            cfg.max_gauss_ratio,
-        )
-        if self.training:
-            self.camera_optimizer.get_loss_dict(losses)
-            self.loss_watch.observe(losses["main_loss"], self.step)
-        return losses
+        return scoring.loss_dict(self, outputs, batch)
 
     def get_image_metrics_and_images(
         self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]
     ) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
-        gt = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
-        metrics = image_metrics(gt, outputs["rgb"], self.psnr, self.ssim, self._lpips[0])
-        metrics["num_gaussians"] = float(self.num_points)
-        return metrics, {"img": torch.cat([gt, outputs["rgb"]], dim=1)}
+        return scoring.image_metrics_and_images(self, outputs, batch)
 
     # ------------------------------------------------------------------ checkpoints
     def update_to_step(self, step: int) -> None:
@@ -383,12 +314,7 @@ class GaroModel(SplatfactoModel):
         In place (same Parameter objects), so optimizers built before loading stay bound to the
         loaded Gaussians; the step is the checkpoint's, set through `update_to_step`.
         """
-        checkpoints.upgrade_gaussian_keys(state_dict)
-        self.frame.scale_offset = checkpoints.scale_offset_for(state_dict, self.config)
-        checkpoints.check_fit({k: v for k, v in self.state_dict().items() if k.startswith("gauss_params.")}, state_dict)
-        checkpoints.resize_gaussians(self.gauss_params, state_dict["gauss_params.means"].shape[0])
-        self.deformation = checkpoints.field_for(state_dict, self.deformation, self.config)
-        checkpoints.check_fit(self.state_dict(), state_dict)
+        checkpoints.fit_model_to(self, state_dict)  # older checkpoints' keys, its count, its field
         result = torch.nn.Module.load_state_dict(self, state_dict, strict=strict)
         if not self.training:
             self.build_time_table()
@@ -406,16 +332,8 @@ class GaroModel(SplatfactoModel):
                 CONSOLE.print(f"[yellow]{line}[/yellow]", soft_wrap=True)
 
     def get_extra_state(self) -> Dict[str, Any]:
-        """The densification strategy's running state (the compaction's summary too) travels with the checkpoint, and
-        the scale composition the Gaussians were trained with (checkpoints.scale_offset_for)."""
-        return {
-            "strategy_state": dict(self.strategy_state),
-            "render_switches": self.switches.record,
-            "scale_offset": self.config.deform_scale_offset,
-        }
+        """What travels with the checkpoint besides the parameters (garo_ns.state.checkpoints.extra_state)."""
+        return checkpoints.extra_state(self)
 
     def set_extra_state(self, state: Dict[str, Any]) -> None:
-        checkpoints.restore_strategy_state(self.strategy_state, (state or {}).get("strategy_state") or {}, self.device)
-        self.switches.record = (state or {}).get("render_switches")
-        if not self.training:  # loaded to render (ns-viewer, ns-render, garo-eval load in eval mode)
-            CONSOLE.print(self.switches.line(self.config, self.training_run, self.device), soft_wrap=True)
+        checkpoints.restore_extra_state(self, state)

@@ -8,8 +8,8 @@ import copy
 import pytest
 import torch
 
-from garo_ns import adam
-from garo_ns.adam import LeanAdam
+from garo_ns.engine import adam
+from garo_ns.engine.adam import LeanAdam
 
 
 def _params(seed=0, shapes=((100, 3), (7,), (5, 4, 2))):

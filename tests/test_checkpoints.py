@@ -14,7 +14,8 @@ import pytest
 import torch
 
 import garo_ns.config  # noqa: F401  (registers the methods; patches nerfstudio's trainer as ns-train does)
-from garo_ns.checkpoints import (
+from garo_ns.errors import GaroInputError
+from garo_ns.state.checkpoints import (
     PARTIAL_PREFIX,
     SLOW_WRITE_ENV,
     checkpoint_name,
@@ -22,7 +23,6 @@ from garo_ns.checkpoints import (
     latest_complete_step,
     save_atomically,
 )
-from garo_ns.errors import GaroInputError
 
 
 def test_ns_train_gets_the_crash_safe_trainer():
@@ -34,7 +34,7 @@ def test_ns_train_gets_the_crash_safe_trainer():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
-    assert out.stdout.split() == ["garo_ns.checkpoints", "garo_ns.checkpoints"]
+    assert out.stdout.split() == ["garo_ns.state.checkpoints", "garo_ns.state.checkpoints"]
 
 
 def _state(step: int) -> dict:
@@ -199,8 +199,8 @@ def test_a_checkpoint_of_either_numpy_loads_weights_only(tmp_path, writer):
 
 
 def test_a_full_disk_is_one_line_and_the_previous_checkpoint_stays(tmp_path, monkeypatch):
-    from garo_ns import checkpoints
     from garo_ns.errors import GaroTrainingError
+    from garo_ns.state import checkpoints
 
     checkpoints.save_atomically({"step": 1, "x": torch.ones(3)}, tmp_path, 1, True)
     real_save = torch.save

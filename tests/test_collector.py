@@ -6,7 +6,7 @@ import gc
 
 import pytest
 
-from garo_ns.collector import TrainingCollector, collector_paused
+from garo_ns.ops.collector import TrainingCollector, collector_paused
 
 
 @pytest.fixture

@@ -14,7 +14,6 @@ from typing import Any, Dict, List
 import pytest
 import torch
 
-from garo_ns.checkpoints import restore_strategy_state
 from garo_ns.compaction import Compaction, importance
 from garo_ns.compaction.guard import removal_cost, spread_indices
 from garo_ns.compaction.report import round_line, scalars, stop_line, summary_for_json
@@ -22,6 +21,7 @@ from garo_ns.compaction.schedule import last_training_step
 from garo_ns.errors import GaroConfigError
 from garo_ns.garo_strategy import GaroStrategy
 from garo_ns.redundancy.select import lowest
+from garo_ns.state.checkpoints import restore_strategy_state
 
 N = 100
 

@@ -107,32 +107,6 @@ def test_the_demo_trains_both_arms_with_one_scale_composition(tmp_path):
     assert config.pipeline.model.deform_scale_offset == "linear"
 
 
-@pytest.mark.slow
-def test_demo_ab_trains_a_base_and_an_arm_per_seed(tmp_path):
-    """benchmarks/demo_ab.py end to end on a few steps: per seed the demo's arm and one with the setting, each
-    run's config saying which it was, the table next to the JSON."""
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    root = Path(__file__).resolve().parent.parent
-    result = tmp_path / "ab.json"
-    done = subprocess.run(
-        [sys.executable, "benchmarks/demo_ab.py", "--set", "deform_scale_offset=linear", "--seeds", "3", "--steps",
-         "30", "--work-dir", str(tmp_path / "work"), "--result", str(result)],
-        cwd=root, capture_output=True, text=True,
-    )  # fmt: skip
-    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
-    saved = json.loads(result.read_text())
-    assert saved["steps"] == 30 and saved["settings"] == {"deform_scale_offset": "linear"}
-    assert [r["seed"] for r in saved["base"]] == [3] == [r["seed"] for r in saved["arm"]]
-    assert saved["mean_psnr_change_db"] == pytest.approx(saved["arm"][0]["psnr"] - saved["base"][0]["psnr"])
-    for side, offset in (("base", "log"), ("arm", "linear")):
-        (config,) = (tmp_path / "work" / f"{side}_3").rglob("config.yml")
-        assert f"deform_scale_offset: {offset}" in config.read_text()
-    assert "Mean change over 1 seeds" in result.with_suffix(".md").read_text()
-
-
 def test_the_printed_resume_command_builds_the_arm_s_model(tmp_path):
     """The demo's arms train a smaller field than their method's: the resume command it prints passes the settings
     that shape the checkpoint's tensors (and no other), so ns-train builds a model the checkpoint fits."""
@@ -142,7 +116,7 @@ def test_the_printed_resume_command_builds_the_arm_s_model(tmp_path):
     import yaml
     from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
 
-    from garo_ns.checkpoints import expected_state, shape_settings
+    from garo_ns.state.checkpoints import expected_state, shape_settings
     from garo_ns.tools.demo import DemoArgs, demo_config, resume_command
 
     args = DemoArgs()

@@ -1,4 +1,4 @@
-"""garo_ns.dense and the deformation field's fused layers (`deform_fused_layers`) against torch's own layers."""
+"""garo_ns.ops.dense and the deformation field's fused layers (`deform_fused_layers`) against torch's own layers."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import torch
 import torch.nn.functional as F
 
 from garo_ns.deformation import DeformationField
-from garo_ns.dense import aligned, dense
+from garo_ns.ops.dense import aligned, dense
 
 
 def test_aligned_pads_to_the_next_multiple_of_eight():

@@ -79,9 +79,9 @@ def test_the_setting_builds_the_field_with_fp32_heads():
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA's bf16 autocast, as training runs it")
 def test_on_a_gpu_bf16_training_keeps_the_scale_offset_with_fp32_heads():
-    """The training path's wrapper (garo_ns.train_graphs.Bf16Field) on CUDA: the heads' fp32 product under its
+    """The training path's wrapper (garo_ns.engine.train_graphs.Bf16Field) on CUDA: the heads' fp32 product under its
     autocast, the offsets in fp32 and the scale offset's bf16 rounding gone, as on the CPU."""
-    from garo_ns.train_graphs import Bf16Field
+    from garo_ns.engine.train_graphs import Bf16Field
 
     xyz, t = (x.cuda() for x in _inputs())
     ref = _field(True, fp32_heads=False).cuda()(xyz, t)[2]

@@ -1,5 +1,5 @@
-"""The fused SSIM kernels (garo_ns.fused_ssim) against the convolutions' SSIM in float64: on the CPU through Triton's
-interpreter, on CUDA compiled (the training image size, and inside the loss's CUDA graph)."""
+"""The fused SSIM kernels (garo_ns.engine.fused_ssim) against the convolutions' SSIM in float64: on the CPU through
+Triton's interpreter, on CUDA compiled (the training image size, and inside the loss's CUDA graph)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import importlib.util
 import pytest
 import torch
 
-from garo_ns import fused_ssim
-from garo_ns.losses import ImageLoss, image_loss
-from garo_ns.ssim import SSIM
+from garo_ns.engine import fused_ssim
+from garo_ns.engine.losses import ImageLoss, image_loss
+from garo_ns.engine.ssim import SSIM
 
 needs_triton = pytest.mark.skipif(importlib.util.find_spec("triton") is None, reason="Triton is not installed")
 

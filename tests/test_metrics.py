@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import torch
 
-from garo_ns.metrics import LPIPS_MIN_SIDE, image_metrics, lpips_fits
-from garo_ns.ssim import SSIM
+from garo_ns.engine.metrics import LPIPS_MIN_SIDE, image_metrics, lpips_fits
+from garo_ns.engine.ssim import SSIM
 
 
 class _Recorder(torch.nn.Module):

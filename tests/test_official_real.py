@@ -130,7 +130,7 @@ class _Echo:
 def test_real_scores_as_garo_eval(tmp_path):
     from PIL import Image
 
-    from garo_ns.ssim import SSIM
+    from garo_ns.engine.ssim import SSIM
 
     (tmp_path / "images").mkdir()
     rng = np.random.default_rng(0)

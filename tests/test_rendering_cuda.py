@@ -6,8 +6,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from garo_ns.render.backend import lean_front, rasterize, rasterize_lean
+from garo_ns.render.backend import rasterize, rasterize_lean
 from garo_ns.render.graphs import InputGraph
+from garo_ns.render.kernels import lean_front
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="gsplat's kernels need a CUDA device")
 

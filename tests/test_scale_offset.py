@@ -11,8 +11,8 @@ import torch
 
 from garo_ns.deformation import SCALE_FLOOR, DeformationField, as_log_offsets, log_scale_offset
 from garo_ns.render.frame import Canonical, FramePath, FrameSettings, activate, compose, rows_splats, table_rows
+from garo_ns.render.static import classify
 from garo_ns.render.time_table import PAD, TableSpec, TimeTable
-from garo_ns.static import classify
 
 
 def test_log_offsets_pass_through_and_linear_ones_add_to_the_scale():

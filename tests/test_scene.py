@@ -7,15 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from garo_ns.tools.scene import (
-    BOX_CENTER_XY,
-    SceneSpec,
-    box_center,
-    generate_scene,
-    look_at_c2w,
-    render_frame,
-    sphere_center,
-)
+from garo_ns.tools.scene import SceneSpec, generate_scene, look_at_c2w, render_frame
+from garo_ns.tools.scene_objects import BOX_CENTER_XY, box_center, sphere_center
 
 
 def test_deterministic_from_seed(tmp_path):

@@ -11,7 +11,7 @@ import torch
 from garo_ns.redundancy.select import least_contributing
 from garo_ns.render.contribution import view_contribution
 from garo_ns.render.frame import FrameSettings, versions
-from garo_ns.static import classify_static, displacement, motion_statistics
+from garo_ns.render.static import classify_static, displacement, motion_statistics
 
 
 def test_motion_statistics_find_the_moving_half():
@@ -102,7 +102,7 @@ def test_static_gaussians_render_like_the_full_field(garo_run):
     # The quick CPU schedule's field wobbles everywhere (its learning rate is 6x D-3DGS's), so the
     # default threshold finds few static Gaussians here; take the median movement as threshold
     # (about a third of a pixel at 64 px) to split the scene in two and test the mechanism.
-    from garo_ns.static import motion_statistics as stats
+    from garo_ns.render.static import motion_statistics as stats
 
     times = model.train_times
     # The method's scale composition (`linear` since garo-deform took it): the statistics in log-scale offsets.
@@ -259,8 +259,8 @@ def test_contribution_pruning_during_training(scene_dir, tmp_path):
 
 @pytest.mark.slow
 def test_compact_storage_halves_the_model_and_renders_alike(garo_run, tmp_path):
-    from garo_ns import storage
     from garo_ns.bench.timing import model_size_mb, render_view
+    from garo_ns.state import storage
 
     model = _eval_model(garo_run)
     cam = garo_run["trainer"].pipeline.datamanager.train_dataset.cameras[2:3].to(model.device)
@@ -294,7 +294,7 @@ def test_compact_storage_halves_the_model_and_renders_alike(garo_run, tmp_path):
 
 @pytest.mark.slow
 def test_compact_storage_refuses_non_finite_models(garo_run, tmp_path):
-    from garo_ns import storage
+    from garo_ns.state import storage
 
     model = _eval_model(garo_run)
     saved = storage.snapshot(model)

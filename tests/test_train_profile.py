@@ -7,7 +7,8 @@ import json
 import pytest
 import torch
 
-from garo_ns.bench.train_profile import PHASES, Mark, StepMarks, markdown_table, phase_times, summarise_window
+from garo_ns.bench.profile_docs import markdown_table
+from garo_ns.bench.step_phases import PHASES, Mark, StepMarks, phase_times, summarise_window
 
 
 def _mark(t_ms: float) -> Mark:
@@ -118,7 +119,7 @@ def test_model_overrides_are_literals_of_known_settings():
 def test_the_docs_profile_block_is_written_from_the_committed_files(tmp_path):
     from pathlib import Path
 
-    from garo_ns.bench.train_profile import DOCS_BEGIN, DOCS_END, docs_block
+    from garo_ns.bench.profile_docs import DOCS_BEGIN, DOCS_END, docs_block
 
     root = Path(__file__).resolve().parents[1]
     text = (root / "docs" / "benchmarks.md").read_text()
@@ -169,7 +170,7 @@ def test_the_gpu_busy_share_counts_each_kernel_once():
     launched it (a user annotation's GPU range spans kernels too). The share and the top list read GPU events only."""
     from types import SimpleNamespace
 
-    from garo_ns.bench.train_profile import kernel_share, top_kernels
+    from garo_ns.bench.kernel_table import kernel_share, top_kernels
 
     cpu, cuda = torch.autograd.DeviceType.CPU, torch.autograd.DeviceType.CUDA
 
@@ -201,7 +202,7 @@ def test_the_gpu_busy_share_counts_each_kernel_once():
 def test_on_a_gpu_the_busy_share_reads_the_gpus_own_events():
     """Where the profiler records the CPU too, every kernel's time sits once under the aten op that launched it and
     once as the GPU's own event (the profiler's own events add theirs): the share must sum the GPU's alone."""
-    from garo_ns.bench.train_profile import kernel_share
+    from garo_ns.bench.kernel_table import kernel_share
 
     a = torch.randn(2048, 2048, device="cuda")
     for _ in range(2):  # warm: a first call's lazy module loading shows as events of its own

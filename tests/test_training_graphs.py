@@ -10,8 +10,8 @@ from contextlib import contextmanager
 import pytest
 import torch
 
-from garo_ns.losses import ImageLoss
-from garo_ns.ssim import SSIM
+from garo_ns.engine.losses import ImageLoss
+from garo_ns.engine.ssim import SSIM
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a GPU")
 
@@ -77,8 +77,8 @@ def test_the_graphed_splats_are_the_composed_gaussians_forward_and_backward(scal
     """The whole step's Gaussians (field, composition, activations) from one graph: the eager values and the
     gradients of every canonical tensor and field parameter, call after call; a new count captures anew."""
     from garo_ns.deformation import DeformationField
+    from garo_ns.engine.train_graphs import GraphedSplats
     from garo_ns.render.frame import Canonical, activate, compose
-    from garo_ns.train_graphs import GraphedSplats
 
     torch.manual_seed(0)
     field = DeformationField(time_net=30).cuda().train()
@@ -107,7 +107,7 @@ def test_the_graphed_splats_are_the_composed_gaussians_forward_and_backward(scal
 
 def test_the_graphed_splats_run_eagerly_without_gradients_or_when_off():
     from garo_ns.deformation import DeformationField
-    from garo_ns.train_graphs import GraphedSplats
+    from garo_ns.engine.train_graphs import GraphedSplats
 
     field = DeformationField(time_net=30).cuda().train()
     canonical = _canonical(1000, 0)
@@ -128,9 +128,9 @@ def test_a_graphed_backward_accumulates_into_grad_as_autograd_does():
     from zero after an optimizer's zero_grad (None), onto a gradient already there (another tensor, or its own buffer
     from an earlier backward, whose version it bumps), and a parameter that is not trained gets none; the canonical
     tensors' gradients come through autograd as before."""
-    from garo_ns.adam import is_graph_gradient
     from garo_ns.deformation import DeformationField
-    from garo_ns.train_graphs import GraphedSplats
+    from garo_ns.engine.adam import is_graph_gradient
+    from garo_ns.engine.train_graphs import GraphedSplats
 
     torch.manual_seed(0)
     field = DeformationField(time_net=30).cuda().train()
@@ -167,7 +167,7 @@ def test_two_graphed_backwards_of_different_gradients_add_up():
     gradients, for the canonical tensors (their gradients leave the graph through autograd) and the field's
     parameters (added into their buffers). Two equal gradients could not tell g1 + g2 from g2 + g2."""
     from garo_ns.deformation import DeformationField
-    from garo_ns.train_graphs import GraphedSplats
+    from garo_ns.engine.train_graphs import GraphedSplats
 
     torch.manual_seed(0)
     field = DeformationField(time_net=30).cuda().train()
@@ -208,7 +208,7 @@ def test_a_graphed_step_accumulates_its_gradients_on_the_step_stream(own_grads):
     graphed as itself, its parameters its own, waits on an event per parameter: the case the stand-ins exist for,
     and what shows that this test can fail."""
     from garo_ns.deformation import DeformationField
-    from garo_ns.train_graphs import GraphedSplats, _SplatsCall
+    from garo_ns.engine.train_graphs import GraphedSplats, _SplatsCall
 
     field = DeformationField(time_net=30).cuda().train()
     canonical = _canonical(3000, 0)
@@ -236,7 +236,7 @@ def test_a_new_capture_reuses_the_memory_of_the_graph_it_replaces():
     one capture's memory every time. torch's make_graphed_callables (deform_graph_grads off), which warms up on a new
     stream at every capture, failed this bound on an H100 (benchmarks/results/cuda_subset_memory_H100.log)."""
     from garo_ns.deformation import DeformationField
-    from garo_ns.train_graphs import GraphedSplats
+    from garo_ns.engine.train_graphs import GraphedSplats
 
     field = DeformationField(time_net=30).cuda().train()
     graphed = GraphedSplats(lambda: field, enabled=True, own_grads=True)
@@ -261,7 +261,7 @@ def test_the_bf16_step_graph_replays_the_eager_bf16_step():
     gradients up to the order of the products' sums; the weights the graph reads are recast at every replay (an
     optimizer step between two replays shows in the second)."""
     from garo_ns.deformation import DeformationField
-    from garo_ns.train_graphs import GraphedSplats
+    from garo_ns.engine.train_graphs import GraphedSplats
 
     torch.manual_seed(0)
     field = DeformationField(time_net=30).cuda().train()
@@ -310,8 +310,8 @@ def test_no_collection_runs_inside_a_capture(own_grads):
     capture (a training run crashed so): every capture here runs with the collector paused, `StepGraph`'s (the
     default, `deform_graph_grads`) as well."""
     from garo_ns.deformation import DeformationField
+    from garo_ns.engine.train_graphs import GraphedSplats
     from garo_ns.render.graphs import capture
-    from garo_ns.train_graphs import GraphedSplats
 
     field = DeformationField(time_net=30).cuda().train()
     graphed = GraphedSplats(lambda: field, enabled=True, own_grads=own_grads)

@@ -12,9 +12,9 @@ import pytest
 import torch
 from nerfstudio.models.splatfacto import SSIM as SplatfactoSSIM
 
+from garo_ns.engine.losses import ImageLoss, NonFiniteWatch, psnr, scale_regularisation, step_losses
+from garo_ns.engine.ssim import SSIM
 from garo_ns.errors import GaroTrainingError
-from garo_ns.losses import ImageLoss, NonFiniteWatch, psnr, scale_regularisation, step_losses
-from garo_ns.ssim import SSIM
 
 
 def _pair(shape, seed=0):
@@ -102,7 +102,7 @@ def test_the_deferred_watch_names_the_first_bad_step_when_it_reads():
 
 
 def test_a_checkpoint_is_not_written_after_an_unread_non_finite_loss(tmp_path):
-    from garo_ns.checkpoints import _trainer_save_checkpoint
+    from garo_ns.state.checkpoints import _trainer_save_checkpoint
 
     watch = NonFiniteWatch(every=1000, defer=True)
     watch.observe(torch.tensor(math.nan), 3)
@@ -266,7 +266,7 @@ def test_a_training_run_reuses_one_device_camera_per_view_in_the_datamanagers_or
 def test_a_datamanager_of_another_kind_keeps_its_own_next_train():
     from types import SimpleNamespace
 
-    from garo_ns.training_data import reuse_step_cameras
+    from garo_ns.engine.training_data import reuse_step_cameras
 
     other = SimpleNamespace(next_train=lambda step: ("camera", {}))
     assert not reuse_step_cameras(other) and not reuse_step_cameras(SimpleNamespace())
@@ -276,8 +276,8 @@ def test_a_datamanager_of_another_kind_keeps_its_own_next_train():
 def test_graphed_splats_off_the_gpu_are_the_composed_gaussians():
     """CPU runs (and CI) take the eager composition whatever the setting: the same tensors, bit for bit."""
     from garo_ns.deformation import DeformationField
+    from garo_ns.engine.train_graphs import GraphedSplats
     from garo_ns.render.frame import Canonical, activate, compose
-    from garo_ns.train_graphs import GraphedSplats
 
     torch.manual_seed(0)
     field = DeformationField(time_net=30).train()
@@ -296,8 +296,8 @@ def test_the_functional_splats_are_the_modules_and_send_gradients_to_the_tensors
     the bit; gradients reach the tensors passed (the real parameters at a step, stand-ins at a capture) and nothing
     else, stand-ins reading their parameters' storage."""
     from garo_ns.deformation import DeformationField
+    from garo_ns.engine.train_graphs import _SplatsCall, functional_splats
     from garo_ns.render.frame import Canonical
-    from garo_ns.train_graphs import _SplatsCall, functional_splats
 
     torch.manual_seed(3)
     field = DeformationField(depth=3, width=16, time_net=8, fused_layers=fused)
@@ -330,7 +330,7 @@ def test_the_functional_splats_are_the_modules_and_send_gradients_to_the_tensors
 def test_attached_gradient_buffers_hold_what_grad_held():
     """`attach_gradients`: each buffer becomes its parameter's `.grad` holding what that held (zero for None,
     a copy of another tensor, itself untouched when already attached), so adding into the buffers accumulates."""
-    from garo_ns.train_graphs import attach_gradients
+    from garo_ns.engine.train_graphs import attach_gradients
 
     params = [torch.zeros(3, requires_grad=True) for _ in range(3)]
     buffers = [torch.full((3,), 9.0) for _ in range(3)]
@@ -368,7 +368,7 @@ def test_training_metrics_are_computed_on_the_trainers_log_steps_only(scene_dir,
             logged.append(step)
     assert logged == [0, 3, 6]  # the steps the trainer writes metrics on (step_check with run_at_zero)
     model.eval()  # outside training: always
-    assert model._metrics_every == 3 and "psnr" in model.get_metrics_dict(*_outputs_and_batch(trainer))
+    assert "psnr" in model.get_metrics_dict(*_outputs_and_batch(trainer))
     assert model.train_splats.enabled and model.train_splats.bf16  # garo-deform's recipe: graphed, bf16 products
     from garo_ns.config import METHODS
 
@@ -403,9 +403,9 @@ def test_the_bf16_field_stays_near_the_fp32_field_and_keeps_fp32_weights(fused):
     rounding of the products' inputs as CUDA's): on the recipe's field at its initialisation the offsets differ by
     about 0.3% of their norm (bound 1%), each parameter's gradient points the same way (cosine >= 0.98; the
     smallest is about 0.992); the weights the optimizer steps stay fp32 and the offsets come back in fp32. The same
-    with the fused layers (garo_ns.dense), whose casts are their own."""
+    with the fused layers (garo_ns.ops.dense), whose casts are their own."""
     from garo_ns.deformation import DeformationField
-    from garo_ns.train_graphs import Bf16Field
+    from garo_ns.engine.train_graphs import Bf16Field
 
     torch.manual_seed(0)
     field = DeformationField(fused_layers=fused).train()
@@ -428,8 +428,8 @@ def test_the_bf16_field_stays_near_the_fp32_field_and_keeps_fp32_weights(fused):
 def test_bf16_training_leaves_a_cpu_step_in_fp32():
     """The setting is for CUDA's tensor cores: off the GPU the step's Gaussians are the fp32 composition."""
     from garo_ns.deformation import DeformationField
+    from garo_ns.engine.train_graphs import GraphedSplats
     from garo_ns.render.frame import Canonical, activate, compose
-    from garo_ns.train_graphs import GraphedSplats
 
     torch.manual_seed(0)
     field = DeformationField(time_net=30).train()

@@ -17,7 +17,7 @@ garo-compact--<setting>-<value>--... (any compaction settings, e.g. `garo-compac
 A name may carry render-time switches after `+`: `+static` (static Gaussians skip the MLP), `+graph`
 (everything before the rasterizer as one CUDA graph), `+lean` (gsplat's kernels called directly), `+table`
 (the time table forced on, garo_ns.render.time_table), `+fp16` (parameters rounded to the compact
-half-precision file of garo_ns.storage; its size is the model size), `+auto` (every switch left to the
+half-precision file of garo_ns.state.storage; its size is the model size), `+auto` (every switch left to the
 finished model, as ns-viewer, ns-render and garo-eval render without flags; the row records what it chose in
 `render_switches_used`), e.g. `garo-deform+static+graph+lean`; such variants reuse the training of the name
 before the first `+` and differ only at render time. Every such row records `psnr_vs_plain`: its PSNR minus
@@ -322,10 +322,10 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
     """Score and time a trained variant (alone on its device) under each render setting in `names`."""
     import torch
 
-    from garo_ns import storage
     from garo_ns.bench.frame_profile import profile_frame
     from garo_ns.bench.timing import measure_fps, measure_same_time, model_size_mb
     from garo_ns.compaction.report import summary_for_json
+    from garo_ns.state import storage
     from garo_ns.tools.eval import evaluate, load_run, split_views
     from garo_ns.tools.eval import train_times as scene_train_times
 

@@ -20,7 +20,8 @@ from typing import Any, Dict, Iterator
 import torch
 
 from garo_ns.bench.timing import prepare_views
-from garo_ns.render.backend import TILE_SIZE, rasterize_lean, resolve_backend
+from garo_ns.render.backend import rasterize_lean, resolve_backend
+from garo_ns.render.kernels import TILE_SIZE
 from garo_ns.render.view import RenderView
 
 STAGES = ("deformation", "projection", "color", "sorting", "compositing")

@@ -20,6 +20,10 @@ pass gives the share of the step's wall time the GPU spends in kernels. A last p
 that take the most of the Python thread's time, which is where a host-bound step can be cut. On a CPU the marks
 are host clocks and both columns agree, so the same code runs in the tests.
 
+This module runs the run and writes its result file; the parts it measures with are modules of their own: the
+phases' marks (`step_phases`), the host synchronisations and host operations (`host_syncs`), the GPU's events
+(`kernel_table`), and the tables and the docs' block (`profile_docs`).
+
     python -m garo_ns.bench.train_profile --scene data/dnerf/jumpingjacks --method garo-deform \
         --windows 2000 10000 30000 --output train_profile.json
 """
@@ -28,201 +32,17 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import time
-import warnings
-from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import torch
 
-PHASES = (
-    "data",
-    "deformation_forward",
-    "rasterization_forward",
-    "metrics",
-    "loss_forward",
-    "loss_backward",
-    "rasterization_backward",
-    "deformation_backward",
-    "optimizers",
-    "strategy",
-    "after_step_other",
-    "loop_between_steps",
-)
-"""The phases of a step, in the order they run (see the module docstring)."""
-
-
-class Mark:
-    """A point in a step: the host clock and, on CUDA, an event recorded on the current stream."""
-
-    __slots__ = ("host", "event")
-
-    def __init__(self, cuda: bool) -> None:
-        self.host = time.perf_counter()
-        self.event = None
-        if cuda:
-            self.event = torch.cuda.Event(enable_timing=True)
-            self.event.record()
-
-    def device_ms_to(self, later: "Mark") -> float:
-        """Milliseconds from this mark to `later` on the device's timeline (the host clock without CUDA);
-        call after a synchronisation."""
-        if self.event is not None and later.event is not None:
-            return float(self.event.elapsed_time(later.event))
-        return (later.host - self.host) * 1e3
-
-    def host_ms_to(self, later: "Mark") -> float:
-        return (later.host - self.host) * 1e3
-
-
-@dataclass
-class StepMarks:
-    """The marks of one instrumented step: each phase's (start, end) and nested phases to subtract."""
-
-    spans: Dict[str, List[Tuple[Mark, Mark]]] = field(default_factory=dict)
-    points: Dict[str, Mark] = field(default_factory=dict)
-
-    def add(self, phase: str, start: Mark, end: Mark) -> None:
-        self.spans.setdefault(phase, []).append((start, end))
-
-
-def phase_times(step: StepMarks, next_start: Optional[Mark]) -> Dict[str, Dict[str, float]]:
-    """{"device": {phase: ms}, "host": {phase: ms}} of one step from its marks (after a synchronisation).
-
-    The backward pass is cut at the points its hooks marked: `backward_start` (the loss's gradient),
-    `render_grad` (the render's), `splats_grad` (the deformed Gaussians'), and ends where the optimizers
-    start; the strategy runs inside the after-step callback and is subtracted from it. `next_start`:
-    the next step's first mark (the loop between the two), None for a window's last step.
-    """
-    out: Dict[str, Dict[str, float]] = {"device": {}, "host": {}}
-
-    def put(phase: str, start: Mark, end: Mark) -> None:
-        out["device"][phase] = out["device"].get(phase, 0.0) + start.device_ms_to(end)
-        out["host"][phase] = out["host"].get(phase, 0.0) + start.host_ms_to(end)
-
-    for phase, spans in step.spans.items():
-        if phase == "step":
-            continue
-        for start, end in spans:
-            put(phase, start, end)
-    p = step.points
-    cuts = [p.get("backward_start"), p.get("render_grad"), p.get("splats_grad")]
-    # The backward pass ends where the optimizers' step starts (zero_grad, also "optimizers", runs first).
-    if all(c is not None for c in cuts) and "optimizer_step" in p:
-        ends = cuts[1:] + [p["optimizer_step"]]
-        for phase, start, end in zip(("loss_backward", "rasterization_backward", "deformation_backward"), cuts, ends):
-            put(phase, start, end)  # type: ignore[arg-type]
-    if "after_start" in p:  # from the first after-step callback to the step's end
-        put("after_step_other", p["after_start"], step.spans["step"][0][1])
-    for kind in ("device", "host"):
-        if "after_step_other" in out[kind]:
-            out[kind]["after_step_other"] -= out[kind].get("strategy", 0.0)
-    first, last = step.spans["step"][0]
-    out["device"]["step"] = first.device_ms_to(last)
-    out["host"]["step"] = first.host_ms_to(last)
-    if next_start is not None:
-        put("loop_between_steps", last, next_start)
-    return out
-
-
-class StepInstrument:
-    """Marks the phases of the steps of a nerfstudio Trainer whose model is a GaroModel.
-
-    It wraps bound methods of the trainer's own objects (the datamanager, the model, its strategy, the
-    optimizers) and adds hooks on the loss, the render and the deformed Gaussians; outside an active
-    window each wrapper costs one attribute test."""
-
-    def __init__(self, trainer: Any) -> None:
-        self.trainer = trainer
-        self.model = trainer.pipeline.model
-        self.cuda = self.model.device.type == "cuda"
-        self.active = False
-        self.steps: List[StepMarks] = []
-        self._handles: List[Any] = []
-        dm, model, opt = trainer.pipeline.datamanager, self.model, trainer.optimizers
-        self._wrap(dm, "next_train", "data")
-        self._wrap(model, "gaussians_at", "deformation_forward", self._hook_splats)
-        self._wrap(model, "render", "rasterization_forward")
-        self._wrap(model, "get_metrics_dict", "metrics")
-        self._wrap(model, "get_loss_dict", "loss_forward", self._hook_loss)
-        self._wrap(model, "get_outputs", None, self._hook_render)
-        self._wrap(model.strategy, "step_post_backward", "strategy")
-        self._wrap(opt, "zero_grad_some", "optimizers")
-        self._wrap(opt, "optimizer_scaler_step_some", "optimizers", point="optimizer_step")
-        self._wrap(opt, "scheduler_step_all", "optimizers")
-
-    def mark(self) -> Mark:
-        return Mark(self.cuda)
-
-    def _wrap(
-        self,
-        obj: Any,
-        name: str,
-        phase: Optional[str],
-        after: Optional[Callable[[Any], None]] = None,
-        point: Optional[str] = None,
-    ) -> None:
-        """Replace `obj.name` by a wrapper that marks `phase` around the call, the point `point` at its
-        start, and passes the result to `after` (to hook its tensors)."""
-        inner = getattr(obj, name)
-
-        def wrapped(*args: Any, **kwargs: Any) -> Any:
-            if not self.active or not self.steps:
-                return inner(*args, **kwargs)
-            start = self.mark() if phase else None
-            if point is not None and start is not None:
-                self.steps[-1].points.setdefault(point, start)
-            result = inner(*args, **kwargs)
-            if phase:
-                self.steps[-1].add(phase, start, self.mark())  # type: ignore[arg-type]
-            if after is not None:
-                after(result)
-            return result
-
-        setattr(obj, name, wrapped)
-
-    def _point(self, name: str) -> Callable[[Any], None]:
-        step = self.steps[-1]
-
-        def hook(grad: Any) -> None:
-            step.points.setdefault(name, self.mark())
-
-        return hook
-
-    def _hook(self, tensor: Any, name: str) -> None:
-        if isinstance(tensor, torch.Tensor) and tensor.requires_grad:
-            self._handles.append(tensor.register_hook(self._point(name)))
-
-    def _hook_splats(self, splats: Any) -> None:
-        if self.model.training:
-            self._hook(splats.means, "splats_grad")
-
-    def _hook_render(self, outputs: Any) -> None:
-        if self.model.training:
-            self._hook(outputs.get("rgb"), "render_grad")
-
-    def _hook_loss(self, losses: Dict[str, Any]) -> None:
-        self._hook(losses.get("main_loss"), "backward_start")
-
-    def begin_step(self) -> None:
-        if self.active:
-            self.steps.append(StepMarks())
-            self.steps[-1].points["step_start"] = self.mark()
-
-    def after_start(self) -> None:
-        if self.active and self.steps:
-            self.steps[-1].points["after_start"] = self.mark()
-
-    def end_step(self) -> None:
-        if self.active and self.steps:
-            step = self.steps[-1]
-            step.add("step", step.points.pop("step_start"), self.mark())
-            for handle in self._handles:  # hooks on leaf parameters would outlive the step
-                handle.remove()
-            self._handles.clear()
+from garo_ns.bench.host_syncs import SyncCounter, host_op_summary
+from garo_ns.bench.kernel_table import kernel_share, top_kernels
+from garo_ns.bench.profile_docs import markdown_table
+from garo_ns.bench.step_phases import StepInstrument, summarise_window
 
 
 @dataclass
@@ -249,124 +69,6 @@ class ProfileSettings:
 def _sync(cuda: bool) -> None:
     if cuda:
         torch.cuda.synchronize()
-
-
-def summarise_window(steps: List[StepMarks]) -> Dict[str, Any]:
-    """Mean device and host milliseconds per step of each phase over the instrumented steps."""
-    nexts = [s.spans["step"][0][0] for s in steps[1:]] + [None]
-    times = [phase_times(s, n) for s, n in zip(steps, nexts)]
-    out: Dict[str, Any] = {}
-    for kind in ("device", "host"):
-        names = [p for p in PHASES + ("step",) if any(p in t[kind] for t in times)]
-        means = {}
-        for p in names:
-            values = [t[kind][p] for t in times if p in t[kind]]
-            means[p] = sum(values) / len(values)
-        out[f"{kind}_ms"] = means
-    inside = out["device_ms"].get("step", 0.0)
-    labelled = sum(v for k, v in out["device_ms"].items() if k not in ("step", "loop_between_steps"))
-    out["device_ms_unlabelled_in_step"] = inside - labelled
-    return out
-
-
-class SyncCounter:
-    """Counts CUDA host synchronisations while active (torch's sync debug mode) and where they come from."""
-
-    def __init__(self) -> None:
-        self.count = 0
-        self.sources: Counter = Counter()
-        self._catch: Optional[Any] = None
-        self._log: List[Any] = []
-
-    def start(self) -> None:
-        self._catch = warnings.catch_warnings(record=True)
-        self._log = self._catch.__enter__()
-        warnings.simplefilter("always")
-        torch.cuda.set_sync_debug_mode("warn")
-
-    def stop(self) -> None:
-        torch.cuda.set_sync_debug_mode("default")
-        if self._catch is not None:
-            self._catch.__exit__(None, None, None)
-        for w in self._log:
-            if "synchronizing" in str(w.message):
-                self.count += 1
-                self.sources[f"{Path(w.filename).name}:{w.lineno}"] += 1
-
-
-# CUDA runtime and driver calls as the profiler names them on the host (cudaLaunchKernel, cuLaunchKernelEx,
-# cudaGraphLaunch, cudaMemcpyAsync, cudaStreamSynchronize ...).
-RUNTIME_CALL = re.compile(r"^cu(da)?[A-Z]")
-
-
-def host_op_summary(prof: Any, steps: int, top: int = 12) -> Dict[str, Any]:
-    """Per step, from a finished torch profiler that recorded the host: `launches_per_step` (kernel and graph
-    launches), `runtime_calls_per_step` (every CUDA runtime call by name) and `top_host_ops` (the `top` host
-    operations by their own time: name, calls and milliseconds per step)."""
-    runtime: Dict[str, float] = {}
-    ops: List[Tuple[float, str, int]] = []
-    for e in prof.key_averages():
-        if getattr(e, "device_type", None) not in (None, torch.autograd.DeviceType.CPU):
-            continue  # the kernels themselves: the GPU's side
-        if RUNTIME_CALL.match(e.key):
-            runtime[e.key] = e.count / steps
-        else:
-            ops.append((float(e.self_cpu_time_total), e.key, int(e.count)))
-    ops.sort(key=lambda o: -o[0])
-    return {
-        "launches_per_step": sum(v for k, v in runtime.items() if "Launch" in k),
-        "runtime_calls_per_step": dict(sorted(runtime.items(), key=lambda kv: -kv[1])),
-        "top_host_ops": [
-            {"name": name, "calls_per_step": count / steps, "self_ms_per_step": us / 1e3 / steps}
-            for us, name, count in ops[:top]
-        ],
-    }
-
-
-def _device_events(prof: Any) -> List[Any]:
-    """The GPU's own events of a finished torch profiler (kernels, copies, sets), as torch's table totals them: a
-    CPU event's device time is that of the kernels it launched, which appear again here, and a user annotation's
-    GPU range spans kernels counted already."""
-    cpu = torch.autograd.DeviceType.CPU
-    return [
-        e
-        for e in prof.key_averages()
-        if getattr(e, "device_type", None) not in (None, cpu) and not getattr(e, "is_user_annotation", False)
-    ]
-
-
-OLD_KEYS = {"gpu_busy_share": "gpu_kernel_share"}
-"""A window's keys under their names in older files: the same measure (the profiler window records GPU activity only,
-so summing every event there sums the GPU's own)."""
-
-
-def _window_value(window: Dict[str, Any], key: str) -> Any:
-    """`key` of a window: its own, under its older name (OLD_KEYS), or its host pass's."""
-    for name in (key, OLD_KEYS.get(key)):
-        if name is not None and name in window:
-            return window[name]
-    return window.get("host_ops", {}).get(key)
-
-
-def kernel_share(prof: Any, wall_ms: float) -> Optional[float]:
-    """Share of `wall_ms` the GPU spent in kernels and copies (their summed time), from a finished torch profiler.
-    The GPU's own events only: a profiler that also records the CPU holds a launched kernel's time again under the
-    op that launched it (tests/test_train_profile.py)."""
-    total_us = sum(float(e.self_device_time_total or 0.0) for e in _device_events(prof))
-    return total_us / 1e3 / wall_ms if wall_ms > 0 else None
-
-
-def top_kernels(prof: Any, steps: int, top: int = 15) -> List[Dict[str, Any]]:
-    """The `top` GPU events by their time: name (cut at 100 characters), calls and milliseconds per step."""
-    events = sorted(_device_events(prof), key=lambda e: -float(e.self_device_time_total or 0.0))
-    return [
-        {
-            "name": e.key[:100],
-            "calls_per_step": e.count / steps,
-            "ms_per_step": float(e.self_device_time_total) / 1e3 / steps,
-        }
-        for e in events[:top]
-    ]
 
 
 class TrainProfiler:
@@ -489,81 +191,6 @@ class TrainProfiler:
             self._prof.__exit__(None, None, None)
             window["host_ops"] = {"ms_per_step": wall_ms / n, **host_op_summary(self._prof, n)}
             self._prof = None
-
-
-def markdown_table(result: Dict[str, Any]) -> str:
-    """The windows of a result as a table: device ms per step of each phase (host ms in brackets)."""
-    windows = result["windows"]
-    if not windows:  # a timing run (`--windows` past its last step): its timeline is what it measured
-        marks = [r for r in result.get("timeline") or [] if r["step"] % 5000 == 0 or r["step"] == result.get("steps")]
-        if not marks:
-            return "No profile window and no timeline in this run.\n"
-        steps = " | ".join(f"{r['step']:,}" for r in marks)
-        seconds = " | ".join(f"{r['seconds']:.0f}" for r in marks)
-        return (
-            "No profile window (a run that times the whole run alone). Seconds elapsed at each step:\n\n"
-            f"| step | {steps} |\n|---|{'---|' * len(marks)}\n| seconds | {seconds} |\n"
-        )
-    head = "| phase | " + " | ".join(f"step {w['step']:,} ({w['gaussians']:,} Gaussians)" for w in windows) + " |"
-    rows = [head, "|---|" + "---|" * len(windows)]
-    for phase in PHASES:
-        cells = []
-        for w in windows:
-            d, h = w.get("device_ms", {}).get(phase), w.get("host_ms", {}).get(phase)
-            cells.append("" if d is None else f"{d:.2f} ({h:.2f})")
-        rows.append(f"| {phase} | " + " | ".join(cells) + " |")
-    for key, label in (
-        ("instrumented_ms_per_step", "step, instrumented"),
-        ("plain_ms_per_step", "step, plain (wall)"),
-        ("host_syncs_per_step", "host syncs per step"),
-        ("gpu_busy_share", "GPU busy share"),
-        ("launches_per_step", "kernel and graph launches per step"),
-    ):
-        vals = [_window_value(w, key) for w in windows]
-        if any(v is not None for v in vals):
-            rows.append(f"| {label} | " + " | ".join("" if v is None else f"{v:.2f}" for v in vals) + " |")
-    # Where the GPU's time goes, in the last window that says (its 10 costliest events).
-    last = next((w for w in reversed(windows) if w.get("top_kernels")), None)
-    if last is not None:
-        rows += ["", f"GPU events at step {last['step']:,}, per step:", "", "| event | ms | calls |", "|---|---|---|"]
-        rows += [
-            f"| `{k['name']}` | {k['ms_per_step']:.3f} | {k['calls_per_step']:.1f} |" for k in last["top_kernels"][:10]
-        ]
-    return "\n".join(rows) + "\n"
-
-
-DOCS_BEGIN, DOCS_END = "<!-- train-profile:begin -->", "<!-- train-profile:end -->"
-
-
-def docs_block(results: Sequence[Path]) -> str:
-    """The docs' block for these result files: one table per file, with its run's figures."""
-    parts = []
-    for path in results:
-        r = json.loads(Path(path).read_text())
-        gpu = r["environment"].get("gpu") or "a CPU"
-        score = r.get("score") or {}
-        scored = f", test PSNR {score['psnr']:.2f} dB" if "psnr" in score else ""
-        settings = r.get("model_settings") or {}
-        named = " with " + ", ".join(f"`{k}={v}`" for k, v in sorted(settings.items())) if settings else ""
-        commit = (r["environment"].get("git_commit") or "")[:7]
-        at = f" at {commit}" if commit else ""
-        parts.append(
-            f"`{r['method']}`{at}{named} on {r['scene']}, {gpu}, alone on its GPU: {r['steps']:,} steps in "
-            f"{r['train_seconds']:.0f} s ({r['steps_per_second']:.1f} steps/s){scored} "
-            f"([`{Path(path).name}`](../benchmarks/results/{Path(path).name})). Device ms per step (host ms):\n\n"
-            + markdown_table(r)
-        )
-    return "\n".join(parts)
-
-
-def write_docs(doc: Path, results: Sequence[Path]) -> bool:
-    """Replace the block between the markers in `doc` with `docs_block(results)`; True if it changed."""
-    text = doc.read_text()
-    head, rest = text.split(DOCS_BEGIN, 1)
-    _, tail = rest.split(DOCS_END, 1)
-    new = f"{head}{DOCS_BEGIN}\n{docs_block(results)}{DOCS_END}{tail}"
-    doc.write_text(new)
-    return new != text
 
 
 def loop_work(config: Any, method: str, as_ns_train: bool) -> None:
@@ -775,15 +402,5 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
     return result
 
 
-def docs_main() -> None:
-    """`python -m garo_ns.bench.train_profile --docs DOC RESULT...`: rewrite DOC's profile block."""
-    import sys
-
-    doc, *results = sys.argv[2:]
-    print(f"{doc}: {'rewritten' if write_docs(Path(doc), [Path(r) for r in results]) else 'unchanged'}")
-
-
 if __name__ == "__main__":
-    import sys
-
-    docs_main() if sys.argv[1:2] == ["--docs"] else main()
+    main()

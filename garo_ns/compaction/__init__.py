@@ -10,6 +10,8 @@ budget, so each scene ends with the number of Gaussians it needs.
 * `report`: what each round did, for the log, the checkpoint and `garo-eval`.
 
 The rounds themselves run in `GaroStrategy.compact`, the one place that changes the number of Gaussians.
+
+May import: `render` (a round's measurement renders), `redundancy`, `ops` and the root's `errors`.
 """
 
 from garo_ns.compaction.importance import importance

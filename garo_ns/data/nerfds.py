@@ -33,7 +33,9 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserConfig, DataparserOutputs
 from nerfstudio.data.scene_box import SceneBox
 
+from garo_ns.data.capture import Capture
 from garo_ns.data.dnerf import image_size, matrix, number, read_json_object
+from garo_ns.data.video import is_nerfstudio_folder, read_video_capture
 from garo_ns.errors import GaroInputError
 from garo_ns.render.view import camera_extent
 
@@ -83,34 +85,8 @@ def _finite(value: Any, shape: Tuple[int, ...], where: str, name: str) -> np.nda
     return arr
 
 
-@dataclass
-class Capture:
-    """A NeRF-DS capture read and checked: ids per split, times, cameras and image paths."""
-
-    ids: List[str]
-    times: Dict[str, float]
-    c2w: Dict[str, np.ndarray]  # OpenGL camera-to-world [3, 4], normalised frame
-    intrinsics: Dict[str, np.ndarray]  # fx, fy, cx, cy at the chosen downscale
-    distortion: Dict[str, np.ndarray]  # k1, k2, k3, p1, p2
-    images: Dict[str, Path]
-    size: Tuple[int, int]  # (height, width) at the chosen downscale
-    splits: Dict[str, List[str]]
-    scale: float
-    center: np.ndarray
-    near: Optional[float]
-    far: Optional[float]
-    points: Optional[np.ndarray] = None
-    """Seed points in the normalised frame, when the layout gives them with its cameras (a video's)."""
-    point_colors: Optional[np.ndarray] = None
-    """Colours [N, 3] (uint8) of `points`, when the layout has them."""
-    unposed: Tuple[str, ...] = ()
-    """Frames of a video that have no pose (COLMAP could not register them), left out."""
-
-
 def load_capture(data: Path, config: "NerfDSDataParserConfig") -> Capture:
     """Read the capture in `data` in whichever layout it has (see the module docstring)."""
-    from garo_ns.data.video import is_nerfstudio_folder, read_video_capture
-
     if is_nerfstudio_folder(data):
         return read_video_capture(
             data, config.downscale_factor, config.eval_every, config.min_posed_fraction, config.use_points

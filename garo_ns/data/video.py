@@ -27,6 +27,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 import torch
 
+from garo_ns.data.capture import Capture
 from garo_ns.data.dnerf import image_size, matrix, read_json_object
 from garo_ns.errors import GaroInputError
 
@@ -145,15 +146,13 @@ def read_ply_points(path: Path) -> Tuple[np.ndarray, np.ndarray]:
 
 def read_video_capture(
     data: Path, downscale: int = 2, eval_every: int = 8, min_posed_fraction: float = 0.5, use_points: bool = True
-) -> Any:
-    """Read and validate an ns-process-data folder as a `Capture` (garo_ns.data.nerfds) with times, train and val
+) -> Capture:
+    """Read and validate an ns-process-data folder as a `Capture` (garo_ns.data.capture) with times, train and val
     frames (every `eval_every`-th frame of the capture order held out) and COLMAP's points.
 
     GaroInputError, naming the file and frame, for a folder that cannot be trained on: no transforms.json, no
     usable frames, frames that cannot be ordered in time, fewer than `min_posed_fraction` of the frames posed.
     """
-    from garo_ns.data.nerfds import Capture
-
     if not isinstance(eval_every, int) or isinstance(eval_every, bool) or eval_every < 2:
         raise GaroInputError(f"nerfds-data --eval-every must be an int >= 2, got {eval_every!r}")
     data = Path(data)

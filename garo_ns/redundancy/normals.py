@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from garo_ns.quaternions import quat_to_rotmat
+from garo_ns.ops.quaternions import quat_to_rotmat
 
 
 def shortest_axis(scales: Tensor) -> Tensor:

@@ -12,7 +12,8 @@ import torch
 from torch import Tensor
 
 from garo_ns.render import reference
-from garo_ns.render.view import camera_centres
+from garo_ns.render.kernels import TILE_SIZE, Front, gsplat_kernels, lean_front
+from garo_ns.render.train_raster import rasterize_train_lean
 
 Backend = Literal["auto", "cuda", "reference"]
 
@@ -102,8 +103,6 @@ def rasterize(
     lean_fits = sh_degree is not None or colors.shape[-1] == 3
     lean = on_cuda and lean and lean_fits and render_mode in ("RGB", "RGB+ED")
     if lean and torch.is_grad_enabled() and viewmats.shape[0] == 1:
-        from garo_ns.render.train_raster import rasterize_train_lean  # imports this module
-
         return rasterize_train_lean(
             means,
             quats,
@@ -178,61 +177,8 @@ def rasterize(
     )
 
 
-TILE_SIZE = 16
-EPS2D = 0.3  # gsplat's classic-mode low-pass: added to the 2D covariance's diagonal
-
-
-# What the lean path computes before sorting: radii, means2d, depths, conics, view directions and
-# the visibility mask (the last two only when colours come from SH).
-Front = Tuple[Tensor, Tensor, Tensor, Tensor, Optional[Tensor], Optional[Tensor]]
-
-
-def _kernels() -> Any:
-    from gsplat.cuda._backend import _C
-
-    return _C
-
-
 def _no_stage(name: str) -> ContextManager[Any]:
     return contextlib.nullcontext()
-
-
-def lean_front(
-    means: Tensor,
-    quats: Tensor,
-    scales: Tensor,
-    viewmats: Tensor,
-    Ks: Tensor,
-    width: int,
-    height: int,
-    with_sh: bool,
-    near_plane: float = 0.01,
-    far_plane: float = 1e10,
-) -> Front:
-    """Projection (gsplat's fused kernel, classic mode, unpacked) and, for SH colours, the view
-    directions and visibility mask. Fixed-shape work on the current stream: a CUDA graph can
-    capture it (the SH kernel itself cannot: it launches on the legacy default stream)."""
-    radii, means2d, depths, conics, _ = _kernels().fully_fused_projection_fwd(
-        means.contiguous(),
-        None,
-        quats.contiguous(),
-        scales.contiguous(),
-        viewmats.contiguous(),
-        Ks.contiguous(),
-        width,
-        height,
-        EPS2D,
-        near_plane,
-        far_plane,
-        0.0,  # no radius clip
-        False,  # no antialiasing compensation
-        _kernels().CameraModelType.PINHOLE,
-    )
-    if not with_sh:
-        return radii, means2d, depths, conics, None, None
-    # Camera centre in closed form (-R^T t): the world-to-camera matrices are rigid.
-    campos = camera_centres(viewmats)
-    return radii, means2d, depths, conics, means[None] - campos[:, None], radii > 0
 
 
 # Arguments as `rasterize` on purpose: the same call, gsplat's kernels without the wrapper.
@@ -264,7 +210,7 @@ def rasterize_lean(
     """
     if sh_degree is None and colors.shape[-1] != 3:
         raise ValueError(f"the lean path composites RGB colours, got {colors.shape[-1]} channels")
-    kernels = _kernels()
+    kernels = gsplat_kernels()
     n_cams = viewmats.shape[0]
     with stage("projection"):
         if front is None:

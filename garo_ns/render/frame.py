@@ -19,8 +19,9 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from garo_ns.deformation import DeformationField, ScaleOffset, log_scale_offset
-from garo_ns.render.backend import Backend, lean_front, rasterize
+from garo_ns.render.backend import Backend, rasterize
 from garo_ns.render.graphs import InputGraph, TimeGraph, graphs_available, versions
+from garo_ns.render.kernels import lean_front
 from garo_ns.render.time_table import (
     TableSpec,
     TimeTable,

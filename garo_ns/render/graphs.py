@@ -15,7 +15,7 @@ from typing import Any, Callable, Hashable, Optional, Tuple
 import torch
 from torch import Tensor
 
-from garo_ns.collector import collector_paused
+from garo_ns.ops.collector import collector_paused
 
 
 class TimeGraph:

@@ -28,7 +28,7 @@ import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
-from garo_ns.quaternions import quat_to_rotmat
+from garo_ns.ops.quaternions import quat_to_rotmat
 from garo_ns.render.sh import eval_sh
 
 RenderMode = Literal["RGB", "D", "ED", "RGB+D", "RGB+ED"]

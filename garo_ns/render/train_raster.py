@@ -24,7 +24,7 @@ from typing import Any, Dict, Optional, Tuple
 import torch
 from torch import Tensor
 
-from garo_ns.render.backend import EPS2D, TILE_SIZE, _kernels, lean_front
+from garo_ns.render.kernels import EPS2D, TILE_SIZE, gsplat_kernels, lean_front
 
 ALPHA_FLOOR = 1e-10  # gsplat's clamp on the alpha that divides the accumulated depth (RGB+ED)
 
@@ -48,7 +48,7 @@ class _Front(torch.autograd.Function):
         near_plane: float,
         far_plane: float,
     ) -> Tuple[Tensor, Tensor, Optional[Tensor], Tensor, Tensor]:
-        kernels = _kernels()
+        kernels = gsplat_kernels()
         # Unused outputs (depths in RGB mode, radii) get None in backward rather than zero tensors.
         ctx.set_materialize_grads(False)
         means, quats, scales = means.contiguous(), quats.contiguous(), scales.contiguous()
@@ -80,7 +80,7 @@ class _Front(torch.autograd.Function):
         v_depths: Optional[Tensor],
         v_radii: Optional[Tensor],
     ) -> Tuple[Optional[Tensor], ...]:
-        kernels = _kernels()
+        kernels = gsplat_kernels()
         means, quats, scales, viewmats, Ks, radii, conics, coeffs, dirs, visible, shifted = ctx.saved_tensors
         # The projection kernel needs every incoming gradient; a missing one is zero.
         if v_means2d is None:
@@ -165,7 +165,7 @@ class _Composite(torch.autograd.Function):
         feats = feats.contiguous()
         opacities = opacities[None].contiguous()
         backgrounds = None if backgrounds is None else backgrounds.contiguous()
-        raw, alpha, last_ids = _kernels().rasterize_to_pixels_fwd(
+        raw, alpha, last_ids = gsplat_kernels().rasterize_to_pixels_fwd(
             means2d.contiguous(),
             conics.contiguous(),
             feats,
@@ -201,7 +201,7 @@ class _Composite(torch.autograd.Function):
             v_expected = v_render[..., -1:]
             v_raw = torch.cat([v_render[..., :-1], v_expected / floor], dim=-1)
             v_alpha = v_alpha + torch.where(alpha >= ALPHA_FLOOR, -v_expected * ((depth_sum / floor) / floor), 0.0)
-        _, v_means2d, v_conics, v_feats, v_opacities = _kernels().rasterize_to_pixels_bwd(
+        _, v_means2d, v_conics, v_feats, v_opacities = gsplat_kernels().rasterize_to_pixels_bwd(
             means2d.contiguous(),
             conics.contiguous(),
             feats,
@@ -259,7 +259,7 @@ def rasterize_train_lean(
         raise ValueError(f"the lean training path renders one camera, got {viewmats.shape[0]}")
     if sh_degree is None and colors.shape[-1] != 3:
         raise ValueError(f"the lean path composites RGB colours, got {colors.shape[-1]} channels")
-    kernels = _kernels()
+    kernels = gsplat_kernels()
     coeffs = None if sh_degree is None else colors
     means2d, conics, rgb, depths, radii = _Front.apply(
         means, quats, scales, coeffs, viewmats, Ks, width, height, sh_degree, near_plane, far_plane

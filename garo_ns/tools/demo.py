@@ -100,7 +100,7 @@ class DemoArgs:
     """How both arms compose the field's scale offset with a scale: `log` (the model's default) for both, so that the
     demo compares GARO with the same model without it. Both methods train with `linear` (the official code's, which
     matches it at 40k on D-NeRF), but on this schedule `linear` scored 0.3 to 0.9 dB below `log` in each of three
-    seeds (`python benchmarks/demo_ab.py`, benchmarks/results/demo_scale_term_cpu.json)."""
+    seeds (`benchmarks/demo_ab.py` at 7997206, benchmarks/results/demo_scale_term_cpu.json)."""
 
 
 def scene_spec(args: DemoArgs) -> Any:
@@ -233,7 +233,7 @@ def floor_check(model: Any, resolution: int, box_slide: float = 0.0) -> Optional
     import numpy as np
     import torch
 
-    from garo_ns.static import displacement, motion_statistics
+    from garo_ns.render.static import displacement, motion_statistics
     from garo_ns.tools import scene as S
 
     static = model.strategy_state.get("static") if hasattr(model, "strategy_state") else None
@@ -401,8 +401,8 @@ def resume_command(method: str, config_path: Path, scene: Path, steps: int = 100
     the method's own from the arm's last step on."""
     import yaml
 
-    from garo_ns.checkpoints import as_flags, shape_settings
     from garo_ns.config import METHODS
+    from garo_ns.state.checkpoints import as_flags, shape_settings
 
     trained = yaml.load(Path(config_path).read_text(), Loader=yaml.Loader).pipeline.model
     flags = as_flags(shape_settings(trained, METHODS[method].config.pipeline.model))

@@ -26,8 +26,8 @@ from garo_ns import compat
 from garo_ns.compaction.report import summary_for_json
 from garo_ns.config import METHODS as METHOD_SPECS
 from garo_ns.data.dnerf import read_split, split_cameras
+from garo_ns.engine.metrics import lpips_fits, make_lpips
 from garo_ns.errors import GaroInputError
-from garo_ns.metrics import lpips_fits, make_lpips
 from garo_ns.tools.files import check_new_file, written_atomically
 
 compat.install()

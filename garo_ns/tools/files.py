@@ -3,7 +3,7 @@
 A file is written under a temporary name in its own folder (`.<name>.partial-<pid>`), flushed to disk and renamed
 over its final name (atomic on POSIX): a disk that fills or a process killed mid-write leaves no half file under the
 final name, and the previous file, if any, stays whole until the new one is. Checkpoints follow the same rule in
-garo_ns.checkpoints.
+garo_ns.state.checkpoints.
 """
 
 from __future__ import annotations

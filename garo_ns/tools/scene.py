@@ -15,15 +15,22 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Literal, Sequence, Tuple
+from typing import Dict, List, Literal, Sequence
 
 import numpy as np
 
-GROUND_Z = -0.6
-GROUND_HALF = 1.2
-SPHERE_RADIUS = 0.35
-BOX_HALF = 0.25
-BOX_CENTER_XY = (0.35, -0.55)
+from garo_ns.tools.scene_objects import (
+    BOX_HALF,
+    GROUND_HALF,
+    GROUND_Z,
+    SPHERE_RADIUS,
+    box_center,
+    hit_box,
+    hit_ground,
+    hit_sphere,
+    sphere_center,
+)
+
 CAMERA_RADIUS = 4.0
 CAMERA_ANGLE_X = 0.6911  # the field of view of the D-NeRF synthetic scenes
 PARTS = ("ground", "ball", "box")
@@ -81,25 +88,6 @@ class SceneSpec:
             raise ValueError(f"box_slide must be in 0..1 (the box stays on the floor), got {self.box_slide!r}")
 
 
-def sphere_center(t: float) -> np.ndarray:
-    """Centre of the sphere at time t in [0, 1]: it crosses the ground and hops once."""
-    x = -0.7 + 1.2 * t
-    y = 0.45 * math.sin(math.pi * t)
-    z = GROUND_Z + SPHERE_RADIUS + 0.35 * math.sin(math.pi * t)
-    return np.array([x, y, z])
-
-
-def box_angle(t: float, turns: float = 0.5) -> float:
-    """Yaw of the box at time t: `turns` turns over the sequence (half a turn by default)."""
-    return 2 * math.pi * turns * t
-
-
-def box_center(t: float, slide: float = 0.0) -> np.ndarray:
-    """Centre of the box at time t: on the floor, `slide` scene units along -y over the sequence, centred on
-    BOX_CENTER_XY (away from the ball's path, which bends towards +y)."""
-    return np.array([BOX_CENTER_XY[0], BOX_CENTER_XY[1] + slide * (0.5 - t), GROUND_Z + BOX_HALF])
-
-
 def look_at_c2w(position: np.ndarray, target: Sequence[float] = (0.0, 0.0, -0.3)) -> np.ndarray:
     """OpenGL camera-to-world (x right, y up, looking down -z), world z up."""
     forward = np.asarray(target, dtype=np.float64) - position
@@ -110,65 +98,6 @@ def look_at_c2w(position: np.ndarray, target: Sequence[float] = (0.0, 0.0, -0.3)
     c2w = np.eye(4)
     c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, up, -forward, position
     return c2w
-
-
-def _hit_ground(o: np.ndarray, d: np.ndarray, checks: float = 4.0) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (GROUND_Z - o[..., 2]) / d[..., 2]
-    p = o + t[..., None] * d
-    ok = (t > 1e-6) & (np.abs(p[..., 0]) <= GROUND_HALF) & (np.abs(p[..., 1]) <= GROUND_HALF)
-    checker = (np.floor(p[..., 0] * checks) + np.floor(p[..., 1] * checks)) % 2
-    albedo = np.where(checker[..., None] > 0, [0.85, 0.82, 0.75], [0.25, 0.45, 0.65])
-    normal = np.broadcast_to([0.0, 0.0, 1.0], p.shape)
-    return np.where(ok, t, np.inf), albedo, normal
-
-
-def _hit_sphere(
-    o: np.ndarray, d: np.ndarray, time: float, stripes: int = 8, turns: float = 1.25
-) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-    c = sphere_center(time)
-    oc = o - c
-    b = np.sum(oc * d, -1)
-    disc = b * b - (np.sum(oc * oc, -1) - SPHERE_RADIUS**2)
-    sq = np.sqrt(np.maximum(disc, 0.0))
-    t = -b - sq
-    ok = (disc >= 0) & (t > 1e-6)
-    p = o + t[..., None] * d
-    n = (p - c) / SPHERE_RADIUS
-    # Meridian stripes in a frame that turns `turns` times over the sequence, so the texture moves too.
-    lon = np.arctan2(n[..., 1], n[..., 0]) + 2 * math.pi * turns * time
-    stripe = (np.floor(lon / (2 * math.pi / stripes)) % 2)[..., None]
-    albedo = np.where(stripe > 0, [0.9, 0.25, 0.2], [0.95, 0.8, 0.2])
-    return np.where(ok, t, np.inf), albedo, n
-
-
-def _hit_box(
-    o: np.ndarray, d: np.ndarray, time: float, turns: float = 0.5, slide: float = 0.0
-) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-    ang = box_angle(time, turns)
-    ca, sa = math.cos(ang), math.sin(ang)
-    rot = np.array([[ca, -sa, 0.0], [sa, ca, 0.0], [0.0, 0.0, 1.0]])  # box -> world
-    center = box_center(time, slide)
-    ol = (o - center) @ rot  # world -> box frame (rot is orthonormal)
-    dl = d @ rot
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / dl
-        t0 = (-BOX_HALF - ol) * inv
-        t1 = (BOX_HALF - ol) * inv
-    tmin = np.minimum(t0, t1)
-    tmax = np.maximum(t0, t1)
-    tnear = np.max(tmin, -1)
-    tfar = np.min(tmax, -1)
-    ok = (tnear <= tfar) & (tnear > 1e-6)
-    axis = np.argmax(tmin, -1)
-    sign = -np.sign(np.take_along_axis(dl, axis[..., None], -1))[..., 0]
-    nl = np.zeros_like(dl)
-    np.put_along_axis(nl, axis[..., None], sign[..., None], -1)
-    face = axis * 2 + (sign > 0)
-    palette = np.array(
-        [[0.2, 0.7, 0.3], [0.6, 0.2, 0.7], [0.95, 0.55, 0.1], [0.1, 0.6, 0.8], [0.8, 0.8, 0.8], [0.3, 0.3, 0.3]]
-    )
-    return np.where(ok, tnear, np.inf), palette[face], nl @ rot.T
 
 
 def render_frame(
@@ -199,11 +128,11 @@ def render_frame(
 
     hits = []
     if "ground" in parts:
-        hits.append(_hit_ground(o, d, checks_per_unit))
+        hits.append(hit_ground(o, d, checks_per_unit))
     if "ball" in parts:
-        hits.append(_hit_sphere(o, d, time, sphere_stripes, ball_turns))
+        hits.append(hit_sphere(o, d, time, sphere_stripes, ball_turns))
     if "box" in parts:
-        hits.append(_hit_box(o, d, time, box_turns, box_slide))
+        hits.append(hit_box(o, d, time, box_turns, box_slide))
     ts = np.stack([h[0] for h in hits], 0)
     nearest = np.argmin(ts, 0)
     hit = np.isfinite(np.min(ts, 0))

@@ -25,7 +25,7 @@ from typing import Dict, List, Tuple
 
 import numpy as np
 
-from garo_ns.tools.scene import GROUND_Z, _hit_box, _hit_sphere
+from garo_ns.tools.scene_objects import GROUND_Z, hit_box, hit_sphere
 
 ROOM_HALF = 3.0
 ROOM_TOP = 2.0
@@ -133,7 +133,7 @@ def render_video_frame(
     d = dirs @ c2w[:3, :3].T
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     o = np.broadcast_to(c2w[:3, 3], d.shape)
-    hits = [_hit_room(o, d, texture), _hit_sphere(o, d, time), _hit_box(o, d, time)]
+    hits = [_hit_room(o, d, texture), hit_sphere(o, d, time), hit_box(o, d, time)]
     ts = np.stack([hit[0] for hit in hits], 0)
     nearest = np.argmin(ts, 0)
     albedo = np.choose(nearest[..., None], [np.broadcast_to(hit[1], d.shape) for hit in hits])

@@ -30,7 +30,7 @@ from typing import Any, Callable, Iterable, List, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-from garo_ns.collector import collector_paused
+from garo_ns.ops.collector import collector_paused
 
 
 class LeanAdam(torch.optim.Adam):

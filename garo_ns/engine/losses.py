@@ -13,9 +13,9 @@ from typing import Any, Callable, Dict, Optional, Tuple
 import torch
 from torch import Tensor
 
-from garo_ns.collector import collector_paused
+from garo_ns.engine.ssim import SSIM
 from garo_ns.errors import GaroTrainingError
-from garo_ns.ssim import SSIM
+from garo_ns.ops.collector import collector_paused
 
 
 def image_loss(gt: Tensor, pred: Tensor, ssim: SSIM, ssim_lambda: float) -> Tensor:

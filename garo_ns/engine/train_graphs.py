@@ -23,9 +23,9 @@ import torch
 from torch import Tensor, nn
 from torch.autograd.graph import increment_version
 
-from garo_ns.adam import graph_gradients
-from garo_ns.collector import collector_paused
 from garo_ns.deformation import ScaleOffset
+from garo_ns.engine.adam import graph_gradients
+from garo_ns.ops.collector import collector_paused
 from garo_ns.render.frame import Canonical, Splats, activate, compose
 
 
@@ -228,7 +228,7 @@ class GraphedSplats:
         self.capture_s = 0.0  # wall seconds in captures, warm-up runs included (a capture synchronises)
         # One memory pool for every capture: a new count of Gaussians (every refinement while densifying) captures
         # into the memory its dropped predecessors held, once Python's collector has freed them (a dropped graph
-        # lives in a reference cycle: garo_ns.collector), instead of allocating a pool of its own each time.
+        # lives in a reference cycle: garo_ns.ops.collector), instead of allocating a pool of its own each time.
         self._pool: Optional[Any] = None
         self._stream: Optional[torch.cuda.Stream] = None  # one capture stream, for the same reason (StepGraph)
         # The field parameters' gradient buffers: each is its parameter's `.grad` after a graphed backward, kept

@@ -51,7 +51,7 @@ def metric_modules() -> Tuple[torch.nn.Module, torch.nn.Module, Optional[torch.n
     """PSNR and SSIM as splatfacto scores them (data range 1), and LPIPS where `make_lpips` can."""
     from torchmetrics.image import PeakSignalNoiseRatio
 
-    from garo_ns.ssim import SSIM  # splatfacto's SSIM (pytorch_msssim's definition) in fewer kernels
+    from garo_ns.engine.ssim import SSIM  # splatfacto's SSIM (pytorch_msssim's definition) in fewer kernels
 
     return PeakSignalNoiseRatio(data_range=1.0), SSIM(data_range=1.0), make_lpips()
 

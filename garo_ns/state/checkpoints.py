@@ -221,7 +221,7 @@ def expected_state(model_config: Any, given: Optional[Dict[str, Any]] = None) ->
     the field as configured)."""
     from dataclasses import replace
 
-    from garo_ns.initialisation import initial_gaussians
+    from garo_ns.engine.initialisation import initial_gaussians
 
     config = model_config
     if getattr(config, "deform_time_net", 0) and given is not None and not has_time_net(given):
@@ -416,7 +416,7 @@ def install() -> bool:
             check_checkpoint_file(path, self.config.pipeline.model)
         try:
             original_load(self)
-        except GaroInputError as err:  # the model's state does not fit (garo_ns.checkpoints.check_fit)
+        except GaroInputError as err:  # the model's state does not fit (garo_ns.state.checkpoints.check_fit)
             raise GaroInputError(f"cannot load the checkpoint {path}: {err}") from None
         finally:
             if pinned is not None:  # leave the config as the user gave it ("the latest")
@@ -547,3 +547,37 @@ def restore_strategy_state(state: Dict[str, Any], saved: Dict[str, Any], device:
     for key, value in saved.items():
         if key in state:
             state[key] = value.to(device) if isinstance(value, Tensor) else value
+
+
+def fit_model_to(model: Any, state_dict: Dict[str, Any]) -> None:
+    """Make `model` (a GaroModel) take `state_dict`'s shapes before it loads it: older checkpoints' keys renamed,
+    the scale composition the Gaussians were trained with adopted, the Gaussians resized in place (same Parameter
+    objects, so optimizers built before loading stay bound to them) and the field rebuilt where its time network
+    differs. GaroInputError where the checkpoint cannot fit (another model's, another SH degree)."""
+    upgrade_gaussian_keys(state_dict)
+    model.frame.scale_offset = scale_offset_for(state_dict, model.config)
+    check_fit({k: v for k, v in model.state_dict().items() if k.startswith("gauss_params.")}, state_dict)
+    resize_gaussians(model.gauss_params, state_dict["gauss_params.means"].shape[0])
+    model.deformation = field_for(state_dict, model.deformation, model.config)
+    check_fit(model.state_dict(), state_dict)
+
+
+def extra_state(model: Any) -> Dict[str, Any]:
+    """What a checkpoint holds of `model` besides its parameters: the densification strategy's running state (the
+    compaction's summary too), the render switches' measurement, and the scale composition the Gaussians were
+    trained with (`scale_offset_for`)."""
+    return {
+        "strategy_state": dict(model.strategy_state),
+        "render_switches": model.switches.record,
+        "scale_offset": model.config.deform_scale_offset,
+    }
+
+
+def restore_extra_state(model: Any, state: Optional[Dict[str, Any]]) -> None:
+    """Put `extra_state`'s record back into `model`; a model loaded to render says which render switches it uses."""
+    from nerfstudio.utils.rich_utils import CONSOLE
+
+    restore_strategy_state(model.strategy_state, (state or {}).get("strategy_state") or {}, model.device)
+    model.switches.record = (state or {}).get("render_switches")
+    if not model.training:  # loaded to render (ns-viewer, ns-render, garo-eval load in eval mode)
+        CONSOLE.print(model.switches.line(model.config, model.training_run, model.device), soft_wrap=True)

@@ -1,9 +1,9 @@
 """SSIM's forward and backward in four Triton kernels (CUDA; Triton's interpreter runs them on the CPU in the tests).
 
-The definition is `garo_ns.ssim.SSIM`'s (pytorch_msssim's: an 11-tap Gaussian window along height then width, valid
-borders, the mean of the map). There, grouped convolutions write the five blurred maps, then some twenty elementwise
-kernels read and write whole maps, and the backward does it all again in reverse: about 1.2 ms of device time for
-one 800x800 loss on an H100 (benchmarks/results/loss_speed_H100.json).
+The definition is `garo_ns.engine.ssim.SSIM`'s (pytorch_msssim's: an 11-tap Gaussian window along height then width,
+valid borders, the mean of the map). There, grouped convolutions write the five blurred maps, then some twenty
+elementwise kernels read and write whole maps, and the backward does it all again in reverse: about 1.2 ms of device
+time for one 800x800 loss on an H100 (benchmarks/results/loss_speed_H100.json).
 
 Forward, two kernels: the first blurs x, y, x^2, y^2 and xy along the height from the inputs (the five products
 formed on the fly); the second blurs those along the width, forms the SSIM map (torch takes its mean) and writes

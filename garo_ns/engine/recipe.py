@@ -61,26 +61,26 @@ class D3dgsRecipe(SplatfactoModelConfig):
     loss_cuda_graph: bool = True
     """Training on CUDA: the image loss (L1 and SSIM, forward and backward: some sixty small kernels whose launches
     cost the host more than the GPU their work) replays a CUDA graph captured once per image size
-    (garo_ns.losses.ImageLoss). With `deform_cuda_graph`, a 40k jumpingjacks run took 362 s instead of 556 s
+    (garo_ns.engine.losses.ImageLoss). With `deform_cuda_graph`, a 40k jumpingjacks run took 362 s instead of 556 s
     (benchmarks/results/train_profile_graphs_*); the same kernels, so the same numbers
     (tests/test_training_graphs.py)."""
     fused_ssim: bool = True
-    """Training on CUDA: the loss's SSIM, forward and backward, in four Triton kernels (garo_ns.fused_ssim) instead of
-    grouped convolutions and some forty elementwise kernels that each read and write whole image maps: 0.33 ms
-    instead of 1.22 for an 800x800 loss on an H100, both graphed (benchmarks/results/loss_speed_H100.json). The same
+    """Training on CUDA: the loss's SSIM, forward and backward, in four Triton kernels (garo_ns.engine.fused_ssim)
+    instead of grouped convolutions and some forty elementwise kernels that each read and write whole image maps: 0.33
+    ms instead of 1.22 for an 800x800 loss on an H100, both graphed (benchmarks/results/loss_speed_H100.json). The same
     values to fp32 rounding (tests/test_fused_ssim.py); the scores' SSIM stays the convolutions'."""
     adam_cuda_graph: bool = False
     """Training on CUDA: once the parameters and optimizer states have stayed where they are for longer than
     densification's interval (after densification; again after each compaction round), every group's Adam update
-    and the gradients' zeroing replay one CUDA graph (garo_ns.adam.AdamGraph) instead of about 1 ms of host time a
-    step in launches. The same updates, but for each learning rate rounded to fp32 on the device (tests/test_adam.py).
+    and the gradients' zeroing replay one CUDA graph (garo_ns.engine.adam.AdamGraph) instead of about 1 ms of host time
+    a step in launches. The same updates, but for each learning rate rounded to fp32 on the device (tests/test_adam.py).
     Off: 40k runs alone on an H100 took 324 / 317 / 336 s with it against 327 / 325 / 321 without (mutant, standup,
     jumpingjacks; benchmarks/results/train_profile_adamgraph_*), no gain beyond two runs' spread; with the step graph's
     own gradients (ab110af) mutant's step at 16.5k took 6.32 ms with it, 6.21 without (train_profile_adam17k*)."""
     gc_threshold: int = 20_000
     """While training, Python's garbage collector scans its youngest generation every this many net allocations
-    of containers instead of every 700 (garo_ns.collector): a step allocates thousands, so at 700 it runs two or three
-    times a step. 600 CPU steps spent 0.53 to 0.58 s in collections at 700, 0.03 s at 20,000
+    of containers instead of every 700 (garo_ns.ops.collector): a step allocates thousands, so at 700 it runs two or
+    three times a step. 600 CPU steps spent 0.53 to 0.58 s in collections at 700, 0.03 s at 20,000
     (benchmarks/results/collector_cpu.json); no gain beyond the spread on an H100. 0: Python's own."""
     train_lean_raster: bool = True
     """Training on CUDA: rasterize through gsplat's kernels behind two autograd nodes (garo_ns.render.train_raster)

@@ -5,7 +5,7 @@ borders, K = (0.01, 0.03), the mean of the map over channels and pixels). pytorc
 maps (x, y, x^2, y^2, xy) with two convolutions of their own and copies its window to the device on every call, a
 host wait in every training step; here the five maps are stacked and blurred by two grouped convolutions with the
 window kept on the device. With `fused`, on CUDA (Triton), forward and backward are four kernels instead
-(garo_ns.fused_ssim): the same values to fp32 rounding.
+(garo_ns.engine.fused_ssim): the same values to fp32 rounding.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from garo_ns import fused_ssim
+from garo_ns.engine import fused_ssim
 
 
 def gaussian_window(size: int = 11, sigma: float = 1.5) -> Tensor:
@@ -28,7 +28,7 @@ class SSIM(nn.Module):
     """Mean SSIM of two image batches [B, C, H, W] with values in [0, `data_range`] (a scalar tensor).
 
     Images smaller than the window along an axis are not blurred along it (pytorch_msssim warns and does the same).
-    `fused`: where `garo_ns.fused_ssim` can run (CUDA with Triton), through its four kernels.
+    `fused`: where `garo_ns.engine.fused_ssim` can run (CUDA with Triton), through its four kernels.
     """
 
     def __init__(

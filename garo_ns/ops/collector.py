@@ -5,7 +5,7 @@ A training step allocates a few thousand Python containers (autograd nodes, tens
 most freed by reference counting within the step. At the default threshold the collector runs two or three times a
 step and scans what the step still holds each time. A small effect, measured: 600 CPU steps on a synthetic scene
 spent 0.53 and 0.58 s of their 51 and 56 s in 1,519 collections at CPython's threshold, 0.03 s in 211 at 20,000
-(benchmarks/results/collector_cpu.json, `python benchmarks/collector_cpu.py`); the three 40k runs alone on an H100
+(benchmarks/results/collector_cpu.json, `benchmarks/collector_cpu.py` at 7997206); the three 40k runs alone on an H100
 with it moved by no more than two runs' spread (docs/benchmarks.md). What only the collector frees (reference
 cycles) waits a few steps longer.
 
