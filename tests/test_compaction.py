@@ -17,7 +17,7 @@ import torch
 from garo_ns.compaction import Compaction, importance
 from garo_ns.compaction.guard import removal_cost, spread_indices
 from garo_ns.compaction.report import round_line, scalars, stop_line, summary_for_json
-from garo_ns.compaction.schedule import last_training_step
+from garo_ns.compaction.schedule import REASONS, last_training_step
 from garo_ns.errors import GaroConfigError
 from garo_ns.garo_strategy import GaroStrategy
 from garo_ns.redundancy.select import lowest
@@ -525,6 +525,15 @@ def test_the_guard_renders_on_the_model_s_background_clamped_and_scores_against_
         model.gauss_params["features_dc"].fill_(-10.0)  # and far below 0
         dark = guard.render(model, 1)
     assert float(bright.max()) == 1.0 and float(bright.min()) >= 0.0 and float(dark.min()) >= 0.0
+    with torch.no_grad():  # the background shows through by what the Gaussians leave: 1 - alpha of it
+        model.gauss_params["features_dc"].zero_()  # mid-grey Gaussians, nothing clamped
+        model.gauss_params["opacities"].fill_(0.0)
+        model.background_color = torch.zeros(3)
+        on_black = guard.render(model, 1)
+        model.background_color = torch.full((3,), 0.2)
+        through = guard.render(model, 1) - on_black
+        model.background_color = grey
+    assert float(through.max()) <= 0.2 + 1e-6 and float(through.min()) < 0.19
     transparent = torch.cat([torch.ones(16, 16, 3), torch.zeros(16, 16, 1)], dim=-1)
     guard.images = [transparent, transparent[..., :3], transparent]
     targets = guard.targets(model)
@@ -717,6 +726,37 @@ def test_a_round_keeps_a_cost_equal_to_its_bound_and_measures_a_single_gaussian_
     assert none["mask"] is None and none["stop"] == "round_bound" and math.isnan(none["tries"][0]["cost_worst_db"])
 
 
+def test_a_round_stopped_by_what_is_left_of_the_budget_says_so():
+    """A cost within the round bound but over what the budget has left stops by the budget."""
+    from garo_ns.compaction.decision import decide
+
+    c = Compaction(fraction=0.5, min_fraction=0.5, round_bound_db=0.1, budget_db=0.3, min_gaussians=0)
+    stopped = decide(torch.tensor([3.0, 1.0]), 2, c, 0.25, lambda mask: torch.full((2,), 0.1, dtype=torch.float64))
+    assert stopped["mask"] is None and stopped["stop"] == "budget"
+    assert stopped["detail"] == (
+        "removing 1 Gaussians would cost 0.100 dB (worst view), over the 0.050 dB left of the 0.3 dB budget"
+    )
+
+
+def test_every_compaction_setting_at_its_edge_is_valid_and_beyond_it_names_its_range():
+    edges = dict(round_bound_db=0.0, budget_db=0.0, every=1, max_rounds=0, min_gaussians=0, guard_views=1)
+    Compaction(**edges, volume_beta=0.0, start=0)
+    beyond = {
+        "round_bound_db": (-1.0, "compact-round-bound-db must be a number of dB >= 0, got -1.0"),
+        "budget_db": (-1.0, "compact-budget-db must be a number of dB >= 0, got -1.0"),
+        "every": (0, "compact-every must be >= 1, got 0"),
+        "max_rounds": (-1, "compact-max-rounds must be >= 0, got -1"),
+        "min_gaussians": (-1, "compact-min-gaussians must be >= 0, got -1"),
+        "guard_views": (0, "compact-guard-views must be >= 1, got 0"),
+        "volume_beta": (-1.0, "compact-volume-beta must be a number >= 0, got -1.0"),
+        "start": (-1, "compact-start must be a step >= 0 or None, got -1"),
+    }
+    for name, (value, message) in beyond.items():
+        with pytest.raises(GaroConfigError) as err:
+            Compaction(**{name: value})
+        assert str(err.value) == f"--pipeline.model.{message}", name
+
+
 def test_the_round_and_stop_lines_say_what_happened_in_words():
     nothing = {"round": 2, "step": 300, "share": None, "num_after": 40, "tries": []}
     assert round_line(nothing) == "compaction round 2 at step 300: nothing tried, 40 Gaussians"
@@ -740,6 +780,12 @@ def test_the_round_and_stop_lines_say_what_happened_in_words():
     assert stop_line(summary) == (
         "compaction stopped at step 9 (later_reason: later_reason; d): kept 0 of 0 Gaussians, "
         "0.000 dB of the 0 dB budget"
+    )
+    summary.update(num_gaussians_start=40, num_gaussians_end=30, spent_db=0.125, settings={"budget_db": 0.3})
+    summary.update(reason="budget")
+    assert stop_line(summary) == (
+        f"compaction stopped at step 9 (budget: {REASONS['budget']}; d): kept 30 of 40 Gaussians (75%), "
+        "0.125 dB of the 0.3 dB budget"
     )
 
 
