@@ -136,7 +136,7 @@ def report(results: Path, notes_path: Path, out: Path) -> int:
     scored = tot["run"] - tot["equivalent"]
     missing = tot["mutants"] - tot["run"]
     lines = [
-        "# Mutation testing of GARO's stages and strategy",
+        "# Mutation testing of GARO's stages and strategy, and of compaction",
         "",
         "Built by `python benchmarks/mutation_report.py report` from the per-module results in",
         "`benchmarks/results/mutation_*.json`, which `bash scripts/mutation.sh` writes (mutmut 3.8.1; each",
