@@ -567,6 +567,50 @@ def test_grow_budget_keeps_the_highest_gradients_that_fit():
     assert not keep.any() and held == 4
 
 
+def test_grow_budget_counts_a_gradient_at_the_threshold_as_low_and_fills_a_room_of_one():
+    from garo_ns.garo_strategy import grow_budget
+
+    keep, held = grow_budget(torch.tensor([2.0, 3.0]), 2.0, 5)  # growth needs a gradient above the threshold
+    assert keep.tolist() == [False, True] and held == 0
+    keep, held = grow_budget(torch.tensor([5.0, 9.0, 7.0]), 2.0, 1)
+    assert keep.tolist() == [False, True, False] and held == 2
+
+
+def test_the_budget_ranks_by_the_mean_gradient_over_the_views_that_saw_each_gaussian(monkeypatch):
+    """The budget ranks as densification thresholds: each Gaussian's gradient averaged over the steps that saw it
+    (a Gaussian seen once is not halved, one seen often not multiplied)."""
+    points, quats, scales = plane_and_sphere()
+    params, optimizers = make_params(points, quats, scales)
+    n = len(params["means"])
+    seen = {}
+
+    def grow(self, params, optimizers, state, step):  # gsplat's growth: what it is handed is what the test reads
+        seen["g"] = state["grad2d"].clone()
+
+    monkeypatch.setattr(DefaultStrategy, "_grow_gs", grow)
+    strategy = GaroStrategy(mode="off", max_gaussians=n + 1)  # room for one
+    t = strategy.grow_grad2d
+    state = {"grad2d": torch.zeros(n), "count": torch.zeros(n)}
+    state["grad2d"][:2] = torch.tensor([20 * t, 3 * t])  # means 2t over 10 views and 3t over one
+    state["count"][:2] = torch.tensor([10.0, 1.0])
+    strategy._grow_gs(params, optimizers, state, 100)
+    assert seen["g"][0] == 0.0 and seen["g"][1] == state["grad2d"][1] > 0 and state["budget_held"] == 1
+    strategy.max_gaussians = n  # no room: the one above the threshold after one view is held back
+    state = {"grad2d": torch.zeros(n), "count": torch.zeros(n)}
+    state["grad2d"][0], state["count"][0] = 1.5 * t, 1.0
+    strategy._grow_gs(params, optimizers, state, 100)
+    assert state["budget_held"] == 1 and not seen["g"].any()
+
+
+def test_a_packed_render_s_gradient_norms_with_the_radius_record_on():
+    n = 20
+    strategy = GaroStrategy(refine_scale2d_stop_iter=1)
+    grads, counts = strategy.gradient_norms({"means": torch.zeros(n, 3)}, _packed_info(n), packed=True)
+    want = {"grad2d": None, "count": None, "radii": None}
+    DefaultStrategy(refine_scale2d_stop_iter=1)._update_state({"means": torch.zeros(n, 3)}, want, _packed_info(n), True)
+    assert torch.equal(grads, want["grad2d"]) and torch.equal(counts, want["count"])
+
+
 @pytest.mark.parametrize("budget", [None, 1040, 1000, 900])
 def test_densification_never_grows_past_max_gaussians(budget):
     points, quats, scales = plane_and_sphere()
