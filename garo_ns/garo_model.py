@@ -112,9 +112,10 @@ class GaroModel(SplatfactoModel):
         self.compaction_guard: Optional[TrainingViewGuard] = None  # training views compaction is judged on
         self.switch_guard: Optional[TrainingViewGuard] = None  # training views the render switches are measured on
         self.training_run = False  # set when the model gets training callbacks
-        self.switches = SwitchDecision(lambda: self.step)  # what each approximate switch cost, and what that decides
+        # What each approximate switch cost, and what that decides, for these Gaussians and this field.
+        self.switches = SwitchDecision(lambda: self.step, lambda: [*self.canonical(), *self.deformation.parameters()])
         self.frame = FramePath()
-        self.switches.table_failure = self.frame.table_failures.get
+        self.switches.table_failure, self.switches.table_built = self.frame.table_failures.get, self.frame.built_info
         for warning in checkpoints.upgrade_render_settings(cfg):  # an old config.yml naming a deleted setting
             CONSOLE.print(f"[yellow]{warning}[/yellow]")
         self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene_extent)

@@ -1,5 +1,6 @@
 """Default render switches: fast for a finished model, plain while training, flags override."""
 
+import hashlib
 import math
 from dataclasses import dataclass
 
@@ -379,3 +380,45 @@ def test_the_ladder_goes_on_in_int8_only_where_the_budget_caps_int16():
     # No budget for any table: none, and why.
     specs, why = table_ladder(model, RenderSettings(time_table_budget_mb=1e-3))
     assert specs == [] and "memory budget" in why
+
+
+def test_a_record_of_other_parameter_values_at_the_same_step_is_not_trusted():
+    """A record names the fingerprint of the values it measured: a compact file's fp16 rounding (or any edit) at the
+    same step leaves the approximate switches off, said on the line, until measured again."""
+    params = [torch.linspace(0, 1, 1000), torch.ones(4, 3)]
+    decision = SwitchDecision(lambda: 99, lambda: params)
+    config, cpu = RenderSettings(), torch.device("cpu")
+    decision.record = {**_record(99), "params": decision.fingerprint()}
+    assert decision.settings(config, False, cpu).time_table  # the values measured: trusted
+    with torch.no_grad():
+        params[0].copy_(params[0].half().float())  # as load_compact puts a compact file's values back
+    assert not decision.settings(config, False, cpu).time_table and decision.table_spec() is None
+    assert "the parameters changed since they were measured" in decision.line(config, False, cpu)
+    old = _record(99)  # a record written before fingerprints: trusted by its step, as before
+    decision.record = old
+    assert decision.settings(config, False, cpu).time_table
+
+
+def test_the_load_line_names_the_table_built_where_it_differs_from_the_record():
+    decision = SwitchDecision(lambda: 99)
+    config, cpu = RenderSettings(), torch.device("cpu")
+    decision.record = _record(99)
+    info = decision.record[TABLE]["info"]
+    assert "3 of 100 Gaussians on the network)" in decision.line(config, False, cpu)  # not built yet: the record
+    built = {**info, "network": 40, "spec": {**info["spec"], "order": "cubic"}}  # rebuilt on another device
+    decision.table_built = lambda spec: built if spec == decision.table_spec() else None
+    line = decision.line(config, False, cpu)
+    assert "time_table (12 keys, cubic, 10 MB, 40 of 100 Gaussians on the network; measured as linear with 3" in line
+
+
+def test_the_fingerprint_is_hashed_again_only_when_a_parameter_changes(monkeypatch):
+    params = [torch.nn.Parameter(torch.ones(10)), torch.nn.Parameter(torch.zeros(3))]
+    decision = SwitchDecision(lambda: 1, lambda: params)
+    hashes = []
+    real = hashlib.sha1
+    monkeypatch.setattr(hashlib, "sha1", lambda *a: hashes.append(1) or real(*a))
+    first = decision.fingerprint()
+    assert decision.fingerprint() == first and len(hashes) == 1  # a frame asks every time: no hash again
+    with torch.no_grad():
+        params[1].add_(1.0)
+    assert decision.fingerprint() != first and len(hashes) == 2

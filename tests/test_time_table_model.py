@@ -217,14 +217,17 @@ def test_a_table_forced_on_for_training_is_recorded_and_used_on_load(trained):
 
 @pytest.mark.slow
 def test_on_a_cpu_a_dense_recorded_table_is_put_off_and_said(trained):
-    from garo_ns.render.switches import CPU_TABLE_PASSES
+    from garo_ns.render.switches import CPU_TABLE_EVALUATIONS
 
     model, _ = _load(trained)
     record = model.switches.record
-    spec = {**record[TABLE]["spec"], "intervals": 4 * CPU_TABLE_PASSES}  # as a GPU-trained dense table
-    model.switches.record = {**record, TABLE: {**record[TABLE], "spec": spec}}
+    gaussians = record[TABLE]["info"]["gaussians"]
+    dense = {**record[TABLE]["spec"], "intervals": int(CPU_TABLE_EVALUATIONS / gaussians) + 1}  # as a GPU's table
+    model.switches.record = {**record, TABLE: {**record[TABLE], "spec": dense}}
     model.config.switch_bound_db = 1e9  # measured within the bound: only the device turns it off
     assert not model.render_settings().time_table  # on this CPU
     line = model.switches.line(model.config, False, torch.device("cpu"))
     assert "on a CPU its build would run the deformation field" in line and "time-table True" in line, line
     assert model.switches.settings(model.config, False, torch.device("cuda")).time_table  # a GPU builds it
+    model.switches.record = record  # the table this CPU trained: small enough to build here
+    assert model.render_settings().time_table

@@ -205,6 +205,12 @@ class FramePath:
         self._deformed = (cache_key, out) if settings.cache_deformation else None
         return out
 
+    def built_info(self, spec: TableSpec) -> Optional[Dict[str, Any]]:
+        """What the table of `spec` was built as (`table_info`), if it is the table built last; else None."""
+        if self._table is not None and self._table[1] is not None and self._table[0][0] == spec and self.table_info:
+            return None if self.table_info.get("preview") else self.table_info
+        return None
+
     @property
     def table(self) -> Optional[TimeTable]:
         """The time table built last (None before any, or when it could not be built)."""

@@ -15,6 +15,7 @@ always runs in fp32 (the reduced-precision fields were deleted: benchmarks/HISTO
 
 from __future__ import annotations
 
+import hashlib
 import math
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any, Callable, Dict, List, Literal, Mapping, Optional, Sequence, Tuple
@@ -24,6 +25,7 @@ from torch import Tensor
 
 from garo_ns.render.backend import Backend, resolve_backend
 from garo_ns.render.frame import FrameSettings
+from garo_ns.render.graphs import versions
 from garo_ns.render.time_table import TableSpec, TimeTable, spec_for
 
 EXACT = ("cuda_graph", "lean_raster")
@@ -230,8 +232,10 @@ class RenderSettings:
         return resolve_backend(self.rasterizer, device) == "cuda"
 
 
-CPU_TABLE_PASSES = 256
-"""The most passes of the deformation field a time table's build may take on a CPU, where it is not asked for."""
+CPU_TABLE_EVALUATIONS = 2e6
+"""The most Gaussians (passes of the deformation field times Gaussians) a time table's build may run the field on
+where a CPU renders and the table is not asked for: a few minutes at the 4,900 a second of D-3DGS's field measured
+on a 2-core CPU running other jobs (about 20 times a CPU frame of 5,000 Gaussians)."""
 
 MEASURE_VERSION = "view_change_db"
 """Names the check a record's losses come from (`worst_view_change_db`). Records written before it
@@ -285,9 +289,18 @@ class SwitchDecision:
     the config, the record or the bound (a frame asks twice). `step`: the model's current step; a record
     measured at another step describes another state of the model and is not trusted."""
 
-    def __init__(self, step: Optional[Callable[[], int]] = None) -> None:
+    def __init__(
+        self, step: Optional[Callable[[], int]] = None, params: Optional[Callable[[], Sequence[Tensor]]] = None
+    ) -> None:
         self.record: Optional[Dict[str, Any]] = None
         self._step = step
+        # The tensors a measurement describes (the Gaussians and the field): a record names their fingerprint, so
+        # values changed at the same step (a compact file's fp16 rounding, an edit) no longer pass for measured.
+        self._params = params
+        self._fingerprint_of: Optional[Tuple[Any, str]] = None  # (their versions, the fingerprint)
+        # What the frame path built for a spec (its keys, order, Gaussians on the network), or None: the load line
+        # names the table in use, which a load on another device may build otherwise than the record says.
+        self.table_built: Callable[[TableSpec], Optional[Dict[str, Any]]] = lambda spec: None
         self._cache: Optional[Tuple[Any, Any, FrameSettings]] = None
         self._measuring: Optional[TableSpec] = None  # the table being measured at the end of training
         self.table_override: Optional[TableSpec] = None  # a table to render with instead of the record's
@@ -299,6 +312,19 @@ class SwitchDecision:
         spec = self.table_spec()
         return self.table_failure(spec) if spec is not None else None
 
+    def fingerprint(self) -> Optional[str]:
+        """A hash of the measured tensors' values (None without them); computed again only when one changed."""
+        if self._params is None:
+            return None
+        tensors = list(self._params())
+        key = versions(tensors)  # of the parameters themselves: a detached view would be a new tensor every call
+        if self._fingerprint_of is None or self._fingerprint_of[0] != key:
+            digest = hashlib.sha1()
+            for t in tensors:
+                digest.update(t.detach().float().contiguous().cpu().numpy().tobytes())
+            self._fingerprint_of = (key, digest.hexdigest()[:16])
+        return self._fingerprint_of[1]
+
     def distrust(self) -> Optional[str]:
         """Why the record is not trusted, or None (no record, or a trusted one)."""
         if not self.record:
@@ -307,6 +333,9 @@ class SwitchDecision:
             return "measured by an older one-sided check"
         if self._step is not None and self.record.get("step") != self._step():
             return f"measured at step {self.record.get('step')}, the model is at step {self._step()}"
+        recorded = self.record.get("params")
+        if recorded is not None and self._params is not None and recorded != self.fingerprint():
+            return "the parameters changed since they were measured (fp16 storage, a compact file, an edit)"
         return None
 
     def trusted_record(self) -> Optional[Dict[str, Any]]:
@@ -327,14 +356,15 @@ class SwitchDecision:
         """Why a recorded table is not used on load although it met the bound, or None."""
         table = (self.trusted_record() or {}).get(TABLE) or {}
         info = table.get("info") or {}
-        if table.get("spec") and device is not None and torch.device(device).type != "cuda":
-            # A CPU runs the field at a few frames a second: a table that samples it hundreds of times would keep
-            # the first frame waiting minutes (a dense one, hours) for frames that the network renders anyway.
-            passes = TimeTable.field_passes(TableSpec(**table["spec"]))
-            if passes > CPU_TABLE_PASSES:
+        if table.get("spec") and info.get("gaussians") and device is not None and torch.device(device).type != "cuda":
+            # A CPU runs the field at thousands of Gaussians a second: a table built for a GPU (hundreds of passes
+            # over tens of thousands of Gaussians) would keep the first frame waiting an hour for frames that the
+            # network renders in seconds.
+            evaluations = TimeTable.field_passes(TableSpec(**table["spec"])) * int(info["gaussians"])
+            if evaluations > CPU_TABLE_EVALUATIONS:
                 return (
-                    f"on a CPU its build would run the deformation field {passes} times before the first frame "
-                    f"(more than {CPU_TABLE_PASSES}); frames render through the network "
+                    f"on a CPU its build would run the deformation field on {evaluations:.2g} Gaussians before the "
+                    f"first frame (more than {CPU_TABLE_EVALUATIONS:.0g}); frames render through the network "
                     "(--pipeline.model.time-table True builds it anyway)"
                 )
         if table.get("spec") and "anchor_every" not in table["spec"]:
@@ -361,6 +391,7 @@ class SwitchDecision:
             getattr(config, "deform_scale_offset", "log"),  # `_table_refusal` reads it
             self._step() if self._step else None,
             self.failed_table(),
+            versions(list(self._params())) if self._params is not None else None,
         )
         if self._cache is not None and self._cache[0] == key and self._cache[1] is self.record:
             return self._cache[2]
@@ -410,12 +441,23 @@ class SwitchDecision:
         used = info["in_use"]
         on = [k for k in ("static_skip", "cache_deformation", "cuda_graph", "lean_raster") if used[k]]
         table = info[TABLE] or {}
-        if used["time_table"] and "info" in table:
-            t = table["info"]
+        spec = self.table_spec() if used["time_table"] else None
+        built = self.table_built(spec) if spec is not None else None
+        if used["time_table"] and (built or "info" in table):
+            t = built or table["info"]  # the table this model renders with, where it has been built
+            recorded = table.get("info") or {}
+            differs = (
+                built and recorded and (built["network"], built["spec"]) != (recorded["network"], recorded["spec"])
+            )
             on.insert(
                 0,
                 f"time_table ({t['keys']} keys, {t['spec']['order']}, {t['mb']:.0f} MB, "
-                f"{t['network']} of {t['gaussians']} Gaussians on the network)",
+                f"{t['network']} of {t['gaussians']} Gaussians on the network"
+                + (
+                    f"; measured as {recorded['spec']['order']} with {recorded['network']} on the network)"
+                    if differs
+                    else ")"
+                ),
             )
         names = ", ".join(on) or "none"
         if info["measured_db"]:
@@ -444,6 +486,8 @@ class SwitchDecision:
         requested, bound = config.requested_switches(), config.switch_bound_db
         tried = resolve(requested, False, config.renders_on_cuda(device), measure, bound_db=bound)[1]
         self.record = {"step": step, "views": len(targets), "tried": tried, "measure": MEASURE_VERSION}
+        if self._params is not None:
+            self.record["params"] = self.fingerprint()
         losses = ", ".join(f"{k} {v:.4f} dB" for k, v in tried.items()) or "none left to the plugin"
         return f"Render switches on {len(targets)} training views (worst change against plain): {losses}"
 
