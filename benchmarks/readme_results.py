@@ -594,7 +594,7 @@ def real_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     out += [
         "",
         f"`garo-compact-real+auto`: 4x within 0.5 dB on {len(meeting)} of {len(rows)} captures "
-        f"({', '.join(meeting) or 'none'}); on the others the time table missed the bound within its memory budget.",
+        f"({', '.join(meeting) or 'none'}); elsewhere its time table missed the bound within budget.",
     ]
     missing = [c for c in REAL_CAPTURES if c not in shown]
     if missing:
