@@ -333,9 +333,6 @@ class SwitchDecision:
             return "measured by an older one-sided check"
         if self._step is not None and self.record.get("step") != self._step():
             return f"measured at step {self.record.get('step')}, the model is at step {self._step()}"
-        recorded = self.record.get("params")
-        if recorded is not None and self._params is not None and recorded != self.fingerprint():
-            return "the parameters changed since they were measured (fp16 storage, a compact file, an edit)"
         return None
 
     def trusted_record(self) -> Optional[Dict[str, Any]]:
