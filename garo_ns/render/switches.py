@@ -294,8 +294,8 @@ class SwitchDecision:
     ) -> None:
         self.record: Optional[Dict[str, Any]] = None
         self._step = step
-        # The tensors a measurement describes (the Gaussians and the field): a record names their fingerprint, so
-        # values changed at the same step (a compact file's fp16 rounding, an edit) no longer pass for measured.
+        # The tensors a measurement describes (the Gaussians and the field): a record names their fingerprint
+        # (not yet checked on load: a loaded model's did not match its own measurement's, cause not found).
         self._params = params
         self._fingerprint_of: Optional[Tuple[Any, str]] = None  # (their versions, the fingerprint)
         # What the frame path built for a spec (its keys, order, Gaussians on the network), or None: the load line
@@ -388,7 +388,6 @@ class SwitchDecision:
             getattr(config, "deform_scale_offset", "log"),  # `_table_refusal` reads it
             self._step() if self._step else None,
             self.failed_table(),
-            versions(list(self._params())) if self._params is not None else None,
         )
         if self._cache is not None and self._cache[0] == key and self._cache[1] is self.record:
             return self._cache[2]
