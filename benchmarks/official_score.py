@@ -90,12 +90,21 @@ def parse_log(log: Path) -> Dict[str, Any]:
     }
 
 
+def run_iterations(cfg: Namespace) -> int:
+    """The run's --iterations. cfg_args keeps only the model's arguments, so a run started without the
+    D-NeRF wrapper's record has none: official_d3dgs.sh starts D-NeRF at 40000 and a real capture at 20000."""
+    recorded = getattr(cfg, "iterations", None)
+    if recorded is not None:
+        return int(recorded)
+    return 40000 if getattr(cfg, "is_blender", False) else 20000
+
+
 def train_args(cfg: Namespace) -> str:
     """The official run's training switches, from its cfg_args."""
     kind = "--is_blender" if cfg.is_blender else "real scene (no --is_blender)"
     six = " --is_6dof" if cfg.is_6dof else ""
     bg = "white" if cfg.white_background else "black"
-    return f"--eval {kind}{six}, {cfg.iterations} iterations, {bg} background, official defaults otherwise"
+    return f"--eval {kind}{six}, {run_iterations(cfg)} iterations, {bg} background, official defaults otherwise"
 
 
 def read_float(path: Path) -> Optional[float]:
@@ -262,7 +271,7 @@ def main() -> None:
         torch.cuda.empty_cache()
         model = OfficialRun(run, data, it)
         metrics = score(model, data, real_ssim if model.real else ssim, lpips)
-        target = args.target_iterations or int(model.cfg.iterations)
+        target = args.target_iterations or run_iterations(model.cfg)
         timing = measure_fps(model)
         official = {
             "psnr": metrics["psnr"],
