@@ -22,9 +22,20 @@ from typing import Any, Optional, Sequence
 __version__ = "0.1.0"
 
 MOVED = {
-    **{f"garo_ns.{name}": f"garo_ns.engine.{name}" for name in (
-        "adam", "fused_ssim", "initialisation", "losses", "metrics", "recipe", "ssim", "train_graphs", "training_data"
-    )},
+    **{
+        f"garo_ns.{name}": f"garo_ns.engine.{name}"
+        for name in (
+            "adam",
+            "fused_ssim",
+            "initialisation",
+            "losses",
+            "metrics",
+            "recipe",
+            "ssim",
+            "train_graphs",
+            "training_data",
+        )
+    },
     "garo_ns.checkpoints": "garo_ns.state.checkpoints",
     "garo_ns.storage": "garo_ns.state.storage",
     "garo_ns.static": "garo_ns.render.static",

@@ -158,3 +158,16 @@ def test_summary_puts_the_official_run_in_the_capture_row():
     with pytest.raises(ValueError, match="scored on test"):
         attach_official(summary, [("x.json", official)])
     assert json.dumps(summary)  # stays JSON
+
+
+def test_a_run_without_a_recorded_length_is_judged_by_its_kind():
+    """cfg_args keeps the model's arguments only: a real capture's run records no --iterations, and scoring it must
+    not fail on that (it did), nor call a 20k run of a capture shortened against D-NeRF's 40k."""
+    from argparse import Namespace
+
+    real = Namespace(is_blender=False, is_6dof=False, white_background=False)
+    dnerf = Namespace(is_blender=True, is_6dof=False, white_background=False)
+    assert official_score.run_iterations(real) == 20000
+    assert official_score.run_iterations(dnerf) == 40000
+    assert official_score.run_iterations(Namespace(is_blender=True, iterations=30000)) == 30000
+    assert "20000 iterations" in official_score.train_args(real)

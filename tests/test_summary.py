@@ -75,6 +75,9 @@ def test_writes_json_table_and_plot(tmp_path):
     assert "| average |  | garo-deform |" in table and "2.00x" in table
     assert "garo-deform: met on average (2.00x at +0.10 dB); met on 2 of 2 scenes (a, b)." in table
     assert out.with_suffix(".png").stat().st_size > 1000
+    main(SummaryArgs(results=paths, output=out, note="Two GPUs of one host."))
+    note = json.loads(out.read_text())["note"]
+    assert note.startswith("Two GPUs of one host. ") and "each ratio is taken within one scene's file" in note
 
 
 def test_an_alias_reads_a_renamed_run_only_where_the_variant_is_missing():

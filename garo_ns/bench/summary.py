@@ -50,6 +50,8 @@ class SummaryArgs:
     official: List[Path] = field(default_factory=list)
     """Results of the official D-3DGS code (benchmarks/official_score.py, e.g. official_real_<GPU>.json): each
     scene's official arm goes under `official` in that scene's row, beside the baseline."""
+    note: str = ""
+    """How the runs were made (machine, sharing, what was cut short), recorded before the summary's own note."""
 
 
 def _mean(values: List[Optional[float]]) -> Optional[float]:
@@ -328,6 +330,8 @@ def main(args: SummaryArgs) -> Dict[str, Any]:
                 summary, args.target_variant, TARGETS[args.target], args.size_variant
             )
         attach_official(summary, read_results(args.official) if args.official else [])
+        if args.note:
+            summary["note"] = f"{args.note} {summary['note']}"
     except ValueError as err:
         raise SystemExit(f"error: {err}") from None
     publish(summary, args.output, write_report)

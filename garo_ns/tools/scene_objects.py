@@ -53,9 +53,7 @@ def hit_ground(o: np.ndarray, d: np.ndarray, checks: float = 4.0) -> Hit:
     return np.where(ok, t, np.inf), albedo, normal
 
 
-def hit_sphere(
-    o: np.ndarray, d: np.ndarray, time: float, stripes: int = 8, turns: float = 1.25
-) -> Hit:
+def hit_sphere(o: np.ndarray, d: np.ndarray, time: float, stripes: int = 8, turns: float = 1.25) -> Hit:
     """Where rays meet the ball at `time`: `stripes` meridian stripes that turn `turns` times over the sequence."""
     c = sphere_center(time)
     oc = o - c
@@ -73,9 +71,7 @@ def hit_sphere(
     return np.where(ok, t, np.inf), albedo, n
 
 
-def hit_box(
-    o: np.ndarray, d: np.ndarray, time: float, turns: float = 0.5, slide: float = 0.0
-) -> Hit:
+def hit_box(o: np.ndarray, d: np.ndarray, time: float, turns: float = 0.5, slide: float = 0.0) -> Hit:
     """Where rays meet the box at `time`, which turns `turns` times and slides `slide` units over the sequence."""
     ang = box_angle(time, turns)
     ca, sa = math.cos(ang), math.sin(ang)
