@@ -547,6 +547,14 @@ CASES: List[Tuple[str, str, Build]] = [
     ),
     (
         "NeRF-DS",
+        "an id in both train_ids and val_ids",
+        nerfds_case(
+            lambda d: edit_json(d / "dataset.json", lambda m: m["val_ids"].append(m["train_ids"][0])),
+            lambda d: [str(d / "dataset.json"), "'train_000'", "both train_ids and val_ids"],
+        ),
+    ),
+    (
+        "NeRF-DS",
         "metadata.json lacks an id",
         nerfds_case(
             lambda d: edit_json(d / "metadata.json", lambda m: m.pop("train_001")),

@@ -108,9 +108,10 @@ def test_distorted_phone_camera_goes_through_nerfstudio_undistortion(tmp_path):
     capture = tmp_path / "phone"
     (capture / "camera").mkdir(parents=True)
     shutil.copy(NERFIES_CAMERA, capture / "camera" / "a.json")
+    shutil.copy(NERFIES_CAMERA, capture / "camera" / "b.json")  # the held-out view: same camera, another id
     cam = json.loads(NERFIES_CAMERA.read_text())
-    (capture / "dataset.json").write_text(json.dumps({"ids": ["a"], "train_ids": ["a"], "val_ids": ["a"]}))
-    (capture / "metadata.json").write_text(json.dumps({"a": {"warp_id": 0}}))
+    (capture / "dataset.json").write_text(json.dumps({"ids": ["a", "b"], "train_ids": ["a"], "val_ids": ["b"]}))
+    (capture / "metadata.json").write_text(json.dumps({"a": {"warp_id": 0}, "b": {"warp_id": 1}}))
     (capture / "scene.json").write_text(json.dumps({"center": [0.0, 0.0, 0.0], "scale": 0.0387}))
     factor = 8
     k, p = cam["radial_distortion"], cam["tangential_distortion"]

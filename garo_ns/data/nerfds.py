@@ -116,6 +116,12 @@ def read_capture(data: Path, downscale: int = 2) -> Capture:
         splits[key[: -len("_ids")]] = ids
     if not splits["train"]:
         raise GaroInputError(f"{data / 'dataset.json'}: no train_ids")
+    both = [i for i in splits["val"] if i in set(splits["train"])]
+    if both:  # a held-out frame that is also trained on would be scored as if unseen
+        raise GaroInputError(
+            f"{data / 'dataset.json'}: {both[0]!r} is in both train_ids and val_ids; "
+            "a held-out id must not be trained on"
+        )
     all_ids = list(dict.fromkeys(splits["train"] + splits["val"]))
 
     scene = read_json_object(data / "scene.json", "scene file")
