@@ -11,6 +11,7 @@ from typing import Any, Callable, ContextManager, Dict, Literal, Optional, Tuple
 import torch
 from torch import Tensor
 
+from garo_ns.ops.alpha_reach import reach_radii
 from garo_ns.render import reference
 from garo_ns.render.kernels import TILE_SIZE, Front, gsplat_kernels, lean_front
 from garo_ns.render.train_raster import rasterize_train_lean
@@ -230,8 +231,10 @@ def rasterize_lean(
                 backgrounds = torch.cat([backgrounds, backgrounds.new_zeros(n_cams, 1)], dim=-1)
     with stage("sorting"):
         tiles_w, tiles_h = math.ceil(width / TILE_SIZE), math.ceil(height / TILE_SIZE)
+        # Each splat's tiles from the box its alpha can reach: the pairs compositing would only skip never sort.
+        isect_radii = reach_radii(radii, conics, opacities)
         _, isect_ids, flatten_ids = kernels.isect_tiles(
-            means2d, radii, depths, None, None, n_cams, TILE_SIZE, tiles_w, tiles_h, True, True
+            means2d, isect_radii, depths, None, None, n_cams, TILE_SIZE, tiles_w, tiles_h, True, True
         )
         offsets = kernels.isect_offset_encode(isect_ids, n_cams, tiles_w, tiles_h)
     with stage("compositing"):

@@ -6,7 +6,8 @@ It follows gsplat 1.4.0's conventions closely enough that the densification stra
 * projection: quaternion + scale -> covariance, pinhole Jacobian with the view-frustum clamp
   at 1.3x the field of view, near/far culling, a 0.3 px low-pass dilation, 3-sigma radius
   (from the larger eigenvalue), and culling of Gaussians whose box misses the image;
-* tiles of 16 px; a Gaussian touches the tiles its 3-sigma box overlaps;
+* tiles of 16 px; a Gaussian touches the tiles that the box of its 1/255 alpha ellipse (within its 3-sigma
+  square) overlaps, as the CUDA paths sort them (garo_ns.ops.alpha_reach);
 * front-to-back compositing per pixel (pixel centres at +0.5), alpha = min(0.999,
   opacity * exp(-sigma)), Gaussians with alpha < 1/255 skipped, and a pixel stops before the
   Gaussian that would bring its transmittance to 1e-4 or below.
@@ -28,13 +29,13 @@ import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
+from garo_ns.ops.alpha_reach import ALPHA_MIN, reach_half_widths, reach_radii
 from garo_ns.ops.quaternions import quat_to_rotmat
 from garo_ns.render.sh import eval_sh
 
 RenderMode = Literal["RGB", "D", "ED", "RGB+D", "RGB+ED"]
 
 ALPHA_MAX = 0.999
-ALPHA_MIN = 1.0 / 255.0
 TRANSMITTANCE_MIN = 1e-4
 
 
@@ -190,15 +191,7 @@ def block_lists(
     if per_side * block_size != tile_size:
         raise ValueError(f"tile_size {tile_size} must be a multiple of block_size {block_size}")
     blocks_w, blocks_h = tile_width * per_side, tile_height * per_side
-    a, b, c = conics[flat_ids].unbind(-1)
-    if alpha_min > 0:
-        reach = 2.0 * torch.log(opacities[flat_ids] / alpha_min)  # 2 * sigma bound; < 0: never visible
-    else:
-        reach = torch.full_like(a, math.inf)
-    det = a * c - b * b
-    # Half-widths of the ellipse's box: sqrt(reach * cov_xx), cov = inverse of the conic.
-    half_x = torch.sqrt(reach * c / det) * (1 + 1e-4) + 1e-3
-    half_y = torch.sqrt(reach * a / det) * (1 + 1e-4) + 1e-3
+    half_x, half_y = reach_half_widths(conics[flat_ids], opacities[flat_ids], alpha_min)
     mx, my = means2d[flat_ids].unbind(-1)
     # Blocks whose pixel centres (index + 0.5) may fall in the box, inclusive (NaN: none).
     lo_x, hi_x = torch.floor((mx - half_x - 0.5) / block_size), torch.floor((mx + half_x - 0.5) / block_size)
@@ -486,7 +479,9 @@ def rasterize(
         bg = None if bg is None else torch.zeros_like(bg[:, :1])
 
     tw, th = math.ceil(width / tile_size), math.ceil(height / tile_size)
-    tiles_per_gauss, tile_ids, flat_ids = intersect_tiles(means2d, radii, depths, tile_size, tw, th)
+    # Tiles from the box each splat's alpha can reach (as the CUDA paths sort): the same pixels, fewer pairs.
+    isect_radii = reach_radii(radii, conics.detach(), opac.detach(), alpha_min)
+    tiles_per_gauss, tile_ids, flat_ids = intersect_tiles(means2d, isect_radii, depths, tile_size, tw, th)
     render, alphas = composite(
         means2d, conics, opac, feats.to(dt), tile_ids, flat_ids, width, height, tile_size, chunk, alpha_min=alpha_min
     )

@@ -24,6 +24,7 @@ from typing import Any, Dict, Optional, Tuple
 import torch
 from torch import Tensor
 
+from garo_ns.ops.alpha_reach import reach_radii
 from garo_ns.render.kernels import EPS2D, TILE_SIZE, gsplat_kernels, lean_front
 
 ALPHA_FLOOR = 1e-10  # gsplat's clamp on the alpha that divides the accumulated depth (RGB+ED)
@@ -266,8 +267,11 @@ def rasterize_train_lean(
     )
     # Tile lists: integer bookkeeping that autograd does not see.
     tiles_w, tiles_h = math.ceil(width / TILE_SIZE), math.ceil(height / TILE_SIZE)
+    # From the box each splat's alpha can reach (garo_ns.ops.alpha_reach): the same pixels and gradients, fewer
+    # pairs. `info["radii"]` stays projection's: the strategy counts a splat seen by its 3-sigma square.
+    isect_radii = reach_radii(radii, conics.detach(), opacities.detach())
     tiles_per_gauss, isect_ids, flatten_ids = kernels.isect_tiles(
-        means2d, radii, depths, None, None, 1, TILE_SIZE, tiles_w, tiles_h, True, True
+        means2d, isect_radii, depths, None, None, 1, TILE_SIZE, tiles_w, tiles_h, True, True
     )
     offsets = kernels.isect_offset_encode(isect_ids, 1, tiles_w, tiles_h)
     render, alpha = _Composite.apply(
