@@ -317,8 +317,12 @@ class GaroModel(SplatfactoModel):
         """
         checkpoints.fit_model_to(self, state_dict)  # older checkpoints' keys, its count, its field
         result = torch.nn.Module.load_state_dict(self, state_dict, strict=strict)
-        if not self.training:
+        # Decided only now: torch restores the extra state (the record) before the Gaussians and the field.
+        self.switches.parameters_changed()
+        if not self.training:  # loaded to render (ns-viewer, ns-render, garo-eval load in eval mode)
             self.build_time_table()
+            line = self.switches.line(self.config, self.training_run, self.device)
+            CONSOLE.print(f"[yellow]{line}[/yellow]" if self.switches.failed_table() else line, soft_wrap=True)
         return result
 
     @torch.no_grad()
@@ -328,9 +332,7 @@ class GaroModel(SplatfactoModel):
         starts over, and meanwhile no frame arrives)."""
         spec = self.switches.table_spec()
         if spec is not None and self.deformation_active() and self.render_settings().time_table:
-            if self.frame.time_table(self.deformation, self.canonical(), spec) is None:
-                line = self.switches.line(self.config, self.training_run, self.device)
-                CONSOLE.print(f"[yellow]{line}[/yellow]", soft_wrap=True)
+            self.frame.time_table(self.deformation, self.canonical(), spec)  # a failure: switches.failed_table()
 
     def get_extra_state(self) -> Dict[str, Any]:
         """What travels with the checkpoint besides the parameters (garo_ns.state.checkpoints.extra_state)."""

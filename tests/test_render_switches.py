@@ -382,6 +382,24 @@ def test_the_ladder_goes_on_in_int8_only_where_the_budget_caps_int16():
     assert specs == [] and "memory budget" in why
 
 
+def test_a_record_of_other_parameter_values_at_the_same_step_is_not_trusted():
+    """A record names the fingerprint of the values it measured: a compact file's fp16 rounding (or any edit) at the
+    same step leaves the approximate switches off, said on the line, until measured again."""
+    params = [torch.linspace(0, 1, 1000), torch.ones(4, 3)]
+    decision = SwitchDecision(lambda: 99, lambda: params)
+    config, cpu = RenderSettings(), torch.device("cpu")
+    decision.record = {**_record(99), "params": decision.fingerprint()}
+    assert decision.settings(config, False, cpu).time_table  # the values measured: trusted
+    with torch.no_grad():
+        params[0].copy_(params[0].half().float())  # as load_compact puts a compact file's values back
+    decision.parameters_changed()  # what load_compact and a checkpoint's load say
+    assert not decision.settings(config, False, cpu).time_table and decision.table_spec() is None
+    assert "the parameters changed since they were measured" in decision.line(config, False, cpu)
+    old = _record(99)  # a record written before fingerprints: trusted by its step, as before
+    decision.record = old
+    assert decision.settings(config, False, cpu).time_table
+
+
 def test_the_load_line_names_the_table_built_where_it_differs_from_the_record():
     decision = SwitchDecision(lambda: 99)
     config, cpu = RenderSettings(), torch.device("cpu")

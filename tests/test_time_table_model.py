@@ -231,3 +231,23 @@ def test_on_a_cpu_a_dense_recorded_table_is_put_off_and_said(trained):
     assert model.switches.settings(model.config, False, torch.device("cuda")).time_table  # a GPU builds it
     model.switches.record = record  # the table this CPU trained: small enough to build here
     assert model.render_settings().time_table
+
+
+@pytest.mark.slow
+def test_a_loaded_model_trusts_its_record_until_its_values_are_rounded_to_storage(trained, capsys):
+    """torch restores the record before the parameters: the load line is decided once all are in (it once said
+    "the parameters changed" of a model loaded unchanged). Rounding to the compact file's fp16 then distrusts the
+    fp32 record; putting the trained values back trusts it again."""
+    from garo_ns.state import storage
+
+    model, _ = _load(trained)
+    record = trained["trainer"].pipeline.model.switches.record
+    assert model.switches.fingerprint() == record["params"]
+    line = [x for x in capsys.readouterr().out.splitlines() if x.startswith("Render switches:")][0]
+    assert "changed since they were measured" not in line and "measured on" in line
+    original = storage.snapshot(model)
+    storage.round_to_storage(model)
+    assert "the parameters changed since they were measured" in model.switches.line(model.config, False, model.device)
+    assert not model.render_settings().time_table
+    storage.restore(model, original)
+    assert model.switches.distrust() is None

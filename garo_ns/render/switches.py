@@ -294,8 +294,8 @@ class SwitchDecision:
     ) -> None:
         self.record: Optional[Dict[str, Any]] = None
         self._step = step
-        # The tensors a measurement describes (the Gaussians and the field): a record names their fingerprint
-        # (not yet checked on load: a loaded model's did not match its own measurement's, cause not found).
+        # The tensors a measurement describes (the Gaussians and the field): a record names their fingerprint, and
+        # one whose tensors now hold other values (fp16 storage, a compact file, an edit) is not trusted.
         self._params = params
         self._fingerprint_of: Optional[Tuple[Any, str]] = None  # (their versions, the fingerprint)
         # What the frame path built for a spec (its keys, order, Gaussians on the network), or None: the load line
@@ -311,6 +311,13 @@ class SwitchDecision:
         """Why the table to render with could not be built, or None (built, not yet tried, or no table)."""
         spec = self.table_spec()
         return self.table_failure(spec) if spec is not None else None
+
+    def parameters_changed(self) -> None:
+        """Forget what was decided from the parameters: call after replacing their values (a checkpoint or compact
+        file loaded, storage rounding undone), so the next frame compares the record with the values now held.
+        A frame does not look at the parameters itself: that would cost every frame a pass over them."""
+        self._cache = None
+        self._fingerprint_of = None
 
     def fingerprint(self) -> Optional[str]:
         """A hash of the measured tensors' values (None without them); computed again only when one changed."""
@@ -333,6 +340,9 @@ class SwitchDecision:
             return "measured by an older one-sided check"
         if self._step is not None and self.record.get("step") != self._step():
             return f"measured at step {self.record.get('step')}, the model is at step {self._step()}"
+        recorded = self.record.get("params")
+        if recorded is not None and self._params is not None and recorded != self.fingerprint():
+            return "the parameters changed since they were measured (fp16 storage, a compact file, an edit)"
         return None
 
     def trusted_record(self) -> Optional[Dict[str, Any]]:

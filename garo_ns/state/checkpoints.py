@@ -574,10 +574,7 @@ def extra_state(model: Any) -> Dict[str, Any]:
 
 
 def restore_extra_state(model: Any, state: Optional[Dict[str, Any]]) -> None:
-    """Put `extra_state`'s record back into `model`; a model loaded to render says which render switches it uses."""
-    from nerfstudio.utils.rich_utils import CONSOLE
-
+    """Put `extra_state`'s record back into `model`. torch calls this before it loads the Gaussians and the field,
+    so what the record decides is said by the model's `load_state_dict`, once every parameter is in."""
     restore_strategy_state(model.strategy_state, (state or {}).get("strategy_state") or {}, model.device)
     model.switches.record = (state or {}).get("render_switches")
-    if not model.training:  # loaded to render (ns-viewer, ns-render, garo-eval load in eval mode)
-        CONSOLE.print(model.switches.line(model.config, model.training_run, model.device), soft_wrap=True)

@@ -73,6 +73,15 @@ def load_compact(model: Any, source: Union[str, Path, bytes]) -> None:
             raise ValueError(f"{name} holds non-finite values in the compact file")
     for name, value in state.items():
         params[name].copy_(value.to(params[name].dtype))
+    _values_replaced(model)
+
+
+def _values_replaced(model: Any) -> None:
+    """Tell the model's render switches that the values they were measured on are gone (a record of the fp32
+    values does not describe the rounded ones)."""
+    switches = getattr(model, "switches", None)
+    if switches is not None:
+        switches.parameters_changed()
 
 
 def round_to_storage(model: Any) -> int:
@@ -96,3 +105,4 @@ def restore(model: Any, saved: Dict[str, Tensor]) -> None:
         v.copy_(saved[f"g.{k}"])
     for k, v in model.deformation.named_parameters():
         v.copy_(saved[f"d.{k}"])
+    _values_replaced(model)
