@@ -318,5 +318,7 @@ def test_eval_data_replaces_a_scene_that_moved(garo_run, tmp_path):
     cfg = _config_with_scene(garo_run, tmp_path, gone, gone)
     result = run(EvalArgs(load_config=cfg, split="test", output_path=tmp_path / "eval.json", data=scene))
     assert result["psnr"] == pytest.approx(garo_run["eval"]["psnr"], abs=1e-3)
+    # What a viewer waits for: the load (the time table built there) and the first frame, each timed.
+    assert 0 < result["load_seconds"] < 600 and 0 < result["first_frame_seconds"] < result["load_seconds"] + 600
     with pytest.raises(GaroInputError, match="not a folder"):
         run(EvalArgs(load_config=cfg, split="test", output_path=tmp_path / "e2.json", data=gone))

@@ -430,6 +430,10 @@ class SwitchDecision:
                 table["off"] = refusal
             elif measured is not None and not measured <= config.switch_bound_db:
                 table.setdefault("off", f"its change {measured:.4f} dB is over the bound {config.switch_bound_db} dB")
+        spec = self.table_spec() if in_use.time_table else None
+        built = self.table_built(spec) if spec is not None else None
+        if built:  # the table this model renders with (keys, order, MB, build seconds), maybe not the record's
+            table["built"] = built
         return {
             "in_use": asdict(in_use),
             # Only what `resolve` measures now: an older record's precision entries decide nothing.

@@ -14,6 +14,7 @@ through the run's own dataparser and undistorted as training saw them.
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Tuple
@@ -154,8 +155,13 @@ def evaluate(pipeline: Any, data: Path, split: str) -> Dict[str, Any]:
     cameras, images = split_views(pipeline, data, split)
     lpips = make_lpips()
     psnrs, ssims, lpipss = [], [], []
+    first_frame_s = None
     for i, gt in enumerate(images):
+        started = time.perf_counter()
         out = model.get_outputs_for_camera(cameras[i : i + 1].to(model.device))
+        if i == 0:  # what a viewer waits for after loading: any work put off until a frame needs it
+            synchronize(model.device)
+            first_frame_s = time.perf_counter() - started
         pred = out["rgb"].clamp(0, 1)
         gt = gt.to(pred.device)
         mse = torch.mean((pred - gt) ** 2)
@@ -173,8 +179,15 @@ def evaluate(pipeline: Any, data: Path, split: str) -> Dict[str, Any]:
         "num_gaussians": int(model.num_points),
         "split": split,
         "n_images": len(images),
+        "first_frame_seconds": first_frame_s,
         "background": "black" if bg == [0.0, 0.0, 0.0] else "white" if bg == [1.0, 1.0, 1.0] else bg,
     }
+
+
+def synchronize(device: Any) -> None:
+    """Wait for the GPU's queued work, so a wall-clock time includes it (nothing to wait for on a CPU)."""
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
 
 
 @dataclass
@@ -194,9 +207,12 @@ class EvalArgs:
 def run(args: EvalArgs) -> Dict[str, Any]:
     """Evaluate and write JSON; returns the result."""
     check_new_file(args.output_path, "--output-path", overwrite=True)  # before the whole evaluation runs
+    started = time.perf_counter()
     config, pipeline, ckpt, step = load_run(args.load_config, args.data)
+    synchronize(pipeline.model.device)
+    load_s = time.perf_counter() - started  # the checkpoint read, the model built, its time table built
     result = evaluate(pipeline, scene_dir(config), args.split)
-    result.update({"method": config.method_name, "step": int(step), "checkpoint": str(ckpt)})
+    result.update({"method": config.method_name, "step": int(step), "checkpoint": str(ckpt), "load_seconds": load_s})
     # The switches these scores were rendered with, and their measured change against the plain render.
     result["render_switches"] = pipeline.model.render_switch_summary()
     # What compaction decided during training (None for a run without it).
