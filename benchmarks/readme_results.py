@@ -3,11 +3,12 @@
     python benchmarks/readme_results.py            # rewrite the blocks between the markers in README.md
     python benchmarks/readme_results.py --check    # exit 1 if a block of README.md differs from what it would write
 
-Six blocks, each between `<!-- NAME:begin -->` and `<!-- NAME:end -->`: `results` (below), `ablation` (from
-`paper_table3_<GPU>.json` and `paper_fig5_<GPU>.json`, written by `python -m garo_ns.bench.ablation`),
+Seven blocks, each between `<!-- NAME:begin -->` and `<!-- NAME:end -->`: `results` (below), `ablation` (from
+`paper_table3_<GPU>.json` and `paper_fig5_<GPU>.json`, written by `garo_ns/bench/ablation.py`, retired: HISTORY),
 `compaction` (from `compact_<GPU>.json`, written by `python -m garo_ns.bench.summary --target compaction`), `demo`
 (from `demo_cpu.json`, written by benchmarks/demo_measure.py), `tests` (from `test_time_cpu.json`, written by
-benchmarks/test_time.py) and `training` (from the newest `train_speed_<GPU>.json`, python -m garo_ns.bench.train_speed).
+benchmarks/test_time.py), `training` (from the newest `train_speed_<GPU>.json`, python -m garo_ns.bench.train_speed)
+and `real` (from `real_<GPU>.json`, python -m garo_ns.bench.summary).
 
 Reads every `benchmarks/results/table1_<scene>_<GPU>.json` (written by `python -m garo_ns.bench.benchmark`;
 see docs/benchmarks.md) and makes one row per run: the baseline (`deform-splatfacto`) against GARO
@@ -27,7 +28,6 @@ import sys
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
-from garo_ns.bench.ablation import paired_text, rho_places
 from garo_ns.bench.targets import target_lines
 from garo_ns.bench.transfer import trained_elsewhere
 
@@ -250,12 +250,25 @@ def _commits(value: Any) -> List[str]:
     return [c for c in value or [] if isinstance(c, str)]
 
 
+def paired_text(v: Dict[str, Any], runs: int) -> str:
+    """The re-timed speed-up as a table shows it, naming how many of the variant's runs it comes from when
+    not all."""
+    if v.get("fps_ratio_paired") is None:
+        return "-"
+    some = v.get("fps_ratio_paired_runs", runs)
+    return f"{v['fps_ratio_paired']:.2f}x" + (f" ({some} of {runs} runs)" if some < runs else "")
+
+
+def rho_places(rhos: List[float]) -> str:
+    """Where a claim holds, in words: `at rho_max 0.05, 0.1` or `at no rho_max tried`."""
+    return f"at rho_max {', '.join(f'{r:g}' for r in rhos)}" if rhos else "at no rho_max tried"
+
+
 def ablation_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
-    """The paper's Table 3 (one scene: each criterion alone against both), from garo_ns.bench.ablation's files."""
+    """The paper's Table 3 (one scene: each criterion alone against both) and Fig. 5 (rho_max), from the files the
+    retired garo_ns/bench/ablation.py wrote (benchmarks/HISTORY.md, "Retired scripts")."""
     paths = sorted(p for p in results.glob("paper_table3_*.json") if ABLATION_FILE.fullmatch(p.name))
     rho_paths = sorted(p for p in results.glob("paper_fig5_*.json") if RHO_FILE.fullmatch(p.name))
-    if not paths and not rho_paths:
-        return "\nThe ablation (the paper's Table 3) has not been run yet (`python -m garo_ns.bench.ablation`).\n"
     out = []
     for path in paths:
         data = json.loads(path.read_text())
