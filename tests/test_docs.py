@@ -21,13 +21,13 @@ def _script(name: str, *args: str) -> subprocess.CompletedProcess:
 
 
 def test_settings_page_regenerates_without_a_diff():
-    sys.path.insert(0, str(ROOT / "benchmarks"))
+    sys.path.insert(0, str(ROOT / "scripts"))
     try:
         import settings_page
     finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
+        sys.path.remove(str(ROOT / "scripts"))
     assert settings_page.render_page() == (ROOT / "docs" / "settings.md").read_text(), (
-        "docs/settings.md is out of date: run python benchmarks/settings_page.py"
+        "docs/settings.md is out of date: run python scripts/settings_page.py"
     )
 
 
