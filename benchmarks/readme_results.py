@@ -3,17 +3,17 @@
     python benchmarks/readme_results.py            # rewrite the blocks between the markers in README.md
     python benchmarks/readme_results.py --check    # exit 1 if a block of README.md differs from what it would write
 
-Six blocks, each between `<!-- NAME:begin -->` and `<!-- NAME:end -->`: `results` (below), `ablation` (from
-`paper_table3_<GPU>.json` and `paper_fig5_<GPU>.json`, written by `python -m garo_ns.bench.ablation`),
+Seven blocks, each between `<!-- NAME:begin -->` and `<!-- NAME:end -->`: `results` (below), `ablation` (from
+`paper_table3_<GPU>.json` and `paper_fig5_<GPU>.json`, written by `garo_ns/bench/ablation.py`, retired: HISTORY),
 `compaction` (from `compact_<GPU>.json`, written by `python -m garo_ns.bench.summary --target compaction`), `demo`
 (from `demo_cpu.json`, written by benchmarks/demo_measure.py), `tests` (from `test_time_cpu.json`, written by
-benchmarks/test_time.py) and `training` (from the newest `train_speed_<GPU>.json`, python -m garo_ns.bench.train_speed).
+benchmarks/test_time.py), `training` (from the newest `train_speed_<GPU>.json`, python -m garo_ns.bench.train_speed)
+and `real` (from `real_<GPU>.json`, python -m garo_ns.bench.summary).
 
 Reads every `benchmarks/results/table1_<scene>_<GPU>.json` (written by `python -m garo_ns.bench.benchmark`;
 see docs/benchmarks.md) and makes one row per run: the baseline (`deform-splatfacto`) against GARO
-(`garo-deform`; in a file without that row, `garo-window`, the same method under its name at the time),
-their ratio of FPS and their PSNR difference, then the average over the scenes present (a scene with several
-runs, `table1_<scene>_run<k>_<GPU>.json`, counts once as the mean of its runs), the paper's claim
+(`garo-deform`), their ratio of FPS and their PSNR difference, then the average over the scenes present (a scene
+with several runs, `table1_<scene>_run<k>_<GPU>.json`, counts once as the mean of its runs), the paper's claim
 checked against that average, and a line naming the commits, GPU, steps and the scenes still missing.
 """
 
@@ -27,22 +27,17 @@ import sys
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
-from garo_ns.bench.ablation import paired_text, rho_places
+from garo_ns.bench.summary import BASELINE, CLAIM_FPS_RATIO, CLAIM_PSNR_DROP_DB
 from garo_ns.bench.targets import target_lines
 from garo_ns.bench.transfer import trained_elsewhere
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
 README = ROOT / "README.md"
-BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
 DEMO_FILE, TESTS_FILE = "demo_cpu.json", "test_time_cpu.json"
 SCENES = ("jumpingjacks", "mutant", "standup")
 """The D-NeRF scenes the headline table is meant to cover (the paper's Table 1 scenes run here)."""
-BASELINE = "deform-splatfacto"
-GARO = ("garo-deform", "garo-window")
-"""GARO's row names, preferred first: `garo-window` is what commit 37fe2da called today's default."""
-CLAIM_SPEEDUP, CLAIM_LOSS_DB = 2.0, 0.5
-"""The paper's claim: about 2x FPS at no more than 0.5 dB average PSNR loss."""
+GARO = "garo-deform"
 
 
 TABLE1_FILE = re.compile(r"table1_(?P<scene>.+?)(?:_run(?P<run>[0-9]+))?_(?P<gpu>[^_]+)")
@@ -67,10 +62,9 @@ def scene_row(path: Path) -> Dict[str, Any]:
     """The baseline and GARO rows of one result file, with where they came from."""
     data = json.loads(path.read_text())
     variants = data["variants"]
-    name = next((n for n in GARO if n in variants), None)
-    if BASELINE not in variants or name is None:
-        raise ValueError(f"{path.name}: needs a {BASELINE} row and one of {GARO}")
-    base, garo = variants[BASELINE], variants[name]
+    if BASELINE not in variants or GARO not in variants:
+        raise ValueError(f"{path.name}: needs a {BASELINE} row and a {GARO} row")
+    base, garo = variants[BASELINE], variants[GARO]
     for row in (base, garo):
         if row.get("shortened") or row.get("stopped_by_deadline"):
             raise ValueError(f"{path.name}: a row was stopped before the full schedule")
@@ -80,27 +74,11 @@ def scene_row(path: Path) -> Dict[str, Any]:
         "gpu": data["gpu"],
         "commit": data["git_commit"],
         "file": path,
-        "garo_name": name,
         "base": base,
         "garo": garo,
         "speedup": garo["fps"] / base["fps"],
         "dpsnr": garo["psnr"] - base["psnr"],
     }
-
-
-def retime_ratios(results: Path, row: Dict[str, Any]) -> List[float]:
-    """GARO's speed-up in each re-timing of a scene's Table 1 checkpoints (`<scene>40k_retime_<GPU>.json`, made on
-    the same machine by a script now retired: benchmarks/HISTORY.md), if such a file exists."""
-    ratios = []
-    for path in sorted(results.glob(f"{row['scene']}40k_retime_*.json")):
-        for run in json.loads(path.read_text()).get("runs", []):
-            v = run["variants"]
-            # Only a re-timing of these very checkpoints: the one the row's run made, at its commit.
-            if run.get("git_commit") != row["commit"]:
-                continue
-            if BASELINE in v and row["garo_name"] in v:
-                ratios.append(v[row["garo_name"]]["fps"] / v[BASELINE]["fps"])
-    return ratios
 
 
 def _lpips(value: Optional[float]) -> str:
@@ -117,7 +95,6 @@ def render_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     for runs in by_scene.values():
         for i, r in enumerate(runs, 1):
             r["label"] = r["scene"] if len(runs) == 1 else f"{r['scene']} run {i}"
-            r["run"] = i
             rows.append(r)
     lines = [
         "| scene (split) | PSNR base / GARO | LPIPS base / GARO | FPS base / GARO | speed-up | PSNR change "
@@ -126,9 +103,8 @@ def render_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     ]
     for r in rows:
         b, g = r["base"], r["garo"]
-        mark = "*" if r["garo_name"] != GARO[0] else ""
         lines.append(
-            f"| {r['label']}{mark} ({r['split']}) | {b['psnr']:.2f} / {g['psnr']:.2f} "
+            f"| {r['label']} ({r['split']}) | {b['psnr']:.2f} / {g['psnr']:.2f} "
             f"| {_lpips(b.get('lpips'))} / {_lpips(g.get('lpips'))} | {b['fps']:.1f} / {g['fps']:.1f} "
             f"| {r['speedup']:.2f}x | {r['dpsnr']:+.2f} dB | {b['num_gaussians']:,} / {g['num_gaussians']:,} |"
         )
@@ -156,9 +132,9 @@ def render_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
         f"| {average(lambda r: r['base']['num_gaussians']):,.0f} / "
         f"{average(lambda r: r['garo']['num_gaussians']):,.0f} |"
     )
-    met = speedup >= CLAIM_SPEEDUP and -dpsnr <= CLAIM_LOSS_DB
+    met = speedup >= CLAIM_FPS_RATIO and -dpsnr <= CLAIM_PSNR_DROP_DB
     claim = (
-        f"The paper claims about {CLAIM_SPEEDUP:g}x FPS at no more than {CLAIM_LOSS_DB:g} dB average PSNR loss; "
+        f"The paper claims about {CLAIM_FPS_RATIO:g}x FPS at no more than {CLAIM_PSNR_DROP_DB:g} dB average PSNR loss; "
         f"over the {n} scene{'s' if n != 1 else ''} here GARO is {speedup:.2f}x faster (mean of the per-scene "
         f"ratios) at {-dpsnr:.2f} dB average loss: the claim is {'met' if met else 'not met'} on these scenes."
         + (
@@ -205,22 +181,6 @@ def render_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
                 f"{r['label']}: timed again in {r['garo']['fps_paired']['passes']} alternating passes in the same "
                 f"run (median pass): {paired:.2f}x.",
             ]
-        retimed = retime_ratios(results, r) if r["run"] == 1 else []  # re-timings name no run: the first
-        frame_ms = sorted(1000.0 / r[arm]["fps"] for arm in ("base", "garo"))
-        if retimed:
-            out += [
-                "",
-                f"{r['label']}: the same two checkpoints re-timed {len(retimed)} more times in that hold gave "
-                f"{min(retimed):.2f}x to {max(retimed):.2f}x (`{r['scene']}40k_retime_*.json`), against "
-                f"{r['speedup']:.2f}x in the table: at frame times of {frame_ms[0]:.1f} to {frame_ms[1]:.1f} ms the "
-                "timing of one run spreads more than the claim's margin.",
-            ]
-    if any(r["garo_name"] != GARO[0] for r in rows):
-        out += [
-            "",
-            "\\* GARO's row is named `garo-window` in this file: at its commit that was the name of reading "
-            "activity since the last GARO step, which is `garo-deform`'s default now.",
-        ]
     out.append("")
     return "\n".join(out)
 
@@ -250,12 +210,25 @@ def _commits(value: Any) -> List[str]:
     return [c for c in value or [] if isinstance(c, str)]
 
 
+def paired_text(v: Dict[str, Any], runs: int) -> str:
+    """The re-timed speed-up as a table shows it, naming how many of the variant's runs it comes from when
+    not all."""
+    if v.get("fps_ratio_paired") is None:
+        return "-"
+    some = v.get("fps_ratio_paired_runs", runs)
+    return f"{v['fps_ratio_paired']:.2f}x" + (f" ({some} of {runs} runs)" if some < runs else "")
+
+
+def rho_places(rhos: List[float]) -> str:
+    """Where a claim holds, in words: `at rho_max 0.05, 0.1` or `at no rho_max tried`."""
+    return f"at rho_max {', '.join(f'{r:g}' for r in rhos)}" if rhos else "at no rho_max tried"
+
+
 def ablation_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
-    """The paper's Table 3 (one scene: each criterion alone against both), from garo_ns.bench.ablation's files."""
+    """The paper's Table 3 (one scene: each criterion alone against both) and Fig. 5 (rho_max), from the files the
+    retired garo_ns/bench/ablation.py wrote (benchmarks/HISTORY.md, "Retired scripts")."""
     paths = sorted(p for p in results.glob("paper_table3_*.json") if ABLATION_FILE.fullmatch(p.name))
     rho_paths = sorted(p for p in results.glob("paper_fig5_*.json") if RHO_FILE.fullmatch(p.name))
-    if not paths and not rho_paths:
-        return "\nThe ablation (the paper's Table 3) has not been run yet (`python -m garo_ns.bench.ablation`).\n"
     out = []
     for path in paths:
         data = json.loads(path.read_text())
@@ -321,7 +294,7 @@ def rho_lines(data: Dict[str, Any], path: Path, readme_dir: Path) -> List[str]:
 
     out += [
         "",
-        f"The paper's claim ({CLAIM_SPEEDUP:.1f}x at <= {CLAIM_LOSS_DB:g} dB) holds "
+        f"The paper's claim ({CLAIM_FPS_RATIO:.1f}x at <= {CLAIM_PSNR_DROP_DB:g} dB) holds "
         f"{rho_places(data['claim_met_at_rho'])} within each run, and "
         f"{rho_places(data['claim_met_at_rho_pooled_paired'])} against all baselines with the re-timed speed-up.",
     ]

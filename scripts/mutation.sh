@@ -15,9 +15,9 @@
 #
 # Works in a scratch copy (build/mutation/, git-ignored) so the checkout is never mutated, then
 # writes one results file per module it ran, benchmarks/results/mutation_<module>.json (see
-# benchmarks/mutation_report.py collect), and rebuilds benchmarks/results/mutation_report.md from
+# scripts/mutation_report.py collect), and rebuilds benchmarks/results/mutation_report.md from
 # all five: the score and every surviving mutant with its diff and the reason it is equivalent or
-# harmless (from benchmarks/mutation_notes.json; a survivor without a note is listed as UNEXPLAINED
+# harmless (from scripts/mutation_notes.json; a survivor without a note is listed as UNEXPLAINED
 # and makes the script exit 1). MUTATION_NOTE, if set, is recorded with the run.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -80,6 +80,6 @@ done
 "$root/.venv/bin/mutmut" results --all true > results.txt
 export MUTATION_WALL_S=$((SECONDS - start)) MUTATION_JOBS=${MUTATION_JOBS:-2}
 cd "$root"
-.venv/bin/python benchmarks/mutation_report.py collect "$work" benchmarks/results
-.venv/bin/python benchmarks/mutation_report.py report benchmarks/results benchmarks/mutation_notes.json \
+.venv/bin/python scripts/mutation_report.py collect "$work" benchmarks/results
+.venv/bin/python scripts/mutation_report.py report benchmarks/results scripts/mutation_notes.json \
   benchmarks/results/mutation_report.md

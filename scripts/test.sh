@@ -16,5 +16,5 @@ if [ ${#missing[@]} -gt 0 ] && command -v apt-get > /dev/null && [ "$(id -u)" = 
 fi
 bash scripts/setup.sh
 export TORCHDYNAMO_DISABLE=1  # nerfstudio compiles a helper with torch.compile; not needed on CPU
-.venv/bin/ruff check garo_ns tests benchmarks
+.venv/bin/ruff check garo_ns tests benchmarks scripts
 .venv/bin/python -m pytest -q -rs "$@"

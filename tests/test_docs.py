@@ -21,13 +21,13 @@ def _script(name: str, *args: str) -> subprocess.CompletedProcess:
 
 
 def test_settings_page_regenerates_without_a_diff():
-    sys.path.insert(0, str(ROOT / "benchmarks"))
+    sys.path.insert(0, str(ROOT / "scripts"))
     try:
         import settings_page
     finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
+        sys.path.remove(str(ROOT / "scripts"))
     assert settings_page.render_page() == (ROOT / "docs" / "settings.md").read_text(), (
-        "docs/settings.md is out of date: run python benchmarks/settings_page.py"
+        "docs/settings.md is out of date: run python scripts/settings_page.py"
     )
 
 
@@ -100,9 +100,9 @@ def test_readme_demo_and_test_figures_come_from_their_result_files(tmp_path, blo
     assert "typed by hand" not in rewritten and begin in rewritten and end in rewritten
 
 
-def test_results_block_names_an_imported_arm_and_the_retiming_spread(tmp_path):
-    """A Table 1 row whose baseline trained in an earlier hold says so, and re-timings of its checkpoints
-    are reported as the range of their speed-ups."""
+def test_results_block_names_an_imported_arm_and_the_paired_retiming(tmp_path):
+    """A Table 1 row whose baseline trained in an earlier hold says so, and the benchmark's alternating re-timing
+    is reported beside the row."""
     import json
 
     sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -127,14 +127,6 @@ def test_results_block_names_an_imported_arm_and_the_retiming_spread(tmp_path):
     (tmp_path / "table1_s_G.json").write_text(json.dumps(table))
     block = readme_results.render_block(tmp_path, tmp_path)
     assert "s: the baseline arm did not fit" in block and "commit abcdef0" in block and "GARO arm" not in block
-    assert "re-timed" not in block
-    runs = [{"variants": {"deform-splatfacto": {"fps": 100.0}, "garo-deform": {"fps": f}}} for f in (250.0, 230.0)]
-    for run in runs:
-        run["git_commit"] = "0123456789"  # the re-timing of these very checkpoints
-    other = {"git_commit": "9999999", "variants": {"deform-splatfacto": {"fps": 100.0}, "garo-deform": {"fps": 900.0}}}
-    (tmp_path / "s40k_retime_G.json").write_text(json.dumps({"runs": runs + [other]}))  # another commit's: not counted
-    block = readme_results.render_block(tmp_path, tmp_path)
-    assert "re-timed 2 more times in that hold gave 2.30x to 2.50x" in block and "against 2.00x" in block
     assert "alternating passes" not in block
     table["variants"]["deform-splatfacto"]["fps_paired"] = {"fps": 100.0, "passes": 6}
     table["variants"]["garo-deform"]["fps_paired"] = {"fps": 210.0, "passes": 6}
@@ -262,3 +254,56 @@ def test_training_line_reads_the_newest_train_speed_file(tmp_path):
     entry["after"]["slowest_minutes_per_40k"] = 4.75
     (tmp_path / "train_speed_X.json").write_text(json.dumps({"gpus": ["GPU X"], "methods": {"garo-deform": entry}}))
     assert "4.5 min (4.0), the slowest run 4.8, on lego, ship" in training_block(tmp_path, tmp_path)
+
+
+def test_the_readme_names_the_newest_gpu_test_run(tmp_path):
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import readme_results
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    assert readme_results.gpu_tests_sentence(tmp_path, tmp_path) == ""
+    (tmp_path / "gputests_H100.log").write_text("commit aaaaaaaaaa 2026-11-20 NVIDIA H100\n\n57 passed in 3s\n")
+    (tmp_path / "gputests_H200.log").write_text(
+        "commit bbbbbbbbbb 2026-11-26 NVIDIA H200\n....\n\n69 passed, 1 skipped, 4 warnings in 20.21s\n"
+    )
+    (tmp_path / "gputests_X.log").write_text("a log of a run that broke off\n")
+    got = readme_results.gpu_tests_sentence(tmp_path, tmp_path)
+    assert "2026-11-26: 69 passed, 1 skipped on an H200, commit bbbbbbb" in got and "warning" not in got
+    assert "H100" not in got  # an older day's run
+    (tmp_path / "gputests_H100.log").write_text("commit cccccccccc 2026-11-26 NVIDIA H100\n\n57 passed in 3s\n")
+    got = readme_results.gpu_tests_sentence(tmp_path, tmp_path)
+    assert "57 passed on an H100, commit ccccccc" in got and "69 passed, 1 skipped on an H200" in got
+    # A run with a failure, and reruns of the failed test's file after a fix: only a passing one of that file, that
+    # run and that GPU model is named.
+    (tmp_path / "gputests_H100.log").write_text(
+        "commit dddddddddd 2026-11-26 NVIDIA H100\nFAILED tests/test_a.py::test_x - assert 0\n"
+        "1 failed, 56 passed in 3s\n"
+    )
+    reruns = {
+        "cuda_subset_1.log": "commit eeeeeeeeee 2026-11-26 NVIDIA H100\nrerun of ddddddd: tests/test_b.py\n9 passed\n",
+        "cuda_subset_2.log": "commit ffffffffff 2026-11-26 NVIDIA H200\nrerun of ddddddd: tests/test_a.py\n9 passed\n",
+        "cuda_subset_3.log": "commit 1111111111 2026-11-26 NVIDIA H100\nrerun of ccccccc: tests/test_a.py\n9 passed\n",
+        "cuda_subset_4.log": "commit 2222222222 2026-11-26 NVIDIA H100\nrerun of ddddddd: tests/test_a.py\n1 failed\n",
+    }
+    for name, text in reruns.items():
+        (tmp_path / name).write_text(text)
+    got = readme_results.gpu_tests_sentence(tmp_path, tmp_path)
+    assert "1 failed, 56 passed on an H100, commit ddddddd" in got and "pass at" not in got
+    (tmp_path / "cuda_subset_5.log").write_text(
+        "commit 3333333333 2026-11-26 NVIDIA H100\nrerun of ddddddd: tests/test_c.py tests/test_a.py\n12 passed in 4s\n"
+    )
+    got = readme_results.gpu_tests_sentence(tmp_path, tmp_path)
+    assert "fixed at 3333333 (its files: 12 passed, [`cuda_subset_5.log`]" in got
+
+
+def test_a_re_timed_speed_up_from_some_of_a_variants_runs_says_how_many():
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        from readme_results import paired_text
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    v = {"fps_ratio_paired": 1.8, "fps_ratio_paired_runs": 1}
+    assert paired_text(v, 2) == "1.80x (1 of 2 runs)"
+    assert paired_text(v, 1) == "1.80x"
+    assert paired_text({"fps_ratio_paired": None}, 2) == "-"

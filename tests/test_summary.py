@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from garo_ns.bench.summary import SummaryArgs, main, parse_aliases, summarise
+from garo_ns.bench.summary import SummaryArgs, main, summarise
 
 
 def _result(scene, base_fps, garo_fps, base_psnr, garo_psnr, iterations=40_000):
@@ -78,24 +78,6 @@ def test_writes_json_table_and_plot(tmp_path):
     main(SummaryArgs(results=paths, output=out, note="Two GPUs of one host."))
     note = json.loads(out.read_text())["note"]
     assert note.startswith("Two GPUs of one host. ") and "each ratio is taken within one scene's file" in note
-
-
-def test_an_alias_reads_a_renamed_run_only_where_the_variant_is_missing():
-    a = _result("a", 100.0, 300.0, 30.0, 29.8)
-    b = _result("b", 100.0, 150.0, 30.0, 29.0)
-    b["variants"]["garo-window"] = b["variants"].pop("garo-deform")
-    b["variants"]["garo-window"]["fps"] = 250.0
-    a["variants"]["garo-window"] = dict(a["variants"]["garo-deform"], fps=999.0)  # a has garo-deform itself
-    summary = summarise([("a.json", a), ("b.json", b)], ["garo-deform"], {"garo-deform": "garo-window"})
-    rows = {r["scene"]: r for r in summary["rows"]}
-    assert rows["a"]["garo-deform"]["fps_ratio"] == pytest.approx(3.0) and "read_from" not in rows["a"]
-    assert rows["b"]["garo-deform"]["fps_ratio"] == pytest.approx(2.5)
-    assert rows["b"]["read_from"] == {"garo-deform": "garo-window"}
-    with pytest.raises(ValueError, match="no result for"):
-        summarise([("b.json", b)], ["garo-deform"])  # without the alias the renamed run is not used
-    with pytest.raises(ValueError, match="ROW=VARIANT"):
-        parse_aliases(["garo-window"])
-    assert parse_aliases(["garo-window=garo-deform"]) == {"garo-deform": "garo-window"}
 
 
 def test_an_arm_trained_in_an_earlier_hold_is_named_in_the_table(tmp_path):

@@ -148,8 +148,6 @@ def variant_settings(name: str) -> Tuple[str, Dict[str, Any]]:
         return "garo-deform", {"garo_mode": "oaa"}
     if name == "garo-gca":
         return "garo-deform", {"garo_mode": "gca"}
-    if name == "garo-window":  # activity averaged since the last GARO step (the default reading)
-        return "garo-deform", {"garo_mode": "full", "garo_activity_window": "garo_step"}
     if name == "garo-alltime":  # activity averaged over all of training
         return "garo-deform", {"garo_mode": "full", "garo_activity_window": "training"}
     if name.startswith("garo-rho"):
@@ -352,7 +350,6 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
 
     def score(name: str) -> Dict[str, Any]:
         settings = dict(split_variant(name)[1])
-        threshold = trained_threshold
         half = settings.pop("storage") == "fp16"
         if half != state["rounded"]:  # parameters as the compact file holds them, or back to the trained ones
             if half:
@@ -361,12 +358,11 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
                 storage.restore(model, original)
             state["rounded"] = half
             state["classified_at"] = None  # the field changed: classify again from it
-        if settings["static_skip"] is None:  # +auto: classified where training left it
-            threshold = trained_threshold
-        if settings["static_skip"] is not False and threshold != state["classified_at"]:
-            model.config.static_threshold = threshold
+        # A static switch (or +auto) classifies where training left it, again after the parameters changed.
+        if settings["static_skip"] is not False and trained_threshold != state["classified_at"]:
+            model.config.static_threshold = trained_threshold
             model.refresh_static(train_times)
-            state["classified_at"] = threshold
+            state["classified_at"] = trained_threshold
         for key, value in settings.items():
             setattr(model.config, key, value)
         result = evaluate(pipeline, args.scene, args.split)

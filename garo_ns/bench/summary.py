@@ -38,9 +38,6 @@ class SummaryArgs:
     """Summary JSON; the .md table and .png plot go next to it."""
     variants: List[str] = field(default_factory=lambda: ["garo-deform"])
     """Variants set against the baseline (each must be in every file)."""
-    aliases: List[str] = field(default_factory=list)
-    """`ROW=VARIANT`: a file without VARIANT's row is read from its ROW instead, for a run made under
-    another name with the settings VARIANT has now (e.g. garo-window=garo-deform); recorded per scene."""
     target: Optional[Literal["compaction", "time-table"]] = None
     """Also judge a speed and quality target (garo_ns.bench.targets) for `--target-variant`."""
     target_variant: Optional[str] = None
@@ -59,28 +56,9 @@ def _mean(values: List[Optional[float]]) -> Optional[float]:
     return sum(kept) / len(kept) if kept and len(kept) == len(values) else None
 
 
-def parse_aliases(aliases: List[str]) -> Dict[str, str]:
-    """{variant: row read in its place} from `ROW=VARIANT` strings."""
-    out: Dict[str, str] = {}
-    for alias in aliases:
-        row, sep, variant = alias.partition("=")
-        if not (sep and row and variant):
-            raise ValueError(f"alias {alias!r} is not of the form ROW=VARIANT")
-        out[variant] = row
-    return out
-
-
-def scene_rows(
-    result: Dict[str, Any], variants: List[str], source: str, aliases: Optional[Dict[str, str]] = None
-) -> Dict[str, Any]:
-    """Baseline and compared variants of one scene, with speed-up and PSNR drop per variant. A variant
-    missing from the file is read from the row `aliases` names for it, if the file has that row."""
-    found = dict(result.get("variants", {}))
-    used = {}
-    for variant, row_name in (aliases or {}).items():
-        if variant not in found and row_name in found:
-            found[variant] = found[row_name]
-            used[variant] = row_name
+def scene_rows(result: Dict[str, Any], variants: List[str], source: str) -> Dict[str, Any]:
+    """Baseline and compared variants of one scene, with speed-up and PSNR drop per variant."""
+    found = result.get("variants", {})
     missing = [v for v in [BASELINE, *variants] if v not in found]
     if missing:
         raise ValueError(f"{source}: no result for {missing} (has {sorted(found)})")
@@ -93,8 +71,6 @@ def scene_rows(
         "source": source,
         BASELINE: {k: base.get(k) for k in (*METRICS, "iterations", "shortened", "trained_in")},
     }
-    if used:
-        row["read_from"] = used
     for name in variants:
         v = found[name]
         row[name] = {
@@ -145,9 +121,7 @@ def combine_runs(runs: List[Dict[str, Any]], variants: List[str]) -> Dict[str, A
     return row
 
 
-def summarise(
-    results: List[Tuple[str, Dict[str, Any]]], variants: List[str], aliases: Optional[Dict[str, str]] = None
-) -> Dict[str, Any]:
+def summarise(results: List[Tuple[str, Dict[str, Any]]], variants: List[str]) -> Dict[str, Any]:
     """Per-scene rows and their average (the average of per-scene ratios, as papers report it)."""
     if not results:
         raise ValueError("no result files given")
@@ -156,7 +130,7 @@ def summarise(
         raise ValueError(f"a result file is given twice: {sources}")
     by_scene: Dict[str, List[Dict[str, Any]]] = {}
     for src, r in results:
-        row = scene_rows(r, variants, src, aliases)
+        row = scene_rows(r, variants, src)
         by_scene.setdefault(row["scene"], []).append(row)
     rows = [combine_runs(runs, variants) for runs in by_scene.values()]
     scenes = [r["scene"] for r in rows]
@@ -276,8 +250,6 @@ def write_report(summary: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
                 "average.",
             ]
     for row in [run for r in summary["rows"] for run in r.get("runs", [r])]:
-        for variant, read in row.get("read_from", {}).items():
-            lines += ["", f"{row['scene']}: {variant} is the run named {read} in {row['source']}."]
         for variant in summary["variants"]:
             if "fps_ratio_paired" in row[variant]:
                 lines += [
@@ -322,7 +294,7 @@ def main(args: SummaryArgs) -> Dict[str, Any]:
     """Read, summarise, write JSON, table and plot; print the table."""
     loaded = read_results(args.results)
     try:
-        summary = summarise(loaded, list(args.variants), parse_aliases(args.aliases))
+        summary = summarise(loaded, list(args.variants))
         if args.target is not None:
             if args.target_variant is None:
                 raise ValueError("--target needs --target-variant (the variant it is judged for)")

@@ -174,21 +174,3 @@ def model_size_mb(model: Any) -> float:
     """Bytes of what a trained model must store to render (Gaussians + deformation MLP), in MiB."""
     tensors = list(model.gauss_params.values()) + list(model.deformation.parameters())
     return sum(t.numel() * t.element_size() for t in tensors) / 2**20
-
-
-def device_ms(call: Callable[[], Any], calls: int, repeats: int) -> float:
-    """Median over `repeats` blocks of the device milliseconds per call of `calls` back-to-back calls (CUDA events
-    around each block, three calls first to warm up): the GPU's time for kernels launched back to back, for the
-    benchmarks of one part alone (benchmarks/loss_speed.py and benchmarks/field_layers.py at 7997206)."""
-    for _ in range(3):
-        call()
-    times = []
-    for _ in range(repeats):
-        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-        start.record()
-        for _ in range(calls):
-            call()
-        end.record()
-        end.synchronize()
-        times.append(start.elapsed_time(end) / calls)
-    return statistics.median(times)

@@ -1,7 +1,7 @@
 """Mutation results per module, and the report built from them (see scripts/mutation.sh).
 
-    python benchmarks/mutation_report.py collect WORK_DIR RESULTS_DIR
-    python benchmarks/mutation_report.py report RESULTS_DIR NOTES_JSON REPORT_MD
+    python scripts/mutation_report.py collect WORK_DIR RESULTS_DIR
+    python scripts/mutation_report.py report RESULTS_DIR NOTES_JSON REPORT_MD
 
 `collect` reads a finished `mutmut run` in WORK_DIR (its results.txt, `mutmut results --all true`)
 and writes one file per mutated module, RESULTS_DIR/mutation_<module>.json: the number of mutants,
@@ -138,7 +138,7 @@ def report(results: Path, notes_path: Path, out: Path) -> int:
     lines = [
         "# Mutation testing of GARO's stages and strategy, and of compaction",
         "",
-        "Built by `python benchmarks/mutation_report.py report` from the per-module results in",
+        "Built by `python scripts/mutation_report.py report` from the per-module results in",
         "`benchmarks/results/mutation_*.json`, which `bash scripts/mutation.sh` writes (mutmut 3.8.1; each",
         "mutant run against the fast tests that scripts/mutation.sh lists: tests/test_redundancy_stages.py,",
         "tests/test_redundancy_strategy.py, tests/test_garo_strategy.py and, since 2026-11-24, the tests of",
