@@ -97,3 +97,26 @@ def test_the_reference_draws_the_same_from_fewer_pairs(monkeypatch, alpha_min):
         assert pairs < pairs0, (pairs, pairs0)
     else:
         assert pairs == pairs0
+
+
+@pytest.mark.slow
+def test_the_frame_profile_times_both_tile_lists_and_counts_their_pairs(garo_run):
+    """The breakdown before and after (garo_ns.bench.frame_profile): the same image from fewer pairs, and the
+    projection squares put back afterwards."""
+    from garo_ns.bench import frame_profile
+    from garo_ns.bench.timing import prepare_views, render_view
+    from garo_ns.render import backend
+
+    model = garo_run["trainer"].pipeline.model
+    model.eval()
+    cameras = garo_run["trainer"].pipeline.datamanager.eval_dataset.cameras[:2]
+    after = frame_profile.profile_frame(model, cameras, warmup=0, repeats=1)
+    before = frame_profile.profile_frame(model, cameras, warmup=0, repeats=1, tile_reach=False)
+    for out in (after, before):
+        assert all(out[f"ms_{s}"] > 0 for s in (*frame_profile.STAGES, "frame")), out
+    assert 0 < after["tile_pairs"] < before["tile_pairs"]
+    assert backend.reach_radii is reach_radii and reference.reach_radii is reach_radii  # put back
+    with frame_profile.projection_squares():
+        squares = render_view(model, cameras[:1])
+    torch.testing.assert_close(render_view(model, cameras[:1]), squares, rtol=0, atol=1e-6)
+    assert len(prepare_views(model, cameras)) == 2

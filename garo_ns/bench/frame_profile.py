@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import time
 from collections import defaultdict
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from typing import Any, Dict, Iterator
 
 import torch
@@ -27,13 +27,59 @@ from garo_ns.render.view import RenderView
 STAGES = ("deformation", "projection", "color", "sorting", "compositing")
 
 
+@contextmanager
+def projection_squares() -> Iterator[None]:
+    """Tile lists from projection's 3-sigma squares, as gsplat 1.4 builds them: the frame before the lists were cut
+    to where each splat's alpha reaches 1/255 (garo_ns.ops.alpha_reach), for a before-and-after breakdown."""
+    from garo_ns.render import backend, reference, train_raster
+
+    modules = (backend, reference, train_raster)
+    saved = [m.reach_radii for m in modules]
+    try:
+        for m in modules:
+            m.reach_radii = lambda radii, *args, **kwargs: radii
+        yield
+    finally:
+        for m, fn in zip(modules, saved):
+            m.reach_radii = fn
+
+
+def tile_pairs(model: Any, views: Any, reach: bool) -> float:
+    """Mean (tile, Gaussian) pairs per view that sorting orders: the count compositing walks."""
+    from garo_ns.ops.alpha_reach import reach_radii
+    from garo_ns.render import reference
+
+    total = 0
+    for view in views:
+        means, quats, scales, opacities = model.gaussians_at(view.time)[:4]
+        W, H = view.width, view.height
+        radii, means2d, _, conics = reference.project(
+            means, reference.covariance(quats, scales), view.viewmat, view.K, W, H
+        )
+        if reach:
+            radii = reach_radii(radii, conics, opacities)
+        lo, hi = reference.tile_bounds(means2d, radii, TILE_SIZE, math.ceil(W / TILE_SIZE), math.ceil(H / TILE_SIZE))
+        total += int((hi - lo).prod(-1).sum())
+    return total / max(len(views), 1)
+
+
 @torch.no_grad()
-def profile_frame(model: Any, cameras: Any, warmup: int = 3, repeats: int = 2) -> Dict[str, float]:
+def profile_frame(
+    model: Any, cameras: Any, warmup: int = 3, repeats: int = 2, tile_reach: bool = True
+) -> Dict[str, float]:
     """Mean milliseconds per view of each stage, of the whole frame, and the overhead.
 
     Returns a dict with `ms_<stage>` for each of STAGES, `ms_frame` (the timed render_view call),
-    `ms_python_overhead` (frame minus the stages, clamped at 0) and `backend`.
+    `ms_python_overhead` (frame minus the stages, clamped at 0), `tile_pairs` (per view) and `backend`.
+    `tile_reach=False` profiles the frame with projection's tile squares instead (`projection_squares`).
     """
+    with nullcontext() if tile_reach else projection_squares():
+        out = _profile(model, cameras, warmup, repeats)
+    out["tile_pairs"] = tile_pairs(model, prepare_views(model, cameras), tile_reach)
+    return out
+
+
+def _profile(model: Any, cameras: Any, warmup: int, repeats: int) -> Dict[str, float]:
     model.eval()
     device = model.device
     backend = resolve_backend(model.config.rasterizer, device)
@@ -91,6 +137,7 @@ def _staged_frame(model: Any, view: RenderView, backend: str, stage: Any) -> Non
     with stage("color"):
         colors = torch.clamp_min(eval_sh(degree, means[None] - campos[:, None], shs[None]) + 0.5, 0.0)
     with stage("sorting"):
+        radii = reference.reach_radii(radii, conics, opacities[None])  # as the reference rasterizer sorts
         _, tile_ids, flat_ids = reference.intersect_tiles(means2d, radii, depths, TILE_SIZE, tw, th)
     with stage("compositing"):
         reference.composite(means2d, conics, opacities[None], colors, tile_ids, flat_ids, W, H, TILE_SIZE)
