@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, Dict
 
 import pytest
-from test_video_e2e import _tool, held_out_psnr
+from test_video_e2e import _tool, train_briefly
 
 VIDEO = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "cat-pikachu-7.mp4"
 CLIP_SECONDS = 3  # of the 7 s video: an arc of the camera's circle
@@ -54,7 +54,6 @@ def processed(tmp_path_factory) -> Dict[str, Any]:
 
 def test_a_real_clip_is_posed_in_order_and_trains(processed, tmp_path):
     from garo_ns.data.nerfds import NerfDSDataParserConfig, load_capture
-    from garo_ns.tools.train import QuickSchedule, make_config, train
 
     data = processed["data"]
     extracted = sorted(p.name for p in (data / "images").iterdir())
@@ -76,25 +75,7 @@ def test_a_real_clip_is_posed_in_order_and_trains(processed, tmp_path):
         assert train_times[0] < capture.times[cid] < train_times[-1], cid
 
     # A few hundred CPU steps of the -real recipe, scored on the held-out frames.
-    trainer_config = make_config(
-        "garo-deform-real",
-        data,
-        tmp_path / "runs",
-        schedule=QuickSchedule(
-            steps=TRAIN_STEPS,
-            num_random=2000,
-            deform_width=64,
-            deform_depth=4,
-            deform_skip=2,
-            extra={"densify_grad_thresh": 0.002},  # as tests/test_video_e2e.py: a CPU step stays short
-        ),
-        experiment_name="clip",
-    )
-    trainer_config.pipeline.datamanager.dataparser.downscale_factor = DOWNSCALE
-    start = time.perf_counter()
-    trainer = train(trainer_config)
-    figures["seconds"]["train"] = time.perf_counter() - start
-    psnr = held_out_psnr(trainer.pipeline)
+    psnr, figures["seconds"]["train"] = train_briefly(data, tmp_path / "runs", "clip", TRAIN_STEPS, DOWNSCALE)
     figures["held_out_psnr"] = {k: round(v, 2) for k, v in psnr.items()}
     figures["seconds"] = {k: round(v, 1) for k, v in figures["seconds"].items()}
     print(f"\nreal clip end to end: {json.dumps(figures)}")

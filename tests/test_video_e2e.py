@@ -16,7 +16,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any, Dict
+from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 import pytest
@@ -64,7 +64,6 @@ def processed(tmp_path_factory) -> Dict[str, Any]:
 def test_video_to_a_trained_dynamic_model(processed, tmp_path):
     from garo_ns.data.nerfds import NerfDSDataParserConfig, load_capture
     from garo_ns.tools.scene_video import path_error
-    from garo_ns.tools.train import QuickSchedule, make_config, train
 
     data, truth = processed["data"], processed["truth"]
     config = NerfDSDataParserConfig(data=data)
@@ -90,30 +89,36 @@ def test_video_to_a_trained_dynamic_model(processed, tmp_path):
     assert error["position_rms"] < MAX_POSITION_RMS and error["rotation_mean_deg"] < MAX_ROTATION_DEG, figures
 
     # Train the -real recipe briefly on the CPU and render the held-out frames.
-    trainer_config = make_config(
-        "garo-deform-real",
-        data,
-        tmp_path / "runs",
-        # The demo's densification threshold: at the recipe's, the textured room's Gaussians multiply
-        # (47k by step 100) and a CPU step takes seconds.
-        schedule=QuickSchedule(
-            steps=TRAIN_STEPS,
-            num_random=2000,
-            deform_width=64,
-            deform_depth=4,
-            deform_skip=2,
-            extra={"densify_grad_thresh": 0.002},
-        ),
-        experiment_name="video",
-    )
-    start = time.perf_counter()
-    trainer = train(trainer_config)
-    figures["seconds"]["train"] = time.perf_counter() - start
-    psnr = held_out_psnr(trainer.pipeline)
+    psnr, figures["seconds"]["train"] = train_briefly(data, tmp_path / "runs", "video", TRAIN_STEPS)
     figures["held_out_psnr"] = {k: round(v, 2) for k, v in psnr.items()}
     figures["seconds"] = {k: round(v, 1) for k, v in figures["seconds"].items()}
     print(f"\nvideo end to end: {json.dumps(figures)}")
     assert psnr["mean"] > HELD_OUT_PSNR_FLOOR, figures
+
+
+def train_briefly(
+    data: Path, runs: Path, name: str, steps: int, downscale: Optional[int] = None
+) -> Tuple[Dict[str, float], float]:
+    """`steps` CPU steps of `garo-deform-real` on a processed capture; its held-out PSNR and the training seconds.
+    The demo's densification threshold: at the recipe's, a textured scene's Gaussians multiply (47k by step 100)
+    and a CPU step takes seconds."""
+    from garo_ns.tools.train import QuickSchedule, make_config, train
+
+    schedule = QuickSchedule(
+        steps=steps,
+        num_random=2000,
+        deform_width=64,
+        deform_depth=4,
+        deform_skip=2,
+        extra={"densify_grad_thresh": 0.002},
+    )
+    config = make_config("garo-deform-real", data, runs, schedule=schedule, experiment_name=name)
+    if downscale is not None:
+        config.pipeline.datamanager.dataparser.downscale_factor = downscale
+    start = time.perf_counter()
+    trainer = train(config)
+    seconds = time.perf_counter() - start
+    return held_out_psnr(trainer.pipeline), seconds
 
 
 def held_out_psnr(pipeline: Any) -> Dict[str, float]:
