@@ -116,6 +116,22 @@ def test_model_overrides_are_literals_of_known_settings():
             model_overrides(bad)
 
 
+def test_lr_steps_set_the_named_schedules_only():
+    import copy
+
+    from garo_ns.bench.train_profile import schedule_lengths
+    from garo_ns.config import deform_splatfacto_real
+
+    config = copy.deepcopy(deform_splatfacto_real.config)
+    before = {g: o["scheduler"].max_steps for g, o in config.optimizers.items() if o["scheduler"] is not None}
+    assert schedule_lengths(config, ["means=30000", "deformation=40000"]) == {"means": 30000, "deformation": 40000}
+    after = {g: o["scheduler"].max_steps for g, o in config.optimizers.items() if o["scheduler"] is not None}
+    assert after == {**before, "means": 30000, "deformation": 40000} and before["means"] == 20000
+    for bad in (["opacities=100"], ["means=0"], ["means=3e4"], ["nothing=5"]):
+        with pytest.raises(SystemExit, match="GROUP=STEPS"):
+            schedule_lengths(config, bad)
+
+
 def test_the_docs_profile_block_is_written_from_the_committed_files(tmp_path):
     from pathlib import Path
 

@@ -274,6 +274,20 @@ def model_overrides(pairs: Sequence[str]) -> Dict[str, Any]:
     return out
 
 
+def schedule_lengths(config: Any, pairs: Sequence[str]) -> Dict[str, int]:
+    """Set each `GROUP=STEPS` pair's learning-rate schedule to decay over STEPS steps (whatever the run's length: the
+    official D-3DGS code anneals positions over 30k and its field over 40k steps in a run of any length); a group
+    without a schedule, or a count that is not a positive integer, is refused before anything trains."""
+    out: Dict[str, int] = {}
+    for pair in pairs:
+        group, _, text = pair.partition("=")
+        scheduler = config.optimizers.get(group, {}).get("scheduler")
+        if scheduler is None or not text.isdigit() or int(text) <= 0:
+            raise SystemExit(f"--lr-steps expects GROUP=STEPS with GROUP a scheduled parameter group, got {pair!r}")
+        scheduler.max_steps = out[group] = int(text)
+    return out
+
+
 def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
     from garo_ns.bench import transfer
     from garo_ns.bench.benchmark import environment
@@ -300,6 +314,9 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         "--set", nargs="+", default=[], metavar="NAME=VALUE", help="model settings, e.g. deform_cuda_graph=True"
     )
     parser.add_argument(
+        "--lr-steps", nargs="+", default=[], metavar="GROUP=STEPS", help="schedule lengths, e.g. means=30000"
+    )
+    parser.add_argument(
         "--as-ns-train",
         action="store_true",
         help="keep the method's own eval images, checkpoints and console log (as `ns-train` runs them; the viewer "
@@ -322,6 +339,7 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         setattr(config.pipeline.model, name, value)
     if args.steps:
         config.max_num_iterations = args.steps
+    lr_steps = schedule_lengths(config, args.lr_steps)
     loop_work(config, args.method, args.as_ns_train)
     config.save_config()
     seed_everything(config.machine.seed)
@@ -362,6 +380,7 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         "seconds_before_first_step": None if profiler.run_start is None else profiler.run_start - start,
         "timeline": profiler.timeline,
         "model_settings": overrides,
+        "lr_steps": lr_steps,
         "as_ns_train": bool(args.as_ns_train),
         "adam_graph": adam_graph_counts(trainer.optimizers),
         "splats_graph": splats_graph_counts(trainer.pipeline.model),
