@@ -41,6 +41,7 @@ from garo_ns.ops.collector import TrainingCollector
 from garo_ns.render.backend import Backend
 from garo_ns.render.contribution import summed_contribution
 from garo_ns.render.frame import Canonical, FramePath, FrameSettings, Splats, activate, compose, render_splats
+from garo_ns.render.graphs import parameter_list
 from garo_ns.render.outputs import camera_outputs
 from garo_ns.render.static import StaticSettings, static_fraction
 from garo_ns.render.switches import RenderSettings, SwitchDecision
@@ -113,7 +114,9 @@ class GaroModel(SplatfactoModel):
         self.switch_guard: Optional[TrainingViewGuard] = None  # training views the render switches are measured on
         self.training_run = False  # set when the model gets training callbacks
         # What each approximate switch cost, and what that decides, for these Gaussians and this field.
-        self.switches = SwitchDecision(lambda: self.step, lambda: [*self.canonical(), *self.deformation.parameters()])
+        self.switches = SwitchDecision(
+            lambda: self.step, lambda: [*self.canonical(), *parameter_list(self.deformation)]
+        )
         self.frame = FramePath()
         self.switches.table_failure, self.switches.table_built = self.frame.table_failures.get, self.frame.built_info
         for warning in checkpoints.upgrade_render_settings(cfg):  # an old config.yml naming a deleted setting

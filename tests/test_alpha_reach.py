@@ -105,7 +105,7 @@ def test_the_frame_profile_times_both_tile_lists_and_counts_their_pairs(garo_run
     projection squares put back afterwards."""
     from garo_ns.bench import frame_profile
     from garo_ns.bench.timing import prepare_views, render_view
-    from garo_ns.render import backend
+    from garo_ns.render import kernels
 
     model = garo_run["trainer"].pipeline.model
     model.eval()
@@ -115,7 +115,7 @@ def test_the_frame_profile_times_both_tile_lists_and_counts_their_pairs(garo_run
     for out in (after, before):
         assert all(out[f"ms_{s}"] > 0 for s in (*frame_profile.STAGES, "frame")), out
     assert 0 < after["tile_pairs"] < before["tile_pairs"]
-    assert backend.reach_radii is reach_radii and reference.reach_radii is reach_radii  # put back
+    assert kernels.reach_radii is reach_radii and reference.reach_radii is reach_radii  # put back
     with frame_profile.projection_squares():
         squares = render_view(model, cameras[:1])
     torch.testing.assert_close(render_view(model, cameras[:1]), squares, rtol=0, atol=1e-6)

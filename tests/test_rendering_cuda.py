@@ -50,23 +50,30 @@ def test_lean_under_autograd_takes_the_training_path():
 
 
 @torch.no_grad()
+@pytest.mark.parametrize("reach", [False, True])
 @pytest.mark.parametrize("with_depth", [False, True])
-def test_projection_graph_gives_the_lean_pixels(with_depth):
+def test_projection_graph_gives_the_lean_pixels(with_depth, reach):
     # The model's camera graph: projection, view directions and visibility captured once, then
-    # replayed for each camera; the SH and compositing kernels run after it.
+    # replayed for each camera; the SH and compositing kernels run after it. With `reach`, the tile lists'
+    # alpha-reach cut captured in it too: fewer pairs, the same pixels.
     means, quats, scales, opacities, colors, viewmat, K = _scene()
+    cut = opacities if reach else None
     background = torch.tensor([[0.1, 0.2, 0.3]], device="cuda")
     graph = InputGraph()
     for shift in (0.0, 0.3, -0.2):
         view = viewmat.clone()
         view[0, 0, 3] += shift
-        front = graph("scene", lambda v, k: lean_front(means, quats, scales, v, k, 320, 240, True), view, K)
+        front = graph(
+            "scene", lambda v, k: lean_front(means, quats, scales, v, k, 320, 240, True, opacities=cut), view, K
+        )
         args = (means, quats, scales, opacities, colors, view, K, 320, 240, 3, background, with_depth)
         ref, ref_alpha, _ = rasterize_lean(*args)
         got, alpha, info = rasterize_lean(*args, front=front)
         assert float(ref_alpha.mean()) > 0.05
         assert torch.equal(alpha, ref_alpha) and torch.equal(got, ref)
         assert info["radii"] is front[0]
+        fewer = bool((front[6] <= front[0]).all()) and int(front[6].sum()) < int(front[0].sum())
+        assert fewer if reach else front[6] is front[0]
     assert graph.captures == 1
 
 

@@ -21,7 +21,7 @@ import torch
 
 from garo_ns.bench.timing import prepare_views
 from garo_ns.render.backend import rasterize_lean, resolve_backend
-from garo_ns.render.kernels import TILE_SIZE
+from garo_ns.render.kernels import TILE_SIZE, lean_front
 from garo_ns.render.view import RenderView
 
 STAGES = ("deformation", "projection", "color", "sorting", "compositing")
@@ -31,9 +31,9 @@ STAGES = ("deformation", "projection", "color", "sorting", "compositing")
 def projection_squares() -> Iterator[None]:
     """Tile lists from projection's 3-sigma squares, as gsplat 1.4 builds them: the frame before the lists were cut
     to where each splat's alpha reaches 1/255 (garo_ns.ops.alpha_reach), for a before-and-after breakdown."""
-    from garo_ns.render import backend, reference, train_raster
+    from garo_ns.render import kernels, reference, train_raster
 
-    modules = (backend, reference, train_raster)
+    modules = (kernels, reference, train_raster)
     saved = [m.reach_radii for m in modules]
     try:
         for m in modules:
@@ -123,7 +123,11 @@ def _staged_frame(model: Any, view: RenderView, backend: str, stage: Any) -> Non
     degree = min(model.step // model.config.sh_degree_interval, model.config.sh_degree)
     if backend == "cuda":  # the lean path's own steps, timed where they run
         background = model.background_color.to(means.device)[None]
-        rasterize_lean(means, quats, scales, opacities, shs, viewmats, Ks, W, H, degree, background, stage=stage)
+        with stage("projection"):  # with the tile lists' alpha reach, as a graphed frame's projection has it
+            front = lean_front(means, quats, scales, viewmats, Ks, W, H, True, opacities=opacities)
+        rasterize_lean(
+            means, quats, scales, opacities, shs, viewmats, Ks, W, H, degree, background, stage=stage, front=front
+        )
         return
     tw, th = math.ceil(W / TILE_SIZE), math.ceil(H / TILE_SIZE)
     campos = torch.linalg.inv(viewmats)[:, :3, 3]

@@ -11,7 +11,6 @@ from typing import Any, Callable, ContextManager, Dict, Literal, Optional, Tuple
 import torch
 from torch import Tensor
 
-from garo_ns.ops.alpha_reach import reach_radii
 from garo_ns.render import reference
 from garo_ns.render.kernels import TILE_SIZE, Front, gsplat_kernels, lean_front
 from garo_ns.render.train_raster import rasterize_train_lean
@@ -218,7 +217,7 @@ def rasterize_lean(
             front = lean_front(
                 means, quats, scales, viewmats, Ks, width, height, sh_degree is not None, near_plane, far_plane
             )
-        radii, means2d, depths, conics, dirs, visible = front
+        radii, means2d, depths, conics, dirs, visible, isect_radii = front
     with stage("color"):
         if sh_degree is None:
             rgb = colors.expand(n_cams, *colors.shape) if colors.dim() == 2 else colors
@@ -231,8 +230,6 @@ def rasterize_lean(
                 backgrounds = torch.cat([backgrounds, backgrounds.new_zeros(n_cams, 1)], dim=-1)
     with stage("sorting"):
         tiles_w, tiles_h = math.ceil(width / TILE_SIZE), math.ceil(height / TILE_SIZE)
-        # Each splat's tiles from the box its alpha can reach: the pairs compositing would only skip never sort.
-        isect_radii = reach_radii(radii, conics, opacities)
         _, isect_ids, flatten_ids = kernels.isect_tiles(
             means2d, isect_radii, depths, None, None, n_cams, TILE_SIZE, tiles_w, tiles_h, True, True
         )

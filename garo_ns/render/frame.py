@@ -20,7 +20,7 @@ from torch import Tensor
 
 from garo_ns.deformation import DeformationField, ScaleOffset, log_scale_offset
 from garo_ns.render.backend import Backend, rasterize
-from garo_ns.render.graphs import InputGraph, TimeGraph, graphs_available, versions
+from garo_ns.render.graphs import InputGraph, TimeGraph, graphs_available, parameter_list, versions
 from garo_ns.render.kernels import lean_front
 from garo_ns.render.time_table import (
     TableSpec,
@@ -189,7 +189,7 @@ class FramePath:
                     out = rows_splats(d, opacities, colors, tabled.scale_offset)
                 self._deformed = (cache_key, out) if settings.cache_deformation else None
                 return out
-        key = versions(list(canonical) + list(field.parameters()) + ([static_offset] if static is not None else []))
+        key = versions([*canonical, *parameter_list(field), *([static_offset] if static is not None else [])])
         device = canonical.means.device
         if settings.cuda_graph and graphs_available(device) and not torch.is_grad_enabled():
 
@@ -230,7 +230,7 @@ class FramePath:
         """The table of `spec` for these parameters, built on first use (and again when they change); None
         when it cannot be built (out of memory, ...): the reason is in `table_info` and the network renders. While
         `preview` is set, the table's `TimeTable.preview` instead (halfway frames only)."""
-        params = versions(list(canonical) + list(field.parameters()))
+        params = versions([*canonical, *parameter_list(field)])
         key = (spec, params, self.scale_offset, self.preview, self.table_tf32)
         if self._table is None or self._table[0] != key:
             self._table, self._table_rows = None, None  # the old table's memory first
@@ -324,10 +324,13 @@ class FramePath:
             and render_mode in ("RGB", "RGB+ED")
             and not torch.is_grad_enabled()
         ):
-            means, quats, scales = splats[:3]
+            means, quats, scales, opacities = splats[:4]
+            # The tile lists cut to each splat's alpha reach inside the graph, where the cut costs no launches.
             front = self._camera_graph(
                 (splats.graph, view.width, view.height),
-                lambda viewmat, K: lean_front(means, quats, scales, viewmat, K, view.width, view.height, True),
+                lambda viewmat, K: lean_front(
+                    means, quats, scales, viewmat, K, view.width, view.height, True, opacities=opacities
+                ),
                 view.viewmat,
                 view.K,
             )

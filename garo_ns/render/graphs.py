@@ -10,10 +10,11 @@ a device scalar the graph reads.
 
 from __future__ import annotations
 
+import weakref
 from typing import Any, Callable, Hashable, Optional, Tuple
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from garo_ns.ops.collector import collector_paused
 
@@ -127,6 +128,19 @@ def capture(
 def graphs_available(device: torch.device) -> bool:
     """CUDA graphs need a CUDA device; elsewhere the same function runs eagerly."""
     return torch.device(device).type == "cuda" and torch.cuda.is_available()
+
+
+_LISTED: "weakref.WeakKeyDictionary[nn.Module, Tuple[Tensor, ...]]" = weakref.WeakKeyDictionary()
+
+
+def parameter_list(module: nn.Module) -> Tuple[Tensor, ...]:
+    """`module`'s parameters, listed once per module. A frame keys its caches on their `versions`, and walking the
+    module tree for them (several times a frame) cost more host time than a tabled frame's kernels. Loading, moving
+    or rounding parameters keeps each Parameter object, and no module here registers one after it is built."""
+    listed = _LISTED.get(module)
+    if listed is None:
+        listed = _LISTED[module] = tuple(module.parameters())
+    return listed
 
 
 def versions(tensors: Any) -> Tuple[Any, ...]:

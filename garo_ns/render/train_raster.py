@@ -55,7 +55,7 @@ class _Front(torch.autograd.Function):
         means, quats, scales = means.contiguous(), quats.contiguous(), scales.contiguous()
         viewmats, Ks = viewmats.contiguous(), Ks.contiguous()
         # The inference path's projection and view directions (camera centre in closed form, -R^T t).
-        radii, means2d, depths, conics, dirs, visible = lean_front(
+        radii, means2d, depths, conics, dirs, visible, _ = lean_front(
             means, quats, scales, viewmats, Ks, width, height, coeffs is not None, near_plane, far_plane
         )
         ctx.mark_non_differentiable(radii)
