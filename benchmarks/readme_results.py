@@ -27,7 +27,7 @@ import sys
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
-from garo_ns.bench.summary import BASELINE, CLAIM_FPS_RATIO, CLAIM_PSNR_DROP_DB, summarise
+from garo_ns.bench.summary import BASELINE, CLAIM_FPS_RATIO, CLAIM_PSNR_DROP_DB, claim_sentence, summarise
 from garo_ns.bench.targets import target_lines
 from garo_ns.bench.transfer import trained_elsewhere
 
@@ -423,24 +423,6 @@ def _training_line(path: Path, readme_dir: Path) -> str:
 
 COMPACT_FILE = re.compile(r"compact_(?P<gpu>[^_]+)\.json")
 CHOICE_FILE = "compaction_choice18k_H100.json"
-
-
-def claim_sentence(summary: Dict[str, Any], variants: List[str]) -> str:
-    """One sentence: the paper's claim (its speed-up at its PSNR loss, on average over the scenes) for each of
-    `variants`, from the `paper_claim` that garo_ns.bench.summary judged."""
-    claim = summary["paper_claim"]
-    parts = []
-    for name in dict.fromkeys(variants):
-        avg = summary["average"][name]
-        parts.append(
-            f"`{name}` {'meets' if claim[name]['average_meets'] else 'misses'} it ({avg['fps_ratio']:.2f}x at "
-            f"{avg['psnr_drop_db']:+.2f} dB; {len(claim[name]['scenes_meeting'])} of {len(summary['rows'])} scenes)"
-        )
-    return (
-        f"The paper's claim ({claim['fps_ratio_min']:.1f}x at <= {claim['psnr_drop_max_db']} dB, on average): "
-        + ", ".join(parts)
-        + "."
-    )
 
 
 def compaction_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
