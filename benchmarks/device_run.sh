@@ -3,9 +3,6 @@
 # into back-to-back calls (each call is at most 10 minutes; the machine is kept while calls follow):
 #   bash benchmarks/device_run.sh setup SCENE          copy .scenes/SCENE to /tmp, compile gsplat
 #   bash benchmarks/device_run.sh gputests GPU         the CUDA-only tests
-#   bash benchmarks/device_run.sh smoke SCENE GPU      a 200-step run of both arms with every speed row on
-#                                                      one GPU; checks that graph and lean rows score like
-#                                                      the rows without
 #   bash benchmarks/device_run.sh launch NAME SCENE SPLIT GPUS [benchmark args...]
 #                                                      python -m garo_ns.bench.benchmark in the background on the
 #                                                      GPUs GPUS (e.g. 2,3; pass --gpus 0 1 to use both),
@@ -99,26 +96,6 @@ gputests)
       tests/test_time_table.py tests/test_render_switches.py tests/test_view.py tests/test_training_graphs.py tests/test_adam.py \
       tests/test_train_raster.py tests/test_train_profile.py tests/test_fused_ssim.py tests/test_dense.py tests/test_fp32_heads.py --tb=line 2>&1 \
       | grep -E "Error|FAILED|ERROR| passed| failed" | tail -n 40; } | tee $OUT/gputests.log ;;
-smoke)
-  scene=$1; export CUDA_VISIBLE_DEVICES=$2
-  cd $W/src
-  # A few steps of both arms through the CUDA path with every speed row, so a bug shows early.
-  python3 -m garo_ns.bench.benchmark --scene /tmp/$scene --split val --iterations 200 --quick --gpus 0 --speed \
-      --variants deform-splatfacto garo-prune0.5 --output $W/smoke/smoke.json --work-dir $W/smoke/runs \
-      > $W/smoke.log 2>&1 || { tail -40 $W/smoke.log; exit 1; }
-  tail -22 $W/smoke.log
-  python3 - $W/smoke/smoke.json <<'PY'
-import json, sys
-v = json.load(open(sys.argv[1]))["variants"]
-for name, row in v.items():
-    for switch in ("+graph", "+lean"):  # exact switches: same PSNR as the row without them
-        plain = v.get(name.replace(switch, ""), {}) if switch in name and "error" not in row else {}
-        if "psnr" in plain:
-            print(f"{name}: psnr {row['psnr']:.4f} vs {plain['psnr']:.4f} without {switch}, fps {row['fps']:.0f} vs {plain['fps']:.0f}")
-    if "error" in row:
-        print(f"{name}: ERROR {row['error']}")
-PY
-  ;;
 launch)
   name=$1; scene=$2; split=$3; gpus=$4; shift 4
   [ -d /tmp/$scene ] || cp -r .scenes/$scene /tmp/$scene

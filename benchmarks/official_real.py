@@ -82,17 +82,6 @@ def cameras_text(width: int, height: int, fx: float, fy: float, cx: float, cy: f
     return f"# CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]\n1 PINHOLE {width} {height} {fx!r} {fy!r} {cx!r} {cy!r}\n"
 
 
-def qvec_to_rotation(q: np.ndarray) -> np.ndarray:
-    w, x, y, z = q
-    return np.array(
-        [
-            [1 - 2 * y * y - 2 * z * z, 2 * x * y - 2 * w * z, 2 * x * z + 2 * w * y],
-            [2 * x * y + 2 * w * z, 1 - 2 * x * x - 2 * z * z, 2 * y * z - 2 * w * x],
-            [2 * x * z - 2 * w * y, 2 * y * z + 2 * w * x, 1 - 2 * x * x - 2 * y * y],
-        ]
-    )
-
-
 def pose_agreement(
     ours: Dict[str, np.ndarray], colmap: Dict[str, Tuple[np.ndarray, np.ndarray]], ids: Sequence[str]
 ) -> Dict[str, float]:
@@ -100,10 +89,12 @@ def pose_agreement(
     a similarity: the largest angle (degrees) between the two rotations from the first frame to each other one, and
     the spread (max / min) of the ratio of the cameras' distances to their mean centre (cameras within a
     thousandth of the largest distance left out: a phone held still at the start sits on the centre)."""
+    from nerfstudio.data.utils.colmap_parsing_utils import qvec2rotmat
+
     rotations, centres = {}, {}
     for cid in ids:
         q, t = colmap[cid]
-        r = qvec_to_rotation(np.asarray(q))
+        r = qvec2rotmat(np.asarray(q))
         rotations[cid], centres[cid] = r.T, -r.T @ np.asarray(t)
     first = ids[0]
     worst = 0.0

@@ -25,9 +25,9 @@ import os
 import re
 import sys
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
-from garo_ns.bench.summary import BASELINE, CLAIM_FPS_RATIO, CLAIM_PSNR_DROP_DB
+from garo_ns.bench.summary import BASELINE, CLAIM_FPS_RATIO, CLAIM_PSNR_DROP_DB, claim_sentence, summarise
 from garo_ns.bench.targets import target_lines
 from garo_ns.bench.transfer import trained_elsewhere
 
@@ -74,6 +74,7 @@ def scene_row(path: Path) -> Dict[str, Any]:
         "gpu": data["gpu"],
         "commit": data["git_commit"],
         "file": path,
+        "data": data,
         "base": base,
         "garo": garo,
         "speedup": garo["fps"] / base["fps"],
@@ -110,29 +111,16 @@ def render_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
         )
     n = len(by_scene)
     repeated = [scene for scene, runs in by_scene.items() if len(runs) > 1]
-
-    def mean(values: Sequence[float]) -> float:
-        return sum(values) / len(values)
-
-    def average(value: Callable[[Dict[str, Any]], Optional[float]]) -> Optional[float]:
-        """Mean over scenes of each scene's mean over its runs (a scene counts once however often it ran)."""
-        per_scene = [[value(r) for r in runs] for runs in by_scene.values()]
-        if any(v is None for values in per_scene for v in values):
-            return None
-        return mean([mean(values) for values in per_scene])
-
-    speedup = average(lambda r: r["speedup"])
-    dpsnr = average(lambda r: r["dpsnr"])
-    lpips_b, lpips_g = average(lambda r: r["base"].get("lpips")), average(lambda r: r["garo"].get("lpips"))
-    lp = f"{lpips_b:.4f} / {lpips_g:.4f}" if lpips_b is not None and lpips_g is not None else "- / -"
+    # The average as garo_ns.bench.summary takes it: each scene once, as the mean of its runs.
+    summary = summarise([(r["file"].name, r["data"]) for r in rows], [GARO])
+    b, g = summary["average"][BASELINE], summary["average"][GARO]
+    speedup, dpsnr = g["fps_ratio"], -g["psnr_drop_db"]
+    lp = f"{b['lpips']:.4f} / {g['lpips']:.4f}" if b["lpips"] is not None and g["lpips"] is not None else "- / -"
     lines.append(
-        f"| average of {n} scenes | {average(lambda r: r['base']['psnr']):.2f} / "
-        f"{average(lambda r: r['garo']['psnr']):.2f} | {lp} | {average(lambda r: r['base']['fps']):.1f} / "
-        f"{average(lambda r: r['garo']['fps']):.1f} | {speedup:.2f}x | {dpsnr:+.2f} dB "
-        f"| {average(lambda r: r['base']['num_gaussians']):,.0f} / "
-        f"{average(lambda r: r['garo']['num_gaussians']):,.0f} |"
+        f"| average of {n} scenes | {b['psnr']:.2f} / {g['psnr']:.2f} | {lp} | {b['fps']:.1f} / {g['fps']:.1f} "
+        f"| {speedup:.2f}x | {dpsnr:+.2f} dB | {b['num_gaussians']:,.0f} / {g['num_gaussians']:,.0f} |"
     )
-    met = speedup >= CLAIM_FPS_RATIO and -dpsnr <= CLAIM_PSNR_DROP_DB
+    met = summary["paper_claim"][GARO]["average_meets"]
     claim = (
         f"The paper claims about {CLAIM_FPS_RATIO:g}x FPS at no more than {CLAIM_PSNR_DROP_DB:g} dB average PSNR loss; "
         f"over the {n} scene{'s' if n != 1 else ''} here GARO is {speedup:.2f}x faster (mean of the per-scene "
@@ -435,24 +423,6 @@ def _training_line(path: Path, readme_dir: Path) -> str:
 
 COMPACT_FILE = re.compile(r"compact_(?P<gpu>[^_]+)\.json")
 CHOICE_FILE = "compaction_choice18k_H100.json"
-
-
-def claim_sentence(summary: Dict[str, Any], variants: List[str]) -> str:
-    """One sentence: the paper's claim (its speed-up at its PSNR loss, on average over the scenes) for each of
-    `variants`, from the `paper_claim` that garo_ns.bench.summary judged."""
-    claim = summary["paper_claim"]
-    parts = []
-    for name in dict.fromkeys(variants):
-        avg = summary["average"][name]
-        parts.append(
-            f"`{name}` {'meets' if claim[name]['average_meets'] else 'misses'} it ({avg['fps_ratio']:.2f}x at "
-            f"{avg['psnr_drop_db']:+.2f} dB; {len(claim[name]['scenes_meeting'])} of {len(summary['rows'])} scenes)"
-        )
-    return (
-        f"The paper's claim ({claim['fps_ratio_min']:.1f}x at <= {claim['psnr_drop_max_db']} dB, on average): "
-        + ", ".join(parts)
-        + "."
-    )
 
 
 def compaction_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:

@@ -73,7 +73,7 @@ def test_writes_json_table_and_plot(tmp_path):
     assert json.loads(out.read_text())["average"]["garo-deform"]["fps_ratio"] == pytest.approx(2.0)
     table = out.with_suffix(".md").read_text()
     assert "| average |  | garo-deform |" in table and "2.00x" in table
-    assert "garo-deform: met on average (2.00x at +0.10 dB); met on 2 of 2 scenes (a, b)." in table
+    assert "claim (2.0x at <= 0.5 dB, on average): `garo-deform` meets it (2.00x at +0.10 dB; 2 of 2 scenes)." in table
     assert out.with_suffix(".png").stat().st_size > 1000
     main(SummaryArgs(results=paths, output=out, note="Two GPUs of one host."))
     note = json.loads(out.read_text())["note"]

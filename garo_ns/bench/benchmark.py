@@ -615,13 +615,13 @@ def run(args: BenchArgs) -> Dict[str, Any]:
         if record["iterations"] != args.steps():
             raise ValueError(f"{export} trained {record['iterations']} steps, this run {args.steps()}")
         imported[record["variant"]] = record
-    procs = []
+    procs, args_json = [], json.dumps(vars(args), default=str)
     for i, name in enumerate(n for n in names if n not in imported):
         env = dict(os.environ)
         if args.device == "cuda":
             env["CUDA_VISIBLE_DEVICES"] = physical_gpu(args.gpus[i % len(args.gpus)])
         log = open(args.work_dir / f"{name}.log", "w")
-        cmd = [sys.executable, "-m", "garo_ns.bench.benchmark", "--worker", name, "--args", json.dumps(_to_json(args))]
+        cmd = [sys.executable, "-m", "garo_ns.bench.benchmark", "--worker", name, "--args", args_json]
         if deadline is not None:
             cmd += ["--deadline", str(deadline)]
         proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)
@@ -678,19 +678,13 @@ def run(args: BenchArgs) -> Dict[str, Any]:
     return result
 
 
-def _to_json(args: BenchArgs) -> Dict[str, Any]:
-    d = dict(vars(args))
-    for k, v in d.items():
-        if isinstance(v, Path):
-            d[k] = str(v)
-    d["pretrained"] = [str(p) for p in args.pretrained]
-    return d
-
-
 def _from_json(d: Dict[str, Any]) -> BenchArgs:
-    for k in ("scene", "output", "work_dir", "export_dir"):
-        d[k] = None if d[k] is None else Path(d[k])
-    d["pretrained"] = [Path(p) for p in d["pretrained"]]
+    """The worker's arguments from `json.dumps(vars(args), default=str)`: every path field a Path again."""
+    for f in fields(BenchArgs):
+        if f.type == "List[Path]":
+            d[f.name] = [Path(p) for p in d[f.name]]
+        elif "Path" in f.type and d[f.name] is not None:
+            d[f.name] = Path(d[f.name])
     return BenchArgs(**d)
 
 

@@ -19,7 +19,7 @@ from typing import Any, Dict, Iterator
 
 import torch
 
-from garo_ns.bench.timing import prepare_views
+from garo_ns.bench.timing import _background, _sync, prepare_views
 from garo_ns.render.backend import rasterize_lean, resolve_backend
 from garo_ns.render.kernels import TILE_SIZE, lean_front
 from garo_ns.render.view import RenderView
@@ -84,19 +84,15 @@ def _profile(model: Any, cameras: Any, warmup: int, repeats: int) -> Dict[str, f
     device = model.device
     backend = resolve_backend(model.config.rasterizer, device)
     views = prepare_views(model, cameras)
-    background = model.background_color.to(device)[None]
+    background = _background(model)
     totals: Dict[str, float] = defaultdict(float)
-
-    def sync() -> None:
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
 
     @contextmanager
     def stage(name: str, record: bool) -> Iterator[None]:
-        sync()
+        _sync(device)
         t0 = time.perf_counter()
         yield
-        sync()
+        _sync(device)
         if record:
             totals[name] += time.perf_counter() - t0
 
@@ -122,7 +118,7 @@ def _staged_frame(model: Any, view: RenderView, backend: str, stage: Any) -> Non
     viewmats, Ks, W, H = view.viewmat, view.K, view.width, view.height
     degree = min(model.step // model.config.sh_degree_interval, model.config.sh_degree)
     if backend == "cuda":  # the lean path's own steps, timed where they run
-        background = model.background_color.to(means.device)[None]
+        background = _background(model)
         with stage("projection"):  # with the tile lists' alpha reach, as a graphed frame's projection has it
             front = lean_front(means, quats, scales, viewmats, Ks, W, H, True, opacities=opacities)
         rasterize_lean(

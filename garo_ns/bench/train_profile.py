@@ -66,6 +66,10 @@ class ProfileSettings:
     (the windows are a few steps each; the densification phase, evaluations and checkpoints fall between them)."""
 
 
+SETTINGS = ("plain_steps", "phase_steps", "profiler_steps", "host_op_steps", "timeline_every")
+"""ProfileSettings' step counts, each a command-line option (`--plain-steps` ...) and recorded in the result."""
+
+
 def _sync(cuda: bool) -> None:
     if cuda:
         torch.cuda.synchronize()
@@ -297,12 +301,9 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
     parser.add_argument("--scene", type=Path, required=True, help="a D-NeRF scene folder")
     parser.add_argument("--method", default="garo-deform")
     parser.add_argument("--steps", type=int, default=None, help="training steps (default: the method's)")
-    parser.add_argument("--windows", type=int, nargs="+", default=[2000, 10_000, 30_000])
-    parser.add_argument("--plain-steps", type=int, default=100)
-    parser.add_argument("--phase-steps", type=int, default=30)
-    parser.add_argument("--profiler-steps", type=int, default=10)
-    parser.add_argument("--host-op-steps", type=int, default=10, help="steps of the host's pass (0: none)")
-    parser.add_argument("--timeline-every", type=int, default=1000, help="steps between the run's elapsed-time rows")
+    parser.add_argument("--windows", type=int, nargs="+", default=list(ProfileSettings.windows))
+    for key in SETTINGS:  # --plain-steps ... --timeline-every: ProfileSettings' fields, its defaults
+        parser.add_argument(f"--{key.replace('_', '-')}", type=int, default=getattr(ProfileSettings, key))
     parser.add_argument("--device", choices=("cuda", "cpu"), default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--quick", action="store_true", help="the compressed CPU schedule (tests)")
     parser.add_argument("--split", choices=("test", "val"), default="test", help="eval split of the run's config")
@@ -349,14 +350,7 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
     span = args.plain_steps + args.phase_steps + args.host_op_steps
     span += args.profiler_steps if args.device == "cuda" else 0
     windows = [w for w in args.windows if w + span <= config.max_num_iterations]
-    settings = ProfileSettings(
-        windows,
-        args.plain_steps,
-        args.phase_steps,
-        args.profiler_steps,
-        args.host_op_steps,
-        timeline_every=args.timeline_every,
-    )
+    settings = ProfileSettings(windows, **{key: getattr(args, key) for key in SETTINGS})
     profiler = TrainProfiler(trainer, settings)
     start = time.perf_counter()
     trainer.train()
@@ -371,10 +365,7 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         "train_seconds": seconds,
         "steps_per_second": steps / seconds,
         "windows": profiler.windows,
-        "settings": {
-            k: getattr(settings, k)
-            for k in ("plain_steps", "phase_steps", "profiler_steps", "host_op_steps", "timeline_every")
-        },
+        "settings": {key: getattr(settings, key) for key in SETTINGS},
         "render_choice_seconds": profiler.render_choice_seconds,
         "render_choice_record": render_choice_record(trainer.pipeline.model),
         "seconds_before_first_step": None if profiler.run_start is None else profiler.run_start - start,

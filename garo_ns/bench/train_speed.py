@@ -1,6 +1,7 @@
 """Training speed of a recipe against another, from `train_profile` result files (each a whole run alone on its
 GPU): per run the minutes per 40k steps, the part of them the finished model's render choice took (it runs after
-the last step: time tables built and training views rendered, garo_ns.render.switches), steps per second and test
+the last step: time tables built and training views rendered, garo_ns.render.switches; as `train_profile` measured
+it, unknown in its files from before it did), steps per second and test
 PSNR; per method the mean of each side and their ratio over the scenes both sides ran. Writes
 `benchmarks/results/train_speed_<GPU>.json` and its markdown table.
 
@@ -17,29 +18,13 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
-from statistics import mean, median
+from statistics import mean
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 from garo_ns.bench.results import utc_stamp, write_with_table
 
 STEPS_40K = 40_000
 WARMUP_SPAN = (1000, 3000)  # inside the field's warm-up, past the start-up's first steps
-
-
-def render_choice(r: Dict[str, Any]) -> Tuple[Optional[float], Optional[str]]:
-    """Seconds the run's render choice took, and where the figure comes from: measured by `train_profile`, else
-    estimated from its timeline (the last interval's excess over the median of the five before it, per step), else
-    unknown (None, None)."""
-    if r.get("render_choice_seconds") is not None:
-        return float(r["render_choice_seconds"]), "measured"
-    rows = r.get("timeline") or []
-    if len(rows) < 3 or rows[-1]["step"] != r["steps"]:
-        return None, None
-    marks = [(0, 0.0)] + [(row["step"], row["seconds"]) for row in rows]
-    rates = [(t1 - t0) / (s1 - s0) for (s0, t0), (s1, t1) in zip(marks, marks[1:])]
-    usual = median(rates[-6:-1])
-    last_steps = marks[-1][0] - marks[-2][0]
-    return max(0.0, (rates[-1] - usual) * last_steps), "timeline estimate"
 
 
 def warmup_ms_per_step(r: Dict[str, Any]) -> Optional[float]:
@@ -56,7 +41,7 @@ def run_row(path: Path) -> Dict[str, Any]:
     r = json.loads(Path(path).read_text())
     env = r.get("environment", {})
     score = r.get("score") or {}
-    choice, source = render_choice(r)
+    choice = r.get("render_choice_seconds")  # measured by train_profile (None in files from before it was)
     steps_seconds = r["train_seconds"] - choice if choice is not None else None
     return {
         "file": Path(path).name,
@@ -69,7 +54,7 @@ def run_row(path: Path) -> Dict[str, Any]:
         "steps_per_second": r["steps_per_second"],
         "minutes_per_40k": r["train_seconds"] / r["steps"] * STEPS_40K / 60.0,
         "render_choice_seconds": choice,
-        "render_choice_source": source,
+        "render_choice_source": None if choice is None else "measured",
         "minutes_per_40k_steps": None if steps_seconds is None else steps_seconds / r["steps"] * STEPS_40K / 60.0,
         "warmup_ms_per_step": warmup_ms_per_step(r),
         "psnr": score.get("psnr"),
@@ -148,8 +133,6 @@ def markdown(result: Dict[str, Any]) -> str:
             for r in e.get(side, {}).get("runs", []):
                 settings = ", ".join(f"{k}={v}" for k, v in sorted(r.get("model_settings", {}).items())) or "-"
                 choice = _cell(r.get("render_choice_seconds"), ".0f")
-                if r.get("render_choice_source") == "timeline estimate":
-                    choice += " (est.)"
                 lines.append(
                     f"| {method} | {side} | {r['scene']} | {(r['git_commit'] or '')[:7]} | {settings} | "
                     f"{r['minutes_per_40k']:.2f} | {choice} | {r['steps_per_second']:.1f} | {_cell(r['psnr'], '.2f')} |"
