@@ -193,12 +193,13 @@ class RenderSettings:
     only if a table changes the training views less. Jumpingjacks' compacted model at 40k missed the bound by
     0.0023 dB at the most int16 keys 6 GB hold, its error falling about as 1/K
     (benchmarks/results/table40k_jumpingjacks2_H200.json)."""
-    time_table_tf32: bool = True
+    time_table_tf32: bool = False
     """Build time tables (and their previews) with TF32 matrix products on CUDA (`tf32_products` in
-    garo_ns.render.time_table): a build is mostly the field's products, and a table's change is measured as built, so
-    the render choice judges a TF32 table with its rounding. The field's sampling at 34,000 Gaussians and 1,000 keys
-    took 2.17x less time on an H200, its offsets within 6.3e-5 of fp32's where they reach 0.12
-    (benchmarks/results/table_sampling_tf32_H200.json). No effect on a CPU."""
+    garo_ns.render.time_table): 2.17x less build time on an H200 (benchmarks/results/table_sampling_tf32_H200.json),
+    but the rounding stays in every key. Measured as built, TF32 tables of 40k models missed the bound at any number
+    of keys: their change stopped falling with more keys, at 0.028 to 0.078 dB on standup's three models and 0.027 on
+    jumpingjacks' compacted one (`intervals_previewed_db` in benchmarks/results/table1_*_H200.json at 1e910ef), so
+    they are off by default. No effect on a CPU."""
     time_table_tolerance: float = 0.03
     """Largest interpolation error at keyframe midpoints (positions in scene extents; rotation offsets absolute;
     scales as log-scale offsets under `deform-scale-offset log`, in scene extents under `linear`) for a Gaussian to
