@@ -44,11 +44,18 @@ TABLE1_FILE = re.compile(r"table1_(?P<scene>.+?)(?:_run(?P<run>[0-9]+))?_(?P<gpu
 """`table1_<scene>_<GPU>.json`, and `table1_<scene>_run<k>_<GPU>.json` for a scene's run k (the first is run 1)."""
 
 
+README_GPU = "H200"
+"""The GPU model whose `table1_*` and `compact_*` files the README shows, where it has them (issue 69: one GPU model,
+one commit); older rounds' files on other models stay in docs/benchmarks.md."""
+
+
 def find_files(results: Path) -> Dict[str, List[Path]]:
-    """Each scene's result files in run order, all on one GPU model (with several, the first by name)."""
+    """Each scene's result files in run order, all on one GPU model: README_GPU where a scene has files on it, else
+    the first by name."""
     found: Dict[str, List[Tuple[int, Path]]] = {}
     gpu_of: Dict[str, str] = {}
-    for path in sorted(results.glob("table1_*_*.json")):
+    paths = sorted(results.glob("table1_*_*.json"), key=lambda p: (not p.stem.endswith(f"_{README_GPU}"), p.name))
+    for path in paths:
         match = TABLE1_FILE.fullmatch(path.stem)
         if match is None:
             continue
@@ -430,6 +437,7 @@ def compaction_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     (`python -m garo_ns.bench.summary ... --target compaction` or `--target time-table`); until that exists,
     where its defaults come from."""
     paths = sorted(p for p in results.glob("compact_*.json") if COMPACT_FILE.fullmatch(p.name))
+    paths = [p for p in paths if p.stem == f"compact_{README_GPU}"] or paths
     if not paths:
         line = "\n`garo-compact` has not been run at 40k yet."
         if (results / CHOICE_FILE).exists():
