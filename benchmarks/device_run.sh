@@ -26,7 +26,8 @@
 #                                                      then collect (what has landed comes back in every call)
 #   bash benchmarks/device_run.sh collect              pack results and logs into $OUT/results.tar.gz, and each
 #                                                      finished export under $W/exports (launch with
-#                                                      --export-dir /tmp/garo-work/exports) as NAME.tar.part-aa...
+#                                                      --export-dir /tmp/garo-work/exports[/SCENE]) as
+#                                                      [SCENE_]NAME.tar.part-aa...
 #                                                      (15 MiB parts: the most one file from $OUT may be)
 # A pair that does not fit one hold: export one arm in the first hold; here, `mkdir -p .trained/SCENE && cat
 # VARIANT.tar.part-* | tar -x -C .trained/SCENE` (git-ignored; it lasts this session only, as the next session gets
@@ -161,9 +162,12 @@ collect)
     mkdir -p $W/pack/$n; cp $d*.log $d*.json $W/pack/$n/ 2>/dev/null
   done
   tar -czf $OUT/results.tar.gz -C $W pack
-  for e in $W/exports/*/; do
-    [ -e ${e}model.ckpt ] && [ -e ${e}record.json ] || continue
-    tar -cf - -C $W/exports $(basename $e) | split -b 15m - $OUT/$(basename $e).tar.part-
+  # An export is a folder with model.ckpt and record.json, at any depth (--export-dir $W/exports/SCENE for several
+  # scenes); its parts are named by its path below $W/exports, slashes as underscores.
+  for e in $(find $W/exports -name record.json 2>/dev/null); do
+    e=$(dirname $e); [ -e $e/model.ckpt ] || continue
+    rel=${e#$W/exports/}
+    tar -cf - -C $W/exports $rel | split -b 15m - $OUT/${rel//\//_}.tar.part-
   done
   ls -la $OUT
   cat $W/results/*.md 2>/dev/null ;;

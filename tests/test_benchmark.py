@@ -152,6 +152,30 @@ def test_a_deleted_precision_row_is_refused_and_no_speed_row_names_it(deleted):
         split_variant(f"garo-deform+static+graph+{deleted}")
 
 
+def test_model_settings_reach_a_loaded_model_and_its_frame_path_and_an_unknown_one_stops_the_run(tmp_path):
+    from types import SimpleNamespace
+
+    from garo_ns.bench.benchmark import apply_model_settings
+    from garo_ns.garo_model import GaroModelConfig
+
+    changed = []
+    model = SimpleNamespace(
+        config=GaroModelConfig(),
+        frame=SimpleNamespace(scale_offset="log", table_tf32=True, table_budget_mb=6144.0),
+        switches=SimpleNamespace(parameters_changed=lambda: changed.append(True)),
+    )
+    apply_model_settings(model, ["time_table_budget_mb=1024", "time_table_tf32=True"])
+    assert model.config.time_table_budget_mb == 1024 and model.config.time_table_tf32 is True
+    assert model.frame.table_budget_mb == 1024 and model.frame.table_tf32 is True and changed == [True]
+    model.config.time_table_tf32 = False
+    apply_model_settings(model, [])  # nothing asked: nothing touched
+    assert model.frame.table_tf32 is True and changed == [True]
+    scene = tmp_path / "no-scene"  # refused before the scene is read or anything trains
+    with pytest.raises(SystemExit, match="NAME=VALUE"):
+        run(BenchArgs(scene=scene, work_dir=tmp_path / "runs", model_set=["no_such_setting=1"], device="cpu"))
+    assert not (tmp_path / "runs").exists()
+
+
 def tiny_run(scene, tmp_path, name: str, **settings) -> BenchArgs:
     """A few quick CPU steps on `scene`, no profile, results under tmp_path/<name>."""
     defaults = dict(split="val", iterations=30, device="cpu", quick=True, warmup_views=1, timing_repeats=1)

@@ -132,6 +132,21 @@ def test_lr_steps_set_the_named_schedules_only():
             schedule_lengths(config, bad)
 
 
+def test_data_settings_reach_the_dataparser_and_unknown_ones_are_refused():
+    import copy
+
+    from garo_ns.bench.train_profile import dataparser_settings
+    from garo_ns.config import deform_splatfacto_real
+
+    config = copy.deepcopy(deform_splatfacto_real.config)
+    assert dataparser_settings(config, ["camera_distance=0", "eval_every=4"]) == {"camera_distance": 0, "eval_every": 4}
+    parser = config.pipeline.datamanager.dataparser
+    assert parser.camera_distance == 0 and parser.eval_every == 4
+    for bad in (["no_such=1"], ["camera_distance"], ["data=/tmp"]):
+        with pytest.raises(SystemExit, match="NAME=VALUE"):
+            dataparser_settings(config, bad)
+
+
 def test_the_docs_profile_block_is_written_from_the_committed_files(tmp_path):
     from pathlib import Path
 

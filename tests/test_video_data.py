@@ -119,6 +119,36 @@ def test_points_share_the_cameras_frame(tmp_path):
     assert out.metadata["points3D_rgb"].tolist() == [[10, 20, 30]] * 2
 
 
+@pytest.mark.parametrize("distance", [0.0, 1.0, 4.5])
+def test_the_camera_distance_scales_cameras_points_and_extent_together(tmp_path, distance):
+    """`camera_distance` sets the scene's scale (0: COLMAP's units): cameras, points and the extent the densification
+    thresholds scale with all follow it; orientation and times do not."""
+    root = make_folder(tmp_path / "v", n=8)
+    colmap = load_capture(root, _config(root, camera_distance=0.0))
+    capture = load_capture(root, _config(root, camera_distance=distance))
+    ids = capture.splits["train"]
+    far = max(float(np.abs(colmap.c2w[cid][:, 3]).max()) for cid in colmap.ids)
+    factor = distance / far if distance else 1.0
+    assert capture.scale == pytest.approx(factor) and colmap.scale == 1.0 and far > 0
+    for cid in ids:
+        np.testing.assert_allclose(capture.c2w[cid][:, 3], colmap.c2w[cid][:, 3] * factor, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(capture.c2w[cid][:, :3], colmap.c2w[cid][:, :3])
+    np.testing.assert_allclose(capture.points, colmap.points * factor, rtol=1e-5, atol=1e-6)
+    assert capture.times == colmap.times
+    if distance:
+        assert max(float(np.abs(capture.c2w[cid][:, 3]).max()) for cid in capture.ids) == pytest.approx(distance)
+    extent = _config(root, camera_distance=distance).setup().get_dataparser_outputs("train").metadata["camera_extent"]
+    base = _config(root, camera_distance=0.0).setup().get_dataparser_outputs("train").metadata["camera_extent"]
+    assert extent == pytest.approx(base * factor)
+
+
+@pytest.mark.parametrize("bad", [-1.0, float("nan"), float("inf")])
+def test_a_bad_camera_distance_gets_one_line(tmp_path, bad):
+    root = make_folder(tmp_path / "v", n=8)
+    with pytest.raises(GaroInputError, match="--camera-distance"):
+        load_capture(root, _config(root, camera_distance=bad))
+
+
 def test_downscaled_images_and_intrinsics(tmp_path):
     root = make_folder(tmp_path / "v", n=8, downscales=1)
     out = _config(root, downscale_factor=2).setup().get_dataparser_outputs("train")

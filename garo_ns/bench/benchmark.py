@@ -178,6 +178,10 @@ class BenchArgs:
     remeasure_switches: bool = False
     """Measure the approximate render switches again on the loaded model's training views before its rows (as
     the end of training does; for arms trained, or imported, from before a switch existed)."""
+    model_set: List[str] = field(default_factory=list)
+    """Model settings of every loaded run, `NAME=VALUE` (garo_ns.bench.train_profile.model_overrides), e.g.
+    `time_table_budget_mb=1024` with --remeasure-switches and --pretrained: the same trained arms measured under
+    another render setting; recorded as `model_settings`."""
     profile: bool = True
     """Add a per-stage breakdown of one frame (garo_ns.bench.frame_profile) to every variant."""
     profile_projection_squares: bool = False
@@ -319,6 +323,19 @@ def train_variant(args: BenchArgs, name: str, deadline: Optional[float]) -> Dict
 
 
 # ---------------------------------------------------------------------------- evaluation and timing
+def apply_model_settings(model: Any, pairs: List[str]) -> None:
+    """Set `NAME=VALUE` model settings on a loaded model, and what its frame path copied of them at construction."""
+    from garo_ns.bench.train_profile import model_overrides
+
+    for name, value in model_overrides(pairs).items():
+        setattr(model.config, name, value)
+    if pairs:
+        cfg = model.config
+        model.frame.scale_offset, model.frame.table_tf32 = cfg.deform_scale_offset, cfg.time_table_tf32
+        model.frame.table_budget_mb = cfg.time_table_budget_mb
+        model.switches.parameters_changed()
+
+
 def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) -> Dict[str, Dict[str, Any]]:
     """Score and time a trained variant (alone on its device) under each render setting in `names`."""
     import torch
@@ -332,6 +349,7 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
 
     _, pipeline, _, step = load_run(Path(record["config"]))
     model = pipeline.model
+    apply_model_settings(model, args.model_set)
     cameras, _ = split_views(pipeline, args.scene, args.split)
     all_train_times = scene_train_times(pipeline, args.scene)
     train_times = all_train_times
@@ -442,6 +460,7 @@ def paired_timing(args: BenchArgs, records: Dict[str, Dict[str, Any]], names: Li
     for name in names:
         _, pipeline, _, _ = load_run(Path(records[name]["config"]))
         model = pipeline.model
+        apply_model_settings(model, args.model_set)
         settings = dict(split_variant(name)[1])
         settings.pop("storage")
         for key, value in settings.items():
@@ -605,6 +624,9 @@ def run(args: BenchArgs) -> Dict[str, Any]:
     names = args.trained_variants()
     for name in args.all_variants():
         check_variant(name)
+    from garo_ns.bench.train_profile import model_overrides
+
+    model_overrides(args.model_set)  # an unknown setting refused before anything trains
     deadline = None if args.deadline_s is None else time.time() + args.deadline_s
     args.work_dir.mkdir(parents=True, exist_ok=True)
     imported = {}
@@ -657,6 +679,7 @@ def run(args: BenchArgs) -> Dict[str, Any]:
         "split": args.split,
         "background": args.background,
         "iterations_full_schedule": args.full_schedule(),
+        "model_settings": args.model_set,
         "fps_protocol": "mean over views of synchronised (deformation MLP + rasterization) time, "
         f"{args.warmup_views} warm-up views dropped, {args.timing_repeats} passes, full resolution, "
         "camera matrices prepared on the device before timing",

@@ -74,7 +74,9 @@ def profile_frame(
     `tile_reach=False` profiles the frame with projection's tile squares instead (`projection_squares`).
     """
     with nullcontext() if tile_reach else projection_squares():
+        model.frame.forget_camera_graph()  # captured with the other tile lists: captured again with these
         out = _profile(model, cameras, warmup, repeats)
+    model.frame.forget_camera_graph()
     out["tile_pairs"] = tile_pairs(model, prepare_views(model, cameras), tile_reach)
     return out
 
@@ -114,13 +116,16 @@ def _staged_frame(model: Any, view: RenderView, backend: str, stage: Any) -> Non
     """One frame through the stages of the renderer (classic mode, unpacked, RGB): on CUDA the
     kernels of `rendering.rasterize_lean`, elsewhere the reference rasterizer's functions."""
     with stage("deformation"):  # MLP, composition and activations (one graph replay with cuda_graph)
-        means, quats, scales, opacities, shs = model.gaussians_at(view.time)[:5]
+        splats = model.gaussians_at(view.time)
+    means, quats, scales, opacities, shs = splats[:5]
     viewmats, Ks, W, H = view.viewmat, view.K, view.width, view.height
     degree = min(model.step // model.config.sh_degree_interval, model.config.sh_degree)
     if backend == "cuda":  # the lean path's own steps, timed where they run
         background = _background(model)
-        with stage("projection"):  # with the tile lists' alpha reach, as a graphed frame's projection has it
-            front = lean_front(means, quats, scales, viewmats, Ks, W, H, True, opacities=opacities)
+        with stage("projection"):  # as the frame projects: the camera's graph (alpha-reach tile lists) where it has one
+            front = model.frame.front(splats, view) if model.render_settings().lean_raster else None
+            if front is None:
+                front = lean_front(means, quats, scales, viewmats, Ks, W, H, True)
         rasterize_lean(
             means, quats, scales, opacities, shs, viewmats, Ks, W, H, degree, background, stage=stage, front=front
         )

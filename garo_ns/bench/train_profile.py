@@ -278,6 +278,27 @@ def model_overrides(pairs: Sequence[str]) -> Dict[str, Any]:
     return out
 
 
+def dataparser_settings(config: Any, pairs: Sequence[str]) -> Dict[str, Any]:
+    """Set `NAME=VALUE` pairs (VALUE a Python literal, else a string) on the run's dataparser config, e.g.
+    `camera_distance=0`; a NAME it does not have is refused before anything trains."""
+    import ast
+    import dataclasses
+
+    parser = config.pipeline.datamanager.dataparser
+    known = {f.name for f in dataclasses.fields(parser)}
+    out: Dict[str, Any] = {}
+    for pair in pairs:
+        name, sep, text = pair.partition("=")
+        if not sep or name not in known or name in ("data", "_target"):
+            raise SystemExit(f"--data-set expects NAME=VALUE with NAME a dataparser setting, got {pair!r}")
+        try:
+            out[name] = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            out[name] = text
+        setattr(parser, name, out[name])
+    return out
+
+
 def schedule_lengths(config: Any, pairs: Sequence[str]) -> Dict[str, int]:
     """Set each `GROUP=STEPS` pair's learning-rate schedule to decay over STEPS steps (whatever the run's length: the
     official D-3DGS code anneals positions over 30k and its field over 40k steps in a run of any length); a group
@@ -315,6 +336,9 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         "--set", nargs="+", default=[], metavar="NAME=VALUE", help="model settings, e.g. deform_cuda_graph=True"
     )
     parser.add_argument(
+        "--data-set", nargs="+", default=[], metavar="NAME=VALUE", help="dataparser settings, e.g. camera_distance=0"
+    )
+    parser.add_argument(
         "--lr-steps", nargs="+", default=[], metavar="GROUP=STEPS", help="schedule lengths, e.g. means=30000"
     )
     parser.add_argument(
@@ -341,6 +365,7 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
     if args.steps:
         config.max_num_iterations = args.steps
     lr_steps = schedule_lengths(config, args.lr_steps)
+    data_settings = dataparser_settings(config, args.data_set)
     loop_work(config, args.method, args.as_ns_train)
     config.save_config()
     seed_everything(config.machine.seed)
@@ -372,6 +397,7 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         "timeline": profiler.timeline,
         "model_settings": overrides,
         "lr_steps": lr_steps,
+        "data_settings": data_settings,
         "as_ns_train": bool(args.as_ns_train),
         "adam_graph": adam_graph_counts(trainer.optimizers),
         "splats_graph": splats_graph_counts(trainer.pipeline.model),

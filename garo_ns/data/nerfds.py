@@ -62,6 +62,10 @@ class NerfDSDataParserConfig(DataParserConfig):
     train."""
     min_posed_fraction: float = 0.5
     """A video: stop, rather than train, when COLMAP posed fewer than this share of its frames."""
+    camera_distance: float = 1.0
+    """A video: scale COLMAP's cameras so that the farthest lies this far from their centre on some axis (0: keep
+    COLMAP's units, as the official D-3DGS code does). The field's position encoding and the learning rates are
+    absolute, so this scale is part of the recipe."""
 
     def check_data(self, data: Optional[Path] = None) -> None:
         """Validate the capture (files, cameras, times, image sizes, points) without loading pixels.
@@ -89,7 +93,12 @@ def load_capture(data: Path, config: "NerfDSDataParserConfig") -> Capture:
     """Read the capture in `data` in whichever layout it has (see the module docstring)."""
     if is_nerfstudio_folder(data):
         return read_video_capture(
-            data, config.downscale_factor, config.eval_every, config.min_posed_fraction, config.use_points
+            data,
+            config.downscale_factor,
+            config.eval_every,
+            config.min_posed_fraction,
+            config.use_points,
+            config.camera_distance,
         )
     return read_capture(data, config.downscale_factor)
 

@@ -145,16 +145,25 @@ def read_ply_points(path: Path) -> Tuple[np.ndarray, np.ndarray]:
 
 
 def read_video_capture(
-    data: Path, downscale: int = 2, eval_every: int = 8, min_posed_fraction: float = 0.5, use_points: bool = True
+    data: Path,
+    downscale: int = 2,
+    eval_every: int = 8,
+    min_posed_fraction: float = 0.5,
+    use_points: bool = True,
+    camera_distance: float = 1.0,
 ) -> Capture:
     """Read and validate an ns-process-data folder as a `Capture` (garo_ns.data.capture) with times, train and val
-    frames (every `eval_every`-th frame of the capture order held out) and COLMAP's points.
+    frames (every `eval_every`-th frame of the capture order held out) and COLMAP's points, oriented and centred as
+    nerfstudio does, then scaled so that the farthest camera lies at `camera_distance` on some axis (0: COLMAP's
+    own units, as the official D-3DGS code reads a COLMAP capture).
 
     GaroInputError, naming the file and frame, for a folder that cannot be trained on: no transforms.json, no
     usable frames, frames that cannot be ordered in time, fewer than `min_posed_fraction` of the frames posed.
     """
     if not isinstance(eval_every, int) or isinstance(eval_every, bool) or eval_every < 2:
         raise GaroInputError(f"nerfds-data --eval-every must be an int >= 2, got {eval_every!r}")
+    if not (isinstance(camera_distance, (int, float)) and math.isfinite(camera_distance) and camera_distance >= 0):
+        raise GaroInputError(f"nerfds-data --camera-distance must be a finite number >= 0, got {camera_distance!r}")
     data = Path(data)
     path = data / "transforms.json"
     images_dir = data / "images"
@@ -251,14 +260,15 @@ def read_video_capture(
             f"{min_posed_fraction:.0%}; nerfds-data --min-posed-fraction): {_FILM_AGAIN}"
         )
 
-    # Cameras: nerfstudio's orientation and centring, then the farthest camera at distance 1.
+    # Cameras: nerfstudio's orientation and centring, then the farthest camera at `camera_distance`. The field's
+    # position encoding and the learning rates are absolute, so the scale chosen here is part of the recipe.
     from nerfstudio.cameras import camera_utils
 
     oriented, transform = camera_utils.auto_orient_and_center_poses(
         torch.from_numpy(np.stack(poses)).float(), method="up", center_method="poses"
     )
     oriented = oriented.double().numpy()
-    scale = 1.0 / max(float(np.abs(oriented[:, :3, 3]).max()), 1e-12)
+    scale = camera_distance / max(float(np.abs(oriented[:, :3, 3]).max()), 1e-12) if camera_distance else 1.0
     oriented[:, :3, 3] *= scale
 
     ids, c2w, intrinsics, distortion, images, time_of, slot = [], {}, {}, {}, {}, {}, {}

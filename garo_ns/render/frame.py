@@ -21,7 +21,7 @@ from torch import Tensor
 from garo_ns.deformation import DeformationField, ScaleOffset, log_scale_offset
 from garo_ns.render.backend import Backend, rasterize
 from garo_ns.render.graphs import InputGraph, TimeGraph, graphs_available, parameter_list, versions
-from garo_ns.render.kernels import lean_front
+from garo_ns.render.kernels import Front, lean_front
 from garo_ns.render.time_table import (
     TableSpec,
     TimeTable,
@@ -316,25 +316,29 @@ class FramePath:
     ) -> Tuple[Tensor, Tensor, Dict[str, Any]]:
         """Rasterize outside training. With `lean_raster`, gsplat's kernels are called directly; and
         when `splats` are a CUDA graph's buffers, the camera's projection of them replays as a
-        second graph, fed the camera's matrices."""
-        front = None
-        if (
-            lean_raster
-            and splats.graph is not None
-            and render_mode in ("RGB", "RGB+ED")
-            and not torch.is_grad_enabled()
-        ):
-            means, quats, scales, opacities = splats[:4]
-            # The tile lists cut to each splat's alpha reach inside the graph, where the cut costs no launches.
-            front = self._camera_graph(
-                (splats.graph, view.width, view.height),
-                lambda viewmat, K: lean_front(
-                    means, quats, scales, viewmat, K, view.width, view.height, True, opacities=opacities
-                ),
-                view.viewmat,
-                view.K,
-            )
+        second graph, fed the camera's matrices (`front`)."""
+        front = self.front(splats, view) if lean_raster and render_mode in ("RGB", "RGB+ED") else None
         return render_splats(splats, view, sh_degree, backgrounds, render_mode, backend, lean_raster, front)
+
+    def forget_camera_graph(self) -> None:
+        """Drop the camera's graph, so that the next frame captures it again (with what its functions do then)."""
+        self._camera_graph.release()
+
+    def front(self, splats: Splats, view: RenderView) -> Optional[Front]:
+        """The lean path's projection of `splats` for `view` by replay of the camera's CUDA graph, with the tile
+        lists cut to each splat's alpha reach (inside the graph the cut costs no launches); None where `splats` are
+        no graph's buffers or autograd is on (the lean path then projects them itself, with projection's squares)."""
+        if splats.graph is None or torch.is_grad_enabled():
+            return None
+        means, quats, scales, opacities = splats[:4]
+        return self._camera_graph(
+            (splats.graph, view.width, view.height),
+            lambda viewmat, K: lean_front(
+                means, quats, scales, viewmat, K, view.width, view.height, True, opacities=opacities
+            ),
+            view.viewmat,
+            view.K,
+        )
 
 
 # Arguments as `FramePath.rasterize` on purpose: the training path, without the frame path's graphs.
