@@ -179,7 +179,7 @@ class BenchArgs:
     """Measure the approximate render switches again on the loaded model's training views before its rows (as
     the end of training does; for arms trained, or imported, from before a switch existed)."""
     model_set: List[str] = field(default_factory=list)
-    """Model settings of every loaded run, `NAME=VALUE` (garo_ns.bench.train_profile.model_overrides), e.g.
+    """Model settings of every loaded run, `NAME=VALUE` (`model_overrides`), e.g.
     `time_table_budget_mb=1024` with --remeasure-switches and --pretrained: the same trained arms measured under
     another render setting; recorded as `model_settings`."""
     profile: bool = True
@@ -323,10 +323,29 @@ def train_variant(args: BenchArgs, name: str, deadline: Optional[float]) -> Dict
 
 
 # ---------------------------------------------------------------------------- evaluation and timing
+def model_overrides(pairs: List[str]) -> Dict[str, Any]:
+    """`NAME=VALUE` pairs as model settings (VALUE read as a Python literal, else kept as a string); an unknown
+    NAME is refused before anything trains."""
+    import ast
+    import dataclasses
+
+    from garo_ns.garo_model import GaroModelConfig
+
+    known = {f.name for f in dataclasses.fields(GaroModelConfig)}
+    out: Dict[str, Any] = {}
+    for pair in pairs:
+        name, sep, text = pair.partition("=")
+        if not sep or name not in known:
+            raise SystemExit(f"--set expects NAME=VALUE with NAME a model setting, got {pair!r}")
+        try:
+            out[name] = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            out[name] = text
+    return out
+
+
 def apply_model_settings(model: Any, pairs: List[str]) -> None:
     """Set `NAME=VALUE` model settings on a loaded model, and what its frame path copied of them at construction."""
-    from garo_ns.bench.train_profile import model_overrides
-
     for name, value in model_overrides(pairs).items():
         setattr(model.config, name, value)
     if pairs:
@@ -624,8 +643,6 @@ def run(args: BenchArgs) -> Dict[str, Any]:
     names = args.trained_variants()
     for name in args.all_variants():
         check_variant(name)
-    from garo_ns.bench.train_profile import model_overrides
-
     model_overrides(args.model_set)  # an unknown setting refused before anything trains
     deadline = None if args.deadline_s is None else time.time() + args.deadline_s
     args.work_dir.mkdir(parents=True, exist_ok=True)

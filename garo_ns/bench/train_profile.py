@@ -257,27 +257,6 @@ def render_choice_record(model: Any) -> Optional[Dict[str, Any]]:
     }
 
 
-def model_overrides(pairs: Sequence[str]) -> Dict[str, Any]:
-    """`NAME=VALUE` pairs as model settings (VALUE read as a Python literal, else kept as a string); an unknown
-    NAME is refused before anything trains."""
-    import ast
-    import dataclasses
-
-    from garo_ns.garo_model import GaroModelConfig
-
-    known = {f.name for f in dataclasses.fields(GaroModelConfig)}
-    out: Dict[str, Any] = {}
-    for pair in pairs:
-        name, sep, text = pair.partition("=")
-        if not sep or name not in known:
-            raise SystemExit(f"--set expects NAME=VALUE with NAME a model setting, got {pair!r}")
-        try:
-            out[name] = ast.literal_eval(text)
-        except (ValueError, SyntaxError):
-            out[name] = text
-    return out
-
-
 def dataparser_settings(config: Any, pairs: Sequence[str]) -> Dict[str, Any]:
     """Set `NAME=VALUE` pairs (VALUE a Python literal, else a string) on the run's dataparser config, e.g.
     `camera_distance=0`; a NAME it does not have is refused before anything trains."""
@@ -348,6 +327,8 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         "aside). Without it the run writes TensorBoard only, evaluates nothing and saves once, at the end",
     )
     args = parser.parse_args(argv)
+    from garo_ns.bench.benchmark import model_overrides
+
     overrides = model_overrides(args.set)
 
     config = make_config(
