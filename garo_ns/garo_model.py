@@ -126,9 +126,7 @@ class GaroModel(SplatfactoModel):
         self.train_cameras: Optional[Cameras] = None
         self.last_step: Optional[int] = None
         self.metrics_every = 1  # the trainer's steps_per_log, once training starts
-        self.frame.scale_offset = cfg.deform_scale_offset
-        self.frame.table_tf32 = cfg.time_table_tf32
-        self.frame.table_budget_mb = cfg.time_table_budget_mb
+        self.frame.configure(cfg)
         self.health_log: List[Dict[str, Any]] = []
 
     def get_param_groups(self) -> Dict[str, List[Parameter]]:

@@ -157,13 +157,16 @@ def test_model_settings_reach_a_loaded_model_and_its_frame_path_and_an_unknown_o
 
     from garo_ns.bench.benchmark import apply_model_settings
     from garo_ns.garo_model import GaroModelConfig
+    from garo_ns.render.frame import FramePath
 
     changed = []
     model = SimpleNamespace(
         config=GaroModelConfig(),
-        frame=SimpleNamespace(scale_offset="log", table_tf32=True, table_budget_mb=6144.0),
+        frame=FramePath(),
         switches=SimpleNamespace(parameters_changed=lambda: changed.append(True)),
     )
+    model.frame.configure(model.config)
+    assert model.frame.table_tf32 is False and model.frame.table_budget_mb == model.config.time_table_budget_mb
     apply_model_settings(model, ["time_table_budget_mb=1024", "time_table_tf32=True"])
     assert model.config.time_table_budget_mb == 1024 and model.config.time_table_tf32 is True
     assert model.frame.table_budget_mb == 1024 and model.frame.table_tf32 is True and changed == [True]

@@ -323,20 +323,16 @@ def train_variant(args: BenchArgs, name: str, deadline: Optional[float]) -> Dict
 
 
 # ---------------------------------------------------------------------------- evaluation and timing
-def model_overrides(pairs: List[str]) -> Dict[str, Any]:
-    """`NAME=VALUE` pairs as model settings (VALUE read as a Python literal, else kept as a string); an unknown
-    NAME is refused before anything trains."""
+def setting_pairs(pairs: List[str], known: Any, flag: str, what: str) -> Dict[str, Any]:
+    """`NAME=VALUE` pairs (VALUE read as a Python literal, else kept as a string) with each NAME in `known`; any
+    other pair stops the command with one line naming `flag` and `what` NAME must be."""
     import ast
-    import dataclasses
 
-    from garo_ns.garo_model import GaroModelConfig
-
-    known = {f.name for f in dataclasses.fields(GaroModelConfig)}
     out: Dict[str, Any] = {}
     for pair in pairs:
         name, sep, text = pair.partition("=")
         if not sep or name not in known:
-            raise SystemExit(f"--set expects NAME=VALUE with NAME a model setting, got {pair!r}")
+            raise SystemExit(f"{flag} expects NAME=VALUE with NAME {what}, got {pair!r}")
         try:
             out[name] = ast.literal_eval(text)
         except (ValueError, SyntaxError):
@@ -344,14 +340,19 @@ def model_overrides(pairs: List[str]) -> Dict[str, Any]:
     return out
 
 
+def model_overrides(pairs: List[str]) -> Dict[str, Any]:
+    """`NAME=VALUE` pairs as model settings; an unknown NAME is refused before anything trains."""
+    from garo_ns.garo_model import GaroModelConfig
+
+    return setting_pairs(pairs, {f.name for f in fields(GaroModelConfig)}, "--set", "a model setting")
+
+
 def apply_model_settings(model: Any, pairs: List[str]) -> None:
-    """Set `NAME=VALUE` model settings on a loaded model, and what its frame path copied of them at construction."""
+    """Set `NAME=VALUE` model settings on a loaded model, and on its frame path, which reads some of them."""
     for name, value in model_overrides(pairs).items():
         setattr(model.config, name, value)
     if pairs:
-        cfg = model.config
-        model.frame.scale_offset, model.frame.table_tf32 = cfg.deform_scale_offset, cfg.time_table_tf32
-        model.frame.table_budget_mb = cfg.time_table_budget_mb
+        model.frame.configure(model.config)
         model.switches.parameters_changed()
 
 

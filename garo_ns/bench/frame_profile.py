@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import time
 from collections import defaultdict
-from contextlib import contextmanager, nullcontext
+from contextlib import contextmanager
 from typing import Any, Dict, Iterator
 
 import torch
@@ -73,10 +73,13 @@ def profile_frame(
     `ms_python_overhead` (frame minus the stages, clamped at 0), `tile_pairs` (per view) and `backend`.
     `tile_reach=False` profiles the frame with projection's tile squares instead (`projection_squares`).
     """
-    with nullcontext() if tile_reach else projection_squares():
-        model.frame.forget_camera_graph()  # captured with the other tile lists: captured again with these
+    if tile_reach:
         out = _profile(model, cameras, warmup, repeats)
-    model.frame.forget_camera_graph()
+    else:  # the camera's graph was captured with the cut: captured again without it, and with it after
+        with projection_squares():
+            model.frame.forget_camera_graph()
+            out = _profile(model, cameras, warmup, repeats)
+        model.frame.forget_camera_graph()
     out["tile_pairs"] = tile_pairs(model, prepare_views(model, cameras), tile_reach)
     return out
 

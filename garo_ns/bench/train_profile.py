@@ -258,23 +258,17 @@ def render_choice_record(model: Any) -> Optional[Dict[str, Any]]:
 
 
 def dataparser_settings(config: Any, pairs: Sequence[str]) -> Dict[str, Any]:
-    """Set `NAME=VALUE` pairs (VALUE a Python literal, else a string) on the run's dataparser config, e.g.
-    `camera_distance=0`; a NAME it does not have is refused before anything trains."""
-    import ast
+    """Set `NAME=VALUE` pairs on the run's dataparser config, e.g. `camera_distance=0`; a NAME it does not have (or
+    `data`, which --scene gives) is refused before anything trains."""
     import dataclasses
 
+    from garo_ns.bench.benchmark import setting_pairs
+
     parser = config.pipeline.datamanager.dataparser
-    known = {f.name for f in dataclasses.fields(parser)}
-    out: Dict[str, Any] = {}
-    for pair in pairs:
-        name, sep, text = pair.partition("=")
-        if not sep or name not in known or name in ("data", "_target"):
-            raise SystemExit(f"--data-set expects NAME=VALUE with NAME a dataparser setting, got {pair!r}")
-        try:
-            out[name] = ast.literal_eval(text)
-        except (ValueError, SyntaxError):
-            out[name] = text
-        setattr(parser, name, out[name])
+    known = {f.name for f in dataclasses.fields(parser)} - {"data", "_target"}
+    out = setting_pairs(list(pairs), known, "--data-set", "a dataparser setting")
+    for name, value in out.items():
+        setattr(parser, name, value)
     return out
 
 

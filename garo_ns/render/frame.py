@@ -145,6 +145,13 @@ class FramePath:
         # and its copies (`build_bytes`), so that the whole build stays within it (None: no cap but free memory).
         self.table_budget_mb: Optional[float] = None
 
+    def configure(self, config: Any) -> None:
+        """Take the model config's settings that the frame path reads (`deform_scale_offset`, `time_table_tf32`,
+        `time_table_budget_mb`): at the model's construction, and again when a loaded model's config is changed."""
+        self.scale_offset = config.deform_scale_offset
+        self.table_tf32 = config.time_table_tf32
+        self.table_budget_mb = config.time_table_budget_mb
+
     def splats(
         self,
         field: DeformationField,
