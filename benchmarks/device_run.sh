@@ -92,11 +92,14 @@ gputests)
   cd $W/src
   # The CUDA-only tests and those whose CUDA path differs (the time table, the switches, the camera); the log names
   # the commit, the date and the GPU: benchmarks/results/gputests_<GPU>.log.
+  # Each test's line goes to $OUT/gputests_full.log as it ends, and the run stops at GPUTESTS_S seconds (default 400):
+  # a run that hangs then names the test it hung in (one ran past a 10-minute call with MPS on and two GPUs busy).
   { echo "commit ${GARO_GIT_COMMIT:-$(git rev-parse HEAD 2>/dev/null)} $(date -u +%F) $(nvidia-smi --query-gpu=name --format=csv,noheader | head -1)"
-    python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py tests/test_rendering_cuda.py \
+    timeout ${GPUTESTS_S:-400} python3 -m pytest -v -p no:cacheprovider tests/test_graphs.py tests/test_rendering_cuda.py \
       tests/test_time_table.py tests/test_render_switches.py tests/test_view.py tests/test_training_graphs.py tests/test_adam.py \
       tests/test_train_raster.py tests/test_train_profile.py tests/test_fused_ssim.py tests/test_dense.py tests/test_fp32_heads.py --tb=line 2>&1 \
-      | grep -E "Error|FAILED|ERROR| passed| failed" | tail -n 40; } | tee $OUT/gputests.log ;;
+      | tee $OUT/gputests_full.log | grep -E "Error|FAILED|ERROR| passed| failed" | tail -n 40
+    echo "last test started: $(grep -E '::' $OUT/gputests_full.log | tail -1)"; } | tee $OUT/gputests.log ;;
 launch)
   name=$1; scene=$2; split=$3; gpus=$4; shift 4
   [ -d /tmp/$scene ] || cp -r .scenes/$scene /tmp/$scene

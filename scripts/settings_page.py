@@ -102,11 +102,21 @@ def methods_section(config_cls: type) -> List[str]:
         parser = type(config.pipeline.datamanager.dataparser).__name__
         parser = DATAPARSERS.get(parser, parser)
         lines.append(f"| `{name}` | {config.max_num_iterations:,} | `{parser}` | {', '.join(changed) or '-'} |")
+
+    def schedules(name: str) -> dict:
+        return {
+            g: (e["optimizer"].lr, e.get("scheduler") and e["scheduler"].max_steps)
+            for g, e in METHODS[name].config.optimizers.items()
+        }
+
+    # Read, not typed: a recipe whose rates or decay lengths differ from garo-deform's is named here.
+    others = [f"`{name}`" for name in METHODS if schedules(name) != schedules("garo-deform")]
+    same = "every method but " + ", ".join(others) if others else "every method, the 20k-step `-real` ones included"
     lines += [
         "",
-        "Learning rates of every method (`--optimizers.<group>.optimizer.lr`, Adam with eps 1e-15; a schedule "
-        "decays the rate exponentially to its final value over its steps; the `-real` methods decay over "
-        "20,000 steps):",
+        f"Learning rates of {same} (`--optimizers.<group>.optimizer.lr`, Adam with eps 1e-15; a schedule "
+        "decays the rate exponentially to its final value over its steps, whatever the run's length, as in the "
+        "official D-3DGS code):",
         "",
         "| parameter group | learning rate | final rate | decay steps |",
         "|---|---|---|---|",

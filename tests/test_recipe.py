@@ -8,7 +8,7 @@ import pytest
 import torch
 from nerfstudio.data.scene_box import SceneBox
 
-from garo_ns.config import METHODS, deform_splatfacto, deform_splatfacto_real, garo_deform
+from garo_ns.config import METHODS, deform_splatfacto_real, garo_deform
 from garo_ns.deformation import DeformationField
 from garo_ns.garo_model import GaroModelConfig
 
@@ -19,9 +19,11 @@ def lr(config, group: str):
     return opt["optimizer"].lr, None if sched is None else (sched.lr_final, sched.max_steps)
 
 
-@pytest.mark.parametrize("spec", [garo_deform, deform_splatfacto])
-def test_learning_rates_use_d3dgs_fixed_spatial_scale(spec):
-    c = spec.config
+@pytest.mark.parametrize("name", sorted(METHODS))
+def test_learning_rates_use_d3dgs_fixed_spatial_scale(name):
+    """Every recipe, the 20k `-real` ones included: the official code anneals over 30k / 40k steps whatever the
+    run's length (ab_real_pillow_{base,lr}_H200.json: 2.6 dB on held-out frames when annealed within 20k)."""
+    c = METHODS[name].config
     assert lr(c, "means") == (pytest.approx(8e-4), (pytest.approx(8e-6), 30_000))  # 1.6e-4 x 5, not x extent
     assert lr(c, "scales") == (pytest.approx(5e-3), None)  # 1e-3 x 5
     assert lr(c, "deformation") == (pytest.approx(8e-4), (pytest.approx(1.6e-6), 40_000))

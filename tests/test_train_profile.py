@@ -124,9 +124,9 @@ def test_lr_steps_set_the_named_schedules_only():
 
     config = copy.deepcopy(deform_splatfacto_real.config)
     before = {g: o["scheduler"].max_steps for g, o in config.optimizers.items() if o["scheduler"] is not None}
-    assert schedule_lengths(config, ["means=30000", "deformation=40000"]) == {"means": 30000, "deformation": 40000}
+    assert schedule_lengths(config, ["means=20000", "deformation=25000"]) == {"means": 20000, "deformation": 25000}
     after = {g: o["scheduler"].max_steps for g, o in config.optimizers.items() if o["scheduler"] is not None}
-    assert after == {**before, "means": 30000, "deformation": 40000} and before["means"] == 20000
+    assert after == {**before, "means": 20000, "deformation": 25000} and before["means"] == 30000
     for bad in (["opacities=100"], ["means=0"], ["means=3e4"], ["nothing=5"]):
         with pytest.raises(SystemExit, match="GROUP=STEPS"):
             schedule_lengths(config, bad)
