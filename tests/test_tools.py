@@ -322,3 +322,47 @@ def test_eval_data_replaces_a_scene_that_moved(garo_run, tmp_path):
     assert 0 < result["load_seconds"] < 600 and 0 < result["first_frame_seconds"] < result["load_seconds"] + 600
     with pytest.raises(GaroInputError, match="not a folder"):
         run(EvalArgs(load_config=cfg, split="test", output_path=tmp_path / "e2.json", data=gone))
+
+
+def test_along_capture_follows_the_cameras_in_time_and_shifts_them_sideways():
+    from garo_ns.errors import GaroInputError
+    from garo_ns.tools.camera_path import along_capture
+
+    rng = np.random.default_rng(0)
+    n = 7
+    c2w = np.zeros((n, 3, 4))
+    for k in range(n):
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        c2w[k, :, :3] = q * np.sign(np.linalg.det(q))
+        c2w[k, :, 3] = rng.normal(size=3) * 3
+    times = rng.permutation(n) / (n - 1)
+    order = np.argsort(times)
+    path = along_capture(c2w, times, fy=50.0, width=80, height=60, frames=100, seconds=2.0)
+    entries = path["camera_path"]
+    assert [e["render_time"] for e in entries] == sorted(times.tolist())
+    for e, k in zip(entries, order):  # shift 0: the captured poses themselves
+        np.testing.assert_allclose(np.array(e["camera_to_world"]).reshape(4, 4)[:3], c2w[k])
+    shifted = along_capture(c2w, times, 50.0, 80, 60, frames=100, seconds=2.0, shift=0.1)["camera_path"]
+    for e, s, k in zip(entries, shifted, order):
+        a, b = np.array(e["camera_to_world"]).reshape(4, 4), np.array(s["camera_to_world"]).reshape(4, 4)
+        np.testing.assert_allclose(b[:3, :3], a[:3, :3])  # same orientation
+        move = b[:3, 3] - a[:3, 3]
+        np.testing.assert_allclose(move, 0.1 * np.linalg.norm(c2w[k, :, 3]) * c2w[k, :, 0], atol=1e-12)
+    fewer = along_capture(c2w, times, 50.0, 80, 60, frames=3, seconds=1.0)["camera_path"]
+    assert [e["render_time"] for e in fewer] == [0.0, 0.5, 1.0]  # first, middle and last in time
+    for bad in ({"frames": 0}, {"seconds": 0.0}, {"shift": float("nan")}):
+        with pytest.raises(GaroInputError):
+            along_capture(c2w, times, 50.0, 80, 60, **{"frames": 5, "seconds": 1.0, **bad})
+
+
+def test_camera_path_along_capture_reads_the_run_s_training_cameras(garo_run, tmp_path, monkeypatch):
+    from garo_ns.tools import camera_path
+
+    out = tmp_path / "along.json"
+    argv = ["garo-camera-path", "--load-config", str(garo_run["config_path"]), "--output", str(out)]
+    monkeypatch.setattr(sys, "argv", argv + ["--along-capture", "--frames", "1000", "--shift", "0.05"])
+    camera_path.main()
+    cams = garo_run["trainer"].pipeline.datamanager.train_dataset.cameras
+    entries = json.loads(out.read_text())["camera_path"]
+    assert len(entries) == len(cams)
+    assert [e["render_time"] for e in entries] == pytest.approx(sorted(cams.times.reshape(-1).tolist()))
