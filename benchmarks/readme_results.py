@@ -517,9 +517,11 @@ def real_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     for path, data in files:
         for row in data["rows"]:
             shown.setdefault(row["scene"], (path, data, row))
+    # The commits that trained the rows shown: the -real recipe changes between rounds.
+    commits = sorted({json.loads((results / r["source"]).read_text())["git_commit"][:7] for _, _, r in shown.values()})
     out = [
         "",
-        "Real captures' held-out frames, `-real` methods, 20k steps ("
+        f"Real captures' held-out frames, `-real` methods, 20k steps at {', '.join(commits)} ("
         + ", ".join(f"{REAL_FILE.fullmatch(p.name)['gpu']}: {_link(p, readme_dir)}" for p, _ in files)
         + "): PSNR / LPIPS; FPS against the baseline's (`+auto`: the model's switches):",
         "",
