@@ -20,10 +20,11 @@ from garo_ns.render.switches import (
     resolve,
     rung_name,
     table_ladder,
+    trimmed_rung,
     view_change_db,
     worst_view_change_db,
 )
-from garo_ns.render.time_table import build_bytes
+from garo_ns.render.time_table import TableSpec, build_bytes
 
 AUTO = {"static_skip": None, "cuda_graph": None, "lean_raster": None, "time_table": None}
 
@@ -380,6 +381,25 @@ def test_the_ladder_goes_on_in_int8_only_where_the_budget_caps_int16():
     # No budget for any table: none, and why.
     specs, why = table_ladder(model, RenderSettings(time_table_budget_mb=1e-3))
     assert specs == [] and "memory budget" in why
+
+
+def test_a_trimmed_rung_aims_at_the_margin_by_the_fit_through_its_two_neighbours():
+    """Standup's fp32 rungs: 2384 intervals changed the training views by 0.0125 dB, over the 0.01 margin, and the next
+    rung, 4350, by 0.0034. The fit through the two asks for about 2,900 intervals to reach 0.8 of the margin."""
+    over, within = TableSpec(0.0, 1.0, 2384), TableSpec(0.0, 1.0, 4350)
+    trim = trimmed_rung(over, 0.0125, within, 0.0034, margin=0.01)
+    assert trim is not None and trim == TableSpec(0.0, 1.0, trim.intervals)  # only the intervals change
+    slope = math.log(0.0125 / 0.0034) / math.log(4350 / 2384)
+    fitted = 0.0125 * (2384 / trim.intervals) ** slope  # the fit's change at the trimmed rung
+    assert fitted == pytest.approx(0.008, rel=1e-3) and 2384 < trim.intervals <= 4350 * 5 / 6
+    assert trimmed_rung(over, 0.0125, within, 0.0034, margin=0.004) is None  # the fit asks for more than 4350
+    # No trim where the two do not bracket the margin, where the saving is under a sixth, across precisions, or
+    # where the denser rung changed nothing (no slope to fit).
+    assert trimmed_rung(over, 0.009, within, 0.0034, margin=0.01) is None
+    assert trimmed_rung(over, 0.0125, within, 0.011, margin=0.01) is None
+    assert trimmed_rung(TableSpec(0.0, 1.0, 100), 0.0101, TableSpec(0.0, 1.0, 110), 0.0099, margin=0.01) is None
+    assert trimmed_rung(over, 0.0125, TableSpec(0.0, 1.0, 4350, precision="int8"), 0.0034, margin=0.01) is None
+    assert trimmed_rung(over, 0.0125, within, 0.0, margin=0.01) is None
 
 
 def test_a_record_of_other_parameter_values_at_the_same_step_is_not_trusted():

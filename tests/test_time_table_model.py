@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
 
-from garo_ns.render.switches import TABLE, worst_view_change_db
+from garo_ns.render.switches import TABLE, trimmed_rung, worst_view_change_db
+from garo_ns.render.time_table import TableSpec
 
 
 @pytest.fixture(scope="module")
@@ -45,9 +47,11 @@ def test_training_records_the_table_and_a_loaded_model_renders_the_recorded_chan
     assert 0 <= record["tried"][TABLE] < math.inf
     info = table["info"]
     # 8 training times, 2, 4, 8, 16, 32 or 64 intervals per gap (the fewest within the ladder's margin, else the one
-    # that changed the views least), two padding keys at each end; built from the trained field.
+    # that changed the views least) or a trimmed rung between two of them; two padding keys at each end; built from
+    # the trained field.
+    doubling = (14, 28, 56, 112, 224, 448)
     intervals = info["spec"]["intervals"]
-    assert intervals in (14, 28, 56, 112, 224, 448) and info["keys"] == intervals + 4
+    assert 14 <= intervals <= 448 and info["keys"] == intervals + 4
     assert info["gaussians"] > 0 and info["mb"] > 0 and info["build_s"] >= 0
     previews, ladder = table.get("intervals_previewed_db", {}), table.get("intervals_tried_db", {})
     if previews or ladder:  # a rung previewed is built only if its preview came within the margin
@@ -55,14 +59,22 @@ def test_training_records_the_table_and_a_loaded_model_renders_the_recorded_chan
         assert set(table["build_s"]) == set(ladder) and set(table["preview_s"]) == set(previews)
         assert all(0 <= v < math.inf for v in [*table["build_s"].values(), *table["preview_s"].values()])
         assert all(previews[k] <= margin for k in set(ladder) & set(previews))
-        rungs = sorted(set(previews) | set(ladder), key=lambda k: int(k.split()[0]))  # "<intervals>" [+ " int8"]
+        measured = {**previews, **ladder}
+        rungs = sorted(measured, key=lambda k: int(k.split()[0]))  # "<intervals>" [+ " int8"]
+        trimmed = [k for k in rungs if int(k.split()[0]) not in doubling]
+        plain = [k for k in rungs if k not in trimmed]
         # Denser tables were tried only while the sparser missed the margin, as previewed or as built.
-        losses = [{**previews, **ladder}[k] for k in rungs]
+        losses = [measured[k] for k in plain]
         assert all(v > margin for v in losses[:-1])
-        if losses[-1] <= margin:
-            assert int(rungs[-1].split()[0]) == intervals
+        if trimmed:  # tried between the last rung over the margin and the first within it; taken if within too
+            (trim,) = trimmed
+            at = {k: int(k.split()[0]) for k in rungs}
+            assert losses[-1] <= margin and at[plain[-2]] < at[trim] < at[plain[-1]]
+            assert intervals == (at[trim] if measured[trim] <= margin else at[plain[-1]])
+        elif losses[-1] <= margin:
+            assert int(plain[-1].split()[0]) == intervals
         else:
-            assert losses[[int(k.split()[0]) for k in rungs].index(intervals)] == min(losses)
+            assert intervals in doubling and measured[str(intervals)] == min(losses)
     model, guard = _load(trained)
     line = [x for x in capsys.readouterr().out.splitlines() if x.startswith("Render switches:")][0]
     assert f"time_table {record['tried'][TABLE]:.4f} dB" in line
@@ -143,11 +155,25 @@ def test_the_ladder_builds_a_dense_table_only_where_its_preview_comes_within_the
     model.config.switch_bound_db = 0.5 * (built["224"] + previews[taken]) / margin
     model.switches.measure_on_training_views(model, guard, model.step)
     table = model.switches.record[TABLE]
-    assert set(table["intervals_tried_db"]) == {"224", taken}
-    assert set(table["intervals_previewed_db"]) == set(rungs[: rungs.index(taken) + 1])
-    assert table["info"]["spec"]["intervals"] == int(taken)
+    tried, previewed = table["intervals_tried_db"], table["intervals_previewed_db"]
+    assert set(previewed) - {"224"} >= set(rungs[: rungs.index(taken) + 1])
+    # The rung before `taken` and `taken` bracket the margin: a trimmed rung between them is tried where their fit
+    # says it saves a sixth of the keys (`trimmed_rung`), and taken where it comes within the margin too.
+    measured = {**previewed, **tried}
+    before = rungs[rungs.index(taken) - 1] if taken != rungs[0] else "224"
+    spec = TableSpec(**table["info"]["spec"])
+    trim = trimmed_rung(
+        replace(spec, intervals=int(before)),
+        measured[before],
+        replace(spec, intervals=int(taken)),
+        measured[taken],
+        model.config.switch_bound_db * margin,
+    )
+    assert set(tried) - ({str(trim.intervals)} if trim else set()) == {"224", taken}
+    within = trim is not None and measured[str(trim.intervals)] <= model.config.switch_bound_db * margin
+    assert table["info"]["spec"]["intervals"] == (trim.intervals if within else int(taken))
     # The built table's change is its preview's plus the int16 keys' rounding: close to it.
-    assert table["intervals_tried_db"][taken] == pytest.approx(previews[taken], rel=0.05, abs=1e-5)
+    assert tried[taken] == pytest.approx(previews[taken], rel=0.05, abs=1e-5)
 
 
 @pytest.mark.slow

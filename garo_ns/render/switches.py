@@ -174,7 +174,8 @@ class RenderSettings:
     models changed their training views by 0.0215 and 0.022 dB, just over the bound."""
     time_table_margin: float = 0.5
     """The keyframe ladder stops at the first table whose change on the training views is within this share of
-    switch_bound_db (else it takes the table that changed them least, judged against the whole bound): the
+    switch_bound_db (then tries fewer keys between it and the rung before, `trimmed_rung`; else it takes the table
+    that changed them least, judged against the whole bound): the
     training views are a sample, and a test view can change more (mutant's compacted model at 40k: 0.021 dB on a
     test view against 0.0104 on the training views, 4 keys per frame). More keys cost memory, not frame time: a
     frame reads two keys whatever their number (benchmarks/results/time_table_orders_jumpingjacks_H200.json). A rung
@@ -277,6 +278,29 @@ def table_ladder(model: Any, cfg: RenderSettings) -> Tuple[List[TableSpec], str]
         if not capped:  # the densest table asked for fits: no other precision needed
             break
     return specs, why
+
+
+TRIM_AIM = 0.8
+"""Where between 0 and the margin a trimmed rung (`trimmed_rung`) aims its change: the fit between two rungs is a
+guess, and a trimmed rung that misses the margin costs the table one more build."""
+
+
+def trimmed_rung(
+    over: TableSpec, over_db: float, within: TableSpec, within_db: float, margin: float
+) -> Optional[TableSpec]:
+    """A rung between two neighbours of the ladder, `over` the margin and `within` it: the intervals at which the
+    change, fitted as a power of the intervals through the two (log-log), comes to TRIM_AIM of the margin, where that
+    saves at least a sixth of `within`'s keys; None otherwise. The ladder doubles its keys, so its first rung within
+    the margin can hold up to twice the keys needed: the change fell as about 1/K^1.7 to 1/K^2.2 near the bound
+    (standup's fp32 rungs, benchmarks/results/table_precision_standup_fp32_H200.json)."""
+    target = TRIM_AIM * margin
+    if over.precision != within.precision or not (over_db > margin >= within_db > 0):
+        return None
+    slope = math.log(over_db / within_db) / math.log(within.intervals / over.intervals)
+    intervals = math.ceil(over.intervals * (over_db / target) ** (1.0 / min(max(slope, 0.5), 3.0)))
+    if not over.intervals < intervals <= within.intervals * 5 / 6:
+        return None
+    return replace(within, intervals=intervals)
 
 
 def rung_name(spec: TableSpec, cfg: RenderSettings) -> str:
@@ -547,7 +571,10 @@ class SwitchDecision:
             if cfg.time_table is None and len(specs) > 1:  # the fewest keys within the margin, else the best
                 probe = measure_on_views(render, targets)
                 margin = cfg.switch_bound_db * cfg.time_table_margin
-                for candidate in specs:
+
+                def try_rung(candidate: TableSpec) -> float:
+                    """The rung's change, measured as built, or as previewed where its preview misses the margin."""
+                    nonlocal spec
                     self._measuring = spec = candidate
                     name = rung_name(candidate, cfg)
                     # A rung's preview is its table less the keys' storage rounding: where it samples the field
@@ -561,10 +588,20 @@ class SwitchDecision:
                             model.frame.preview = False
                         preview_s[name] = float((model.frame.table_info or {}).get("build_s", math.nan))
                         if previews[name] > margin:
-                            continue
+                            return previews[name]
                     ladder[name] = probe(FrameSettings(time_table=True))
                     build_s[name] = float((model.frame.table_info or {}).get("build_s", math.nan))
-                    if ladder[name] <= margin:
+                    return ladder[name]
+
+                for c, candidate in enumerate(specs):
+                    within_db = try_rung(candidate)
+                    if within_db <= margin:
+                        # Fewer keys between this rung and the one before, where their fit says they suffice.
+                        over = specs[c - 1] if c else None
+                        over_db = {**previews, **ladder}.get(rung_name(over, cfg), math.nan) if over else math.nan
+                        trim = trimmed_rung(over, over_db, candidate, within_db, margin) if over else None
+                        if trim is not None and try_rung(trim) > margin:
+                            self._measuring = spec = candidate  # the fit missed: the ladder's rung stands
                         break
                 else:  # none within the margin: the least change, as built where built, else as previewed
                     measured = {**previews, **ladder}
