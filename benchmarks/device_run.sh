@@ -1,34 +1,22 @@
 #!/usr/bin/env bash
 # GPU-machine driver for one hold of a multi-GPU machine (the `device` tool), in phases that fit
 # into back-to-back calls (each call is at most 10 minutes; the machine is kept while calls follow):
-#   bash benchmarks/device_run.sh setup SCENE          copy .scenes/SCENE to /tmp, compile gsplat
-#   bash benchmarks/device_run.sh gputests GPU         the CUDA-only tests
-#   bash benchmarks/device_run.sh launch NAME SCENE SPLIT GPUS [benchmark args...]
-#                                                      python -m garo_ns.bench.benchmark in the background on the
-#                                                      GPUs GPUS (e.g. 2,3; pass --gpus 0 1 to use both),
-#                                                      result $W/results/NAME.json, log $W/NAME.log
-#                                                      AFTER=JOB before it: start once job JOB has ended (a
-#                                                      second wave on the same GPUs, queued in the same call)
-#   bash benchmarks/device_run.sh scene SCENE          copy .scenes/SCENE to /tmp (a call that carries only it)
-#   bash benchmarks/device_run.sh profile NAME SCENE [train_profile args...]
-#                                                      python -m garo_ns.bench.train_profile --score on /tmp/SCENE in
-#                                                      the background once the scene is there, result
-#                                                      $W/results/NAME.json; AFTER="JOB ..." queues it behind those
-#                                                      jobs (runs alone on the GPU, one after another)
-#   bash benchmarks/device_run.sh pair NAME SCENE PREV [train_profile args...]
-#                                                      an A/B on one host (2-GPU kinds): `profile NAME_base_SCENE` (the
-#                                                      default recipe) on GPU 0 and `profile NAME_arm_SCENE` with the args
-#                                                      on GPU 1 (SWAP=1: the other way round), started together
-#                                                      once both runs of the previous pair (PREV: its scene, `-`
-#                                                      for none) have ended; BOTH="ARGS" goes to both runs
-#   bash benchmarks/device_run.sh extra NAME CMD...    any other command in the background (parity, ...)
-#   bash benchmarks/device_run.sh wait SECONDS         poll until every launched job ended or SECONDS passed,
-#                                                      then collect (what has landed comes back in every call)
-#   bash benchmarks/device_run.sh collect              pack results and logs into $OUT/results.tar.gz, and each
-#                                                      finished export under $W/exports (launch with
-#                                                      --export-dir /tmp/garo-work/exports[/SCENE]) as
-#                                                      [SCENE_]NAME.tar.part-aa...
-#                                                      (15 MiB parts: the most one file from $OUT may be)
+#   setup SCENE                     copy .scenes/SCENE to /tmp, compile gsplat
+#   gputests GPU                    the CUDA-only tests
+#   launch NAME SCENE SPLIT GPUS [benchmark args...]
+#                                   python -m garo_ns.bench.benchmark in the background on the GPUs GPUS (e.g. 2,3;
+#                                   pass --gpus 0 1 to use both): result $W/results/NAME.json, log $W/NAME.log
+#   scene SCENE                     copy .scenes/SCENE to /tmp (a call that carries only it)
+#   profile NAME SCENE [train_profile args...]
+#                                   python -m garo_ns.bench.train_profile --score on /tmp/SCENE in the background
+#   pair NAME SCENE PREV [train_profile args...]
+#                                   an A/B on one host (2-GPU kinds): `profile NAME_base_SCENE` (the default recipe)
+#                                   on GPU 0 and `profile NAME_arm_SCENE` with the args on GPU 1, started together
+#   extra NAME CMD...               any other command in the background (parity, ...)
+#   wait SECONDS                    poll until every launched job ended or SECONDS passed, then collect
+#   collect                         pack results, logs and finished exports into $OUT
+# AFTER="JOB ..." before launch or profile starts it once those jobs have ended (a queue launched in one call);
+# each phase below says more.
 # A pair that does not fit one hold: export one arm in the first hold; here, `mkdir -p .trained/SCENE && cat
 # VARIANT.tar.part-* | tar -x -C .trained/SCENE` (git-ignored; it lasts this session only, as the next session gets
 # a fresh work tree: both holds of a pair belong to one session); in the next hold carry .trained/SCENE/VARIANT in
@@ -125,7 +113,8 @@ profile)
   touch $W/jobs/$name.job; sleep 2; echo "launched $name${AFTER:+ (starts when $AFTER has ended)}" ;;
 pair)
   name=$1; scene=$2; prev=$3; shift 3
-  # Both of this pair's runs wait for both of the previous pair's, so that SWAP may change between pairs.
+  # Both of this pair's runs wait for both of the previous pair's (PREV: its scene, - for none), so that SWAP may
+  # change between pairs.
   wait=; [ "$prev" != - ] && wait="${name}_base_$prev ${name}_arm_$prev"
   # SWAP=1 puts the default on GPU 1 and the arm on GPU 0: two GPUs of one host differed by 2 to 8% on identical
   # steps (the pair's steps 1k to 3k, before the field starts), as much as the arm being measured; alternate SWAP
@@ -165,8 +154,8 @@ collect)
     mkdir -p $W/pack/$n; cp $d*.log $d*.json $W/pack/$n/ 2>/dev/null
   done
   tar -czf $OUT/results.tar.gz -C $W pack
-  # An export is a folder with model.ckpt and record.json, at any depth (--export-dir $W/exports/SCENE for several
-  # scenes); its parts are named by its path below $W/exports, slashes as underscores.
+  # An export is a folder with model.ckpt and record.json, at any depth (launch with --export-dir $W/exports[/SCENE]);
+  # it comes back as [SCENE_]NAME.tar.part-aa... (15 MiB parts: the most one file from $OUT may be).
   for e in $(find $W/exports -name record.json 2>/dev/null); do
     e=$(dirname $e); [ -e $e/model.ckpt ] || continue
     rel=${e#$W/exports/}

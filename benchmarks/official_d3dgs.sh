@@ -36,17 +36,13 @@
 # All runs train at once on the one GPU. Each is killed at the deadline, DEADLINE_S (default 1290) seconds
 # after call 1 started, so that scoring ends inside the hold; a run that did not reach 40000 is scored at its
 # last saved iteration (saves at 20k, 30k, 35k, 40k) and marked shortened.
-#   stop-after ITER SECONDS  stops each run right after its iteration-ITER save (waiting at most SECONDS), then
-#           scores: what the 2026-11-23 run did (benchmarks/results/official_d3dgs_H200.json, ITER 20000).
 # Measured there (H200): three runs at once went at 15-20 it/s each once densification had grown the models, one
 # alone at about 42 it/s (57 in the 3000-step warm-up), so 40k takes about 16 minutes a scene alone: for the
 # full 40k figures, train ONE scene per hold (start A; wait ...), or one per GPU where several are lent.
 # OFFICIAL_PATCH=P[,P...] (at the first `start`): the official code with some of its terms made ours, to find what
-# separates the two on a scene (`apply_patch` below): normalized_rotation (the rasterizer gets q + dq normalised,
-# as gsplat normalises ours; the official kernel reads an unnormalised q as a rotation that also scales and
-# shears), alpha_0999 (gsplat's cap on one Gaussian's alpha), log_scale (the scale offset on the log-scale),
-# valid_ssim (the loss's SSIM without zero padding). All four at once make the official code's terms ours.
-# The patches are named in SOURCES.json's "patches" and in the result's file name (official_d3dgs_<P+P>_<GPU>.json).
+# separates the two on a scene (`apply_patch` below says what each does): normalized_rotation, alpha_0999, log_scale
+# and valid_ssim; all four at once make the official code's terms ours. The patches are named in SOURCES.json's
+# "patches" and in the result's file name (official_d3dgs_<P+P>_<GPU>.json).
 #
 # REAL CAPTURES (issue #68 item 3: an `ns-process-data video` folder, on our frames, pixels and held-out split).
 # HERE, after assemble (SCENES=" " assembles without D-NeRF scenes), once per capture (about 20 s; needs the
@@ -74,8 +70,8 @@
 #   scores ours (official_score.py) into official_real_[TAG_]GPU.json and official_NAME.json;
 #   `python -m garo_ns.bench.summary ... --official FILE` puts each row under `official` in the capture's row of
 #   real_<GPU>.json, with the baseline's PSNR minus the official one (`psnr_gap_db`).
-# Phases: assemble | prepare-real CAPTURE NAME | start SCENE PORT | status | wait SECONDS | stop-after ITER SECONDS |
-#         score | patch P... (apply patches to W/code; OFFICIAL_WORK=DIR sets W, default /tmp/w)
+# Phases: assemble | prepare-real CAPTURE NAME | start SCENE PORT | status | wait SECONDS | score |
+#         patch P... (apply patches to W/code; OFFICIAL_WORK=DIR sets W, default /tmp/w)
 set -u
 phase=$1
 shift
@@ -171,7 +167,8 @@ replace() { # FILE COUNT OLD NEW (sed patterns, without "|")
 apply_patch() {
   local c=$W/code ras=$W/code/submodules/depth-diff-gaussian-rasterization/cuda_rasterizer what
   case $1 in
-  normalized_rotation) # the rasterizer gets normalize(q + dq), as gsplat normalises ours
+  normalized_rotation) # the rasterizer gets normalize(q + dq), as gsplat normalises ours (the official kernel reads
+    # an unnormalised q as a rotation that also scales and shears)
     replace $c/gaussian_renderer/__init__.py 1 'rotations = pc.get_rotation + d_rotation$' \
       'rotations = torch.nn.functional.normalize(pc.get_rotation + d_rotation)' || return 1
     what="gaussian_renderer/__init__.py hands the rasterizer normalize(q + dq)" ;;
@@ -293,26 +290,6 @@ wait)
   status
   if all_ended || [ "$(now)" -ge "$(deadline)" ]; then exec bash "$0" score; fi
   echo "not done yet: call wait again"
-  ;;
-stop-after)
-  it=$1 limit=$(($(now) + $2))
-  while [ "$(now)" -lt "$limit" ]; do
-    n=0
-    for s in $(cat $W/scenes); do
-      [ -e $W/out/$s/deform/iteration_$it/deform.pth ] || [ -e $W/$s.end ] || continue
-      n=$((n + 1))
-      if [ ! -e $W/$s.end ]; then # the .pth is written after the .ply; give it a moment to close
-        sleep 5
-        if [ ! -e $W/$s.end ] && kill -KILL -- -"$(cat $W/$s.pid)"; then
-          echo 137 >$W/$s.rc && date +%s.%N >$W/$s.end && echo "stopped $s after its $it save"
-        fi
-      fi
-    done
-    [ $n -eq "$(wc -l <$W/scenes)" ] && break
-    status | head -4
-    sleep 15
-  done
-  exec bash "$0" score
   ;;
 score)
   # Stop whatever still trains (each run is its own process session), so timing has the GPU alone.

@@ -150,10 +150,7 @@ class OfficialRun:
         return self.deform.step(xyz.detach(), time_input)
 
     def raster(self, view: Any, d) -> torch.Tensor:
-        d_xyz, d_rotation, d_scaling = d
-        return self.render_fn(view, self.gaussians, self.pipe, self.bg, d_xyz, d_rotation, d_scaling, self.is_6dof)[
-            "render"
-        ]
+        return self.render_fn(view, self.gaussians, self.pipe, self.bg, *d, self.is_6dof)["render"]
 
     def frame(self, view: Any) -> torch.Tensor:
         return self.raster(view, self.deformation(view))
@@ -216,16 +213,6 @@ def score(model: OfficialRun, data: Path, ssim: Any, lpips: Any) -> Dict[str, An
     }
 
 
-def measure_fps(model: OfficialRun) -> Dict[str, Any]:
-    """garo_ns.bench.timing's FPS protocol on the official renderer."""
-    from garo_ns.bench.timing import fps_protocol
-
-    # The official loader's cameras are already prepared on the GPU.
-    return fps_protocol(
-        model.views, model.frame, model.deformation, model.raster, torch.device("cuda"), WARMUP, REPEATS
-    )
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--work", type=Path, required=True, help="W: data/SCENE, out/SCENE, SCENE.log")
@@ -233,11 +220,11 @@ def main() -> None:
     ap.add_argument("--scenes", nargs="+", required=True)
     ap.add_argument("--output", type=Path, required=True, help="combined JSON")
     ap.add_argument("--sources", type=Path, default=None, help="JSON naming the official commits used")
-    ap.add_argument("--target-iterations", type=int, default=None, help="default: the run's own --iterations")
     ap.add_argument("--note", default="", help="how the GPU was shared during training (other runs beside these)")
     args = ap.parse_args()
 
     sys.path.insert(0, str(args.code.resolve()))  # the official top-level packages (scene, utils, ...)
+    from garo_ns.bench.timing import fps_protocol
     from garo_ns.engine.metrics import make_lpips
 
     try:  # what GaroModel.ssim is
@@ -271,12 +258,10 @@ def main() -> None:
         torch.cuda.empty_cache()
         model = OfficialRun(run, data, it)
         metrics = score(model, data, real_ssim if model.real else ssim, lpips)
-        target = args.target_iterations or run_iterations(model.cfg)
-        timing = measure_fps(model)
+        # The FPS protocol on the official renderer; the official loader's cameras are already prepared on the GPU.
+        timing = fps_protocol(model.views, model.frame, model.deformation, model.raster, "cuda", WARMUP, REPEATS)
         official = {
-            "psnr": metrics["psnr"],
-            "ssim": metrics["ssim"],
-            "lpips": metrics["lpips"],
+            **{k: metrics[k] for k in ("psnr", "ssim", "lpips")},
             "num_gaussians": int(model.gaussians.get_xyz.shape[0]),
             "fps": timing["fps"],
             "ms_deformation": timing["ms_deformation"],
@@ -286,22 +271,17 @@ def main() -> None:
             "kind": "real" if model.real else "dnerf",
             "train_args": train_args(model.cfg),
             "train_seconds": (end - start) if start is not None and end is not None else None,
-            "psnr_official_gt": metrics["psnr_official_gt"],
-            "gt_max_difference": metrics["gt_max_difference"],
-            "n_images": metrics["n_images"],
-            "resolution": metrics["resolution"],
+            **{k: metrics[k] for k in ("psnr_official_gt", "gt_max_difference", "n_images", "resolution")},
             "timing": timing,
         }
         row.update(
-            {
-                "official": official,
-                "official_reported_psnr": info["reported"].get(it),
-                "official_reported_psnr_by_iteration": {str(k): v for k, v in sorted(info["reported"].items())},
-                "shortened": it < target,
-                "training_complete": bool(info["complete"]),
-                "training_exit_code": None if rc is None else int(rc),
-                "last_progress_iteration": info["last_progress"],
-            }
+            official=official,
+            official_reported_psnr=info["reported"].get(it),
+            official_reported_psnr_by_iteration={str(k): v for k, v in sorted(info["reported"].items())},
+            shortened=it < run_iterations(model.cfg),
+            training_complete=bool(info["complete"]),
+            training_exit_code=None if rc is None else int(rc),
+            last_progress_iteration=info["last_progress"],
         )
         (args.work / "results" / f"official_{name}.json").write_text(json.dumps(row, indent=2))
         print(

@@ -27,6 +27,7 @@ import sys
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
+from garo_ns.bench.results import cell
 from garo_ns.bench.summary import BASELINE, CLAIM_FPS_RATIO, CLAIM_PSNR_DROP_DB, claim_sentence, summarise
 from garo_ns.bench.targets import target_lines
 from garo_ns.bench.transfer import trained_elsewhere
@@ -89,10 +90,6 @@ def scene_row(path: Path) -> Dict[str, Any]:
     }
 
 
-def _lpips(value: Optional[float]) -> str:
-    return "-" if value is None else f"{value:.4f}"
-
-
 def render_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     """The Markdown between the markers (without them)."""
     files = find_files(results)
@@ -113,7 +110,7 @@ def render_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
         b, g = r["base"], r["garo"]
         lines.append(
             f"| {r['label']} ({r['split']}) | {b['psnr']:.2f} / {g['psnr']:.2f} "
-            f"| {_lpips(b.get('lpips'))} / {_lpips(g.get('lpips'))} | {b['fps']:.1f} / {g['fps']:.1f} "
+            f"| {cell(b.get('lpips'), '.4f')} / {cell(g.get('lpips'), '.4f')} | {b['fps']:.1f} / {g['fps']:.1f} "
             f"| {r['speedup']:.2f}x | {r['dpsnr']:+.2f} dB | {b['num_gaussians']:,} / {g['num_gaussians']:,} |"
         )
     n = len(by_scene)
@@ -140,7 +137,7 @@ def render_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
         )
     )
     sources = "; ".join(
-        f"{r['label']}: [`{r['file'].name}`]({Path(os.path.relpath(r['file'], readme_dir)).as_posix()}), "
+        f"{r['label']}: {_link(r['file'], readme_dir)}, "
         f"commit {str(r['commit'])[:7]}, {r['base']['iterations']:,} / {r['garo']['iterations']:,} steps"
         for r in rows
     )
@@ -184,13 +181,21 @@ def _link(path: Path, readme_dir: Path) -> str:
     return f"[`{path.name}`]({Path(os.path.relpath(path, readme_dir)).as_posix()})"
 
 
+def gpu_files(results: Path, kind: str) -> List[Path]:
+    """The `<kind>_<GPU>.json` files, by name (not `<kind>_<more>_<GPU>.json`)."""
+    return sorted(p for p in results.glob(f"{kind}_*.json") if re.fullmatch(rf"{kind}_[^_]+\.json", p.name))
+
+
+def _gpu(path: Path) -> str:
+    """The GPU model a `<kind>_<GPU>.json` file names."""
+    return path.stem.rpartition("_")[2]
+
+
 def _load(results: Path, name: str) -> Tuple[Path, Optional[Dict[str, Any]]]:
     path = results / name
     return path, json.loads(path.read_text()) if path.exists() else None
 
 
-ABLATION_FILE = re.compile(r"paper_table3_(?P<gpu>[^_]+)\.json")
-RHO_FILE = re.compile(r"paper_fig5_(?P<gpu>[^_]+)\.json")
 WHAT_IT_PRUNES = {
     "garo-oaa": "activity alone",
     "garo-gca": "curvature alone",
@@ -222,10 +227,8 @@ def rho_places(rhos: List[float]) -> str:
 def ablation_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     """The paper's Table 3 (one scene: each criterion alone against both) and Fig. 5 (rho_max), from the files the
     retired garo_ns/bench/ablation.py wrote (benchmarks/HISTORY.md, "Retired scripts")."""
-    paths = sorted(p for p in results.glob("paper_table3_*.json") if ABLATION_FILE.fullmatch(p.name))
-    rho_paths = sorted(p for p in results.glob("paper_fig5_*.json") if RHO_FILE.fullmatch(p.name))
     out = []
-    for path in paths:
+    for path in gpu_files(results, "paper_table3"):
         data = json.loads(path.read_text())
         arms = [arm for name in data["variants"] for arm in (data["rows"][name][name], data["rows"][name][BASELINE])]
         steps = sorted({f"{a['iterations']:,}" if a.get("iterations") else "mixed" for a in arms})
@@ -245,7 +248,7 @@ def ablation_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
             v, base = row[name], row[BASELINE]
             out.append(
                 f"| `{name}` | {WHAT_IT_PRUNES.get(name, '-')} | {len(row.get('runs', [row]))} | "
-                f"{-v['psnr_drop_db']:+.2f} dB | {_lpips(base['lpips'])} / {_lpips(v['lpips'])} | "
+                f"{-v['psnr_drop_db']:+.2f} dB | {cell(base['lpips'], '.4f')} / {cell(v['lpips'], '.4f')} | "
                 f"{v['fps_ratio']:.2f}x | {v['gaussian_ratio']:.0%} |"
             )
         out += ["", data["ordering_sentence"]]
@@ -258,7 +261,7 @@ def ablation_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
                     f"`{name}`'s runs range from {lo:.2f}x to {hi:.2f}x: one run per variant is noise-level evidence "
                     "for differences smaller than that.",
                 ]
-    for path in rho_paths:
+    for path in gpu_files(results, "paper_fig5"):
         out += rho_lines(json.loads(path.read_text()), path, readme_dir)
     return "\n".join(out + [""])
 
@@ -401,11 +404,7 @@ def training_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     if not files:
         return "\nTraining has not been timed yet (`python -m garo_ns.bench.train_speed`).\n"
     # The newest file (its `date`; one without is older than any with): earlier ones are in docs/benchmarks.md.
-    newest = max(files, key=lambda p: json.loads(p.read_text()).get("date") or "")
-    return _training_line(newest, readme_dir)
-
-
-def _training_line(path: Path, readme_dir: Path) -> str:
+    path = max(files, key=lambda p: json.loads(p.read_text()).get("date") or "")
     data = json.loads(path.read_text())
     parts = []
     for method, e in data["methods"].items():
@@ -428,24 +427,13 @@ def _training_line(path: Path, readme_dir: Path) -> str:
     )
 
 
-COMPACT_FILE = re.compile(r"compact_(?P<gpu>[^_]+)\.json")
-CHOICE_FILE = "compaction_choice18k_H100.json"
-
-
 def compaction_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     """`garo-compact` against the baseline at 40k with a target judged, from `compact_<GPU>.json`
-    (`python -m garo_ns.bench.summary ... --target compaction` or `--target time-table`); until that exists,
-    where its defaults come from."""
-    paths = sorted(p for p in results.glob("compact_*.json") if COMPACT_FILE.fullmatch(p.name))
-    paths = [p for p in paths if p.stem == f"compact_{README_GPU}"] or paths
+    (`python -m garo_ns.bench.summary ... --target compaction` or `--target time-table`)."""
+    paths = gpu_files(results, "compact")
+    paths = [p for p in paths if _gpu(p) == README_GPU] or paths
     if not paths:
-        line = "\n`garo-compact` has not been run at 40k yet."
-        if (results / CHOICE_FILE).exists():
-            line += (
-                f" Its defaults were chosen on the three scenes at a shortened 18k schedule "
-                f"({_link(results / CHOICE_FILE, readme_dir)}; docs/compaction.md says how)."
-            )
-        return line + "\n"
+        return "\n`garo-compact` has not been run at 40k yet.\n"
     out: List[str] = []
     for path in paths:  # kept short: the criterion table is in the file's .md, the README stays under 15 KB
         data = json.loads(path.read_text())
@@ -468,7 +456,8 @@ def compaction_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
         for label, r in [(r["scene"], r) for r in data["rows"]] + [("average", data["average"])]:
             b, p, f = r[base], r[plain], r[fast]
             out.append(
-                f"| {label} | {b['psnr']:.2f} / {p['psnr']:.2f} | {_lpips(b.get('lpips'))} / {_lpips(p.get('lpips'))} "
+                f"| {label} | {b['psnr']:.2f} / {p['psnr']:.2f} "
+                f"| {cell(b.get('lpips'), '.4f')} / {cell(p.get('lpips'), '.4f')} "
                 f"| {b['fps']:.0f} / {f['fps']:.0f} | {f['fps_ratio']:.2f}x "
                 f"| {b['num_gaussians']:,.0f} / {p['num_gaussians']:,.0f} |"
                 + (f" {r[size]['model_size_mb']:.1f} |" if size else "")
@@ -489,7 +478,6 @@ def compaction_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     return "\n".join(out + [""])
 
 
-REAL_FILE = re.compile(r"real_(?P<gpu>[^_]+)\.json")
 REAL_CAPTURES = ("pillow", "teddy", "cat-pikachu-7", "nerfies-cake")
 """The real captures of ../shared/data/real that the real-capture block is meant to cover."""
 REAL_ARMS = ("deform-splatfacto", "garo-deform", "garo-compact")
@@ -508,7 +496,7 @@ def real_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     (garo_ns.bench.summary over one benchmark file per capture, each capture's arms trained in one run; the official
     D-3DGS code's score under `official`) and, for training memory, the per-capture files it names. Each file's GPU
     names its rows."""
-    paths = sorted(p for p in results.glob("real_*.json") if REAL_FILE.fullmatch(p.name))
+    paths = gpu_files(results, "real")
     if not paths:
         return "\nNo real capture has been measured yet.\n"
     # A capture in two files is shown from the one that measured more captures together (then by name).
@@ -522,7 +510,7 @@ def real_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     out = [
         "",
         f"Real captures' held-out frames, `-real` methods, 20k steps at {', '.join(commits)} ("
-        + ", ".join(f"{REAL_FILE.fullmatch(p.name)['gpu']}: {_link(p, readme_dir)}" for p, _ in files)
+        + ", ".join(f"{_gpu(p)}: {_link(p, readme_dir)}" for p, _ in files)
         + "): PSNR / LPIPS; FPS against the baseline's (`+auto`: the model's switches):",
         "",
         "| capture | `deform-splatfacto-real` | `garo-deform-real` | `garo-compact-real+auto` | official D-3DGS "
@@ -536,9 +524,9 @@ def real_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
         official = row.get("official") or {}
         peak = max(source[a]["peak_memory_mb"]["training"] for a in REAL_ARMS) / 1024
         out.append(
-            f"| {scene} ({REAL_FILE.fullmatch(path.name)['gpu']}) | {base['psnr']:.2f} / {_lpips(base.get('lpips'))}, "
-            f"{base['fps']:.0f} FPS | {deform['psnr']:.2f} / {_lpips(deform.get('lpips'))}, "
-            f"{deform['fps'] / base['fps']:.2f}x | {fast['psnr']:.2f} / {_lpips(fast.get('lpips'))}, "
+            f"| {scene} ({_gpu(path)}) | {base['psnr']:.2f} / {cell(base.get('lpips'), '.4f')}, "
+            f"{base['fps']:.0f} FPS | {deform['psnr']:.2f} / {cell(deform.get('lpips'), '.4f')}, "
+            f"{deform['fps'] / base['fps']:.2f}x | {fast['psnr']:.2f} / {cell(fast.get('lpips'), '.4f')}, "
             f"{fast['fps'] / base['fps']:.2f}x | {_official(official)} | {peak:.1f} |"
         )
     rows = [r for _, _, r in shown.values()]

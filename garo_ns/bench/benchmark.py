@@ -53,36 +53,20 @@ RENDER_SWITCHES: Dict[str, Dict[str, Any]] = {
     "fp16": {"storage": "fp16"},
     # What a user of ns-viewer, ns-render or garo-eval gets without flags: every switch left to the
     # finished model, which decides from the losses it measured at the end of training.
-    "auto": {
-        "static_skip": None,
-        "cuda_graph": None,
-        "lean_raster": None,
-        "time_table": None,
-    },
+    "auto": {"static_skip": None, "cuda_graph": None, "lean_raster": None, "time_table": None},
     # The time table forced on (garo_ns.render.time_table), whatever the model measured.
     "table": {"time_table": True},
 }
+# The plain render: every switch off, the parameters as trained.
+PLAIN_RENDER = {"static_skip": False, "cuda_graph": False, "lean_raster": False, "time_table": False, "storage": "fp32"}
 # Render-time rows added by --speed for every trained variant: each switch alone, then together.
-SPEED_ROWS = (
-    "+static",
-    "+graph",
-    "+lean",
-    "+static+graph",
-    "+static+graph+lean",
-    "+static+graph+lean+fp16",
-)
+SPEED_ROWS = ("+static", "+graph", "+lean", "+static+graph", "+static+graph+lean", "+static+graph+lean+fp16")
 
 
 def split_variant(name: str) -> Tuple[str, Dict[str, Any]]:
     """(trained variant, render-time model-config overrides) of a variant name like `garo-deform+static`."""
     base, *switches = name.split("+")
-    render: Dict[str, Any] = {
-        "static_skip": False,
-        "cuda_graph": False,
-        "lean_raster": False,
-        "time_table": False,
-        "storage": "fp32",
-    }
+    render = dict(PLAIN_RENDER)
     for switch in switches:
         if switch not in RENDER_SWITCHES:
             raise ValueError(f"unknown render switch '+{switch}' in {name!r} (known: {sorted(RENDER_SWITCHES)})")
@@ -257,7 +241,7 @@ def train_variant(args: BenchArgs, name: str, deadline: Optional[float]) -> Dict
     import torch
     from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
-    from garo_ns.tools.train import QuickSchedule, make_config, seed_everything
+    from garo_ns.tools.train import QuickSchedule, make_config, setup_trainer
 
     method, overrides = variant_settings(name)
     if args.real():
@@ -278,10 +262,7 @@ def train_variant(args: BenchArgs, name: str, deadline: Optional[float]) -> Dict
     for key, value in overrides.items():
         setattr(config.pipeline.model, key, value)
     config.logging.local_writer.enable = True  # progress lines in the worker's log
-    config.save_config()
-    seed_everything(config.machine.seed)  # as ns-train does: the same initial Gaussians in every variant
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
+    trainer = setup_trainer(config)  # seeded as ns-train seeds: the same initial Gaussians in every variant
     last_step = {"step": 0}
 
     def watch(step: int) -> None:
@@ -409,16 +390,9 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
         result = evaluate(pipeline, args.scene, args.split)
         timing = measure_fps(model, cameras, warmup=args.warmup_views, repeats=args.timing_repeats)
         out = {
-            "psnr": result["psnr"],
-            "psnr_per_view": result["psnr_per_view"],
-            "ssim": result["ssim"],
-            "lpips": result["lpips"],
-            "fps": timing["fps"],
-            "ms_per_view": timing["ms_per_view"],
-            "ms_deformation": timing["ms_deformation"],
-            "ms_rasterization": timing["ms_rasterization"],
+            **{k: result[k] for k in ("psnr", "psnr_per_view", "ssim", "lpips", "num_gaussians")},
+            **{k: timing[k] for k in ("fps", "ms_per_view", "ms_deformation", "ms_rasterization")},
             "ms_per_view_same_time": measure_same_time(model, cameras),
-            "num_gaussians": result["num_gaussians"],
             "static_fraction": model.static_fraction(),
             "render_settings": {**settings, "static_threshold": model.config.static_threshold, "storage_fp16": half},
             # The switches the frame path used: the row's own, or with +auto the model's choice.
@@ -431,15 +405,10 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
             },
             "model_size_mb": state["compact_mb"] if half else model_size_mb(model),
             "storage": "fp16 (positions fp32)" if half else "fp32",
-            "train_seconds": record["train_seconds"],
-            "train_steps_per_second": record["train_steps_per_second"],
-            "iterations": record["iterations"],
+            **{k: record[k] for k in ("train_seconds", "train_steps_per_second", "iterations", "stopped_by_deadline")},
             "shortened": record["iterations"] < args.full_schedule(),
-            "stopped_by_deadline": record["stopped_by_deadline"],
             "deformation_collapsed": record.get("deformation_collapsed"),
-            "garo_mode": model.config.garo_mode,
-            "rho_max": model.config.rho_max,
-            "prune_contribution_ratio": model.config.prune_contribution_ratio,
+            **{k: getattr(model.config, k) for k in ("garo_mode", "rho_max", "prune_contribution_ratio")},
             "compaction": summary_for_json(model.strategy_state.get("compact")),
             "checkpoint_step": int(step),
             # Where this arm trained: this run, or (imported with --pretrained) an earlier run's machine and commit.

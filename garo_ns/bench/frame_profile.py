@@ -19,10 +19,11 @@ from typing import Any, Dict, Iterator
 
 import torch
 
-from garo_ns.bench.timing import _background, _sync, prepare_views
+from garo_ns.bench.timing import _background, prepare_views
 from garo_ns.render.backend import rasterize_lean, resolve_backend
 from garo_ns.render.kernels import TILE_SIZE, lean_front
 from garo_ns.render.view import RenderView
+from garo_ns.tools.eval import synchronize
 
 STAGES = ("deformation", "projection", "color", "sorting", "compositing")
 
@@ -94,10 +95,10 @@ def _profile(model: Any, cameras: Any, warmup: int, repeats: int) -> Dict[str, f
 
     @contextmanager
     def stage(name: str, record: bool) -> Iterator[None]:
-        _sync(device)
+        synchronize(device)
         t0 = time.perf_counter()
         yield
-        _sync(device)
+        synchronize(device)
         if record:
             totals[name] += time.perf_counter() - t0
 

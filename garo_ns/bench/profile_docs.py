@@ -88,20 +88,15 @@ def docs_block(results: Sequence[Path]) -> str:
     return "\n".join(parts)
 
 
-def write_docs(doc: Path, results: Sequence[Path]) -> bool:
-    """Replace the block between the markers in `doc` with `docs_block(results)`; True if it changed."""
+def docs_main() -> None:
+    """`python -m garo_ns.bench.profile_docs DOC RESULT...`: rewrite DOC's block between the markers with
+    `docs_block(RESULT...)`."""
+    doc, *results = map(Path, sys.argv[1:])
     text = doc.read_text()
     head, rest = text.split(DOCS_BEGIN, 1)
-    _, tail = rest.split(DOCS_END, 1)
-    new = f"{head}{DOCS_BEGIN}\n{docs_block(results)}{DOCS_END}{tail}"
+    new = f"{head}{DOCS_BEGIN}\n{docs_block(results)}{DOCS_END}{rest.split(DOCS_END, 1)[1]}"
     doc.write_text(new)
-    return new != text
-
-
-def docs_main() -> None:
-    """`python -m garo_ns.bench.profile_docs DOC RESULT...`: rewrite DOC's profile block."""
-    doc, *results = sys.argv[1:]
-    print(f"{doc}: {'rewritten' if write_docs(Path(doc), [Path(r) for r in results]) else 'unchanged'}")
+    print(f"{doc}: {'rewritten' if new != text else 'unchanged'}")
 
 
 if __name__ == "__main__":

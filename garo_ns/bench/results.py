@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 
 def publish(result: Dict[str, Any], output: Path, report: Callable[[Dict[str, Any], Path], Tuple[Path, Path]]) -> None:
@@ -53,3 +53,8 @@ def read_results(paths: Sequence[Path]) -> List[Tuple[str, Dict[str, Any]]]:
         except (OSError, json.JSONDecodeError) as err:
             raise SystemExit(f"error: cannot read benchmark result {path}: {err}") from None
     return loaded
+
+
+def cell(value: Optional[float], spec: str) -> str:
+    """A table's cell: `value` formatted by `spec`, or a dash where there is none."""
+    return "-" if value is None else format(value, spec)

@@ -116,11 +116,14 @@ class StepInstrument:
         self._handles: List[Any] = []
         dm, model, opt = trainer.pipeline.datamanager, self.model, trainer.optimizers
         self._wrap(dm, "next_train", "data")
-        self._wrap(model, "gaussians_at", "deformation_forward", self._hook_splats)
+        # The backward pass's cuts: where the gradient reaches the deformed Gaussians, the render and the loss.
+        self._wrap(model, "gaussians_at", "deformation_forward", lambda splats: self._hook(splats.means, "splats_grad"))
         self._wrap(model, "render", "rasterization_forward")
         self._wrap(model, "get_metrics_dict", "metrics")
-        self._wrap(model, "get_loss_dict", "loss_forward", self._hook_loss)
-        self._wrap(model, "get_outputs", None, self._hook_render)
+        self._wrap(
+            model, "get_loss_dict", "loss_forward", lambda loss: self._hook(loss.get("main_loss"), "backward_start")
+        )
+        self._wrap(model, "get_outputs", None, lambda outputs: self._hook(outputs.get("rgb"), "render_grad"))
         self._wrap(model.strategy, "step_post_backward", "strategy")
         self._wrap(opt, "zero_grad_some", "optimizers")
         self._wrap(opt, "optimizer_scaler_step_some", "optimizers", point="optimizer_step")
@@ -165,19 +168,9 @@ class StepInstrument:
         return hook
 
     def _hook(self, tensor: Any, name: str) -> None:
-        if isinstance(tensor, torch.Tensor) and tensor.requires_grad:
+        """Mark the point `name` when the gradient reaches `tensor` (a training step's tensors only)."""
+        if self.model.training and isinstance(tensor, torch.Tensor) and tensor.requires_grad:
             self._handles.append(tensor.register_hook(self._point(name)))
-
-    def _hook_splats(self, splats: Any) -> None:
-        if self.model.training:
-            self._hook(splats.means, "splats_grad")
-
-    def _hook_render(self, outputs: Any) -> None:
-        if self.model.training:
-            self._hook(outputs.get("rgb"), "render_grad")
-
-    def _hook_loss(self, losses: Dict[str, Any]) -> None:
-        self._hook(losses.get("main_loss"), "backward_start")
 
     def begin_step(self) -> None:
         if self.active:

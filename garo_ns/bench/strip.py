@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
-from typing import Any, List, Optional, Sequence
+from typing import Any, List, Sequence
 
 import numpy as np
 
@@ -61,9 +61,7 @@ def save_views(pipeline: Any, scene: Path, split: str, out_dir: Path, variant: s
     return written
 
 
-def draw_strip(
-    renders_dir: Path, output: Path, variants: Sequence[str], title: str = "", labels: Optional[Sequence[str]] = None
-) -> Path:
+def draw_strip(renders_dir: Path, output: Path, variants: Sequence[str], title: str = "") -> Path:
     """A PNG: the ground truth's views in the first row and each variant's below, columns by time. A variant
     without a folder is left out; the views are those every row has."""
     import imageio.v2 as imageio
@@ -72,9 +70,7 @@ def draw_strip(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows = [(GROUND_TRUTH, "ground truth")]
-    names = list(labels) if labels else list(variants)
-    rows += [(v, n) for v, n in zip(variants, names) if (renders_dir / v).is_dir()]
+    rows = [(GROUND_TRUTH, "ground truth")] + [(v, v) for v in variants if (renders_dir / v).is_dir()]
     views = sorted(set.intersection(*(set(p.stem for p in (renders_dir / r).glob("*.png")) for r, _ in rows)))
     if len(rows) < 2 or not views:
         raise SystemExit(f"{renders_dir}: no views shared by the ground truth and a variant")

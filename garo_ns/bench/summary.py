@@ -17,7 +17,7 @@ from typing import Any, Dict, List, Literal, Optional, Tuple
 
 import tyro
 
-from garo_ns.bench.results import publish, read_results, save_figure
+from garo_ns.bench.results import cell, publish, read_results, save_figure
 from garo_ns.bench.targets import TARGETS, check_target, target_lines
 from garo_ns.bench.transfer import trained_elsewhere
 
@@ -210,9 +210,6 @@ def write_report(summary: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    def fmt(v: Optional[float], spec: str) -> str:
-        return "-" if v is None else format(v, spec)
-
     lines = [f"# Baseline ({BASELINE}) against {', '.join(summary['variants'])} on {', '.join(summary['gpus'])}", ""]
     head = "| scene | split | variant | steps | PSNR | SSIM | LPIPS | FPS | speed-up | PSNR drop | Gaussians | MB |"
     lines += [head, "|---|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -228,11 +225,11 @@ def write_report(summary: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
             v = row[name]
             gaussians = "-" if v["num_gaussians"] is None else f"{v['num_gaussians']:.0f}"
             lines.append(
-                f"| {scene} | {split} | {name} | {v.get('iterations', '') or ''} | {fmt(v['psnr'], '.2f')} | "
-                f"{fmt(v['ssim'], '.4f')} | "
-                f"{fmt(v['lpips'], '.4f')} | {fmt(v['fps'], '.1f')} | "
-                f"{fmt(v.get('fps_ratio'), '.2f') + 'x' if v.get('fps_ratio') else '-'} | "
-                f"{fmt(v.get('psnr_drop_db'), '+.2f')} | {gaussians} | {fmt(v['model_size_mb'], '.1f')} |"
+                f"| {scene} | {split} | {name} | {v.get('iterations', '') or ''} | {cell(v['psnr'], '.2f')} | "
+                f"{cell(v['ssim'], '.4f')} | "
+                f"{cell(v['lpips'], '.4f')} | {cell(v['fps'], '.1f')} | "
+                f"{cell(v.get('fps_ratio'), '.2f') + 'x' if v.get('fps_ratio') else '-'} | "
+                f"{cell(v.get('psnr_drop_db'), '+.2f')} | {gaussians} | {cell(v['model_size_mb'], '.1f')} |"
             )
     lines += ["", claim_sentence(summary, summary["variants"])]
     if summary["shortened_scenes"]:
@@ -243,7 +240,7 @@ def write_report(summary: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
             lines += [
                 "",
                 f"{r['scene']}: the official D-3DGS code ({o['iterations']} it, {o['gpu']}, {o['source']}): PSNR "
-                f"{fmt(o['psnr'], '.2f')}, SSIM {fmt(o['ssim'], '.4f')}, LPIPS {fmt(o['lpips'], '.4f')}; "
+                f"{cell(o['psnr'], '.2f')}, SSIM {cell(o['ssim'], '.4f')}, LPIPS {cell(o['lpips'], '.4f')}; "
                 f"{BASELINE} minus official: {o['psnr_gap_db']:+.2f} dB.",
             ]
     if "target_check" in summary:

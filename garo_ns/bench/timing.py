@@ -18,11 +18,7 @@ from typing import Any, Callable, Dict, List
 import torch
 
 from garo_ns.render.view import RenderView
-
-
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
+from garo_ns.tools.eval import synchronize
 
 
 def prepare_views(model: Any, cameras: Any) -> List[RenderView]:
@@ -56,25 +52,25 @@ def fps_protocol(
     device = torch.device(device)
     for i in range(warmup):
         frame(views[i % len(views)])
-    _sync(device)
+    synchronize(device)
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     totals, mlps, rasters = [], [], []
     for _ in range(repeats):
         for view in views:
-            _sync(device)
+            synchronize(device)
             t0 = time.perf_counter()
             frame(view)
-            _sync(device)
+            synchronize(device)
             totals.append(time.perf_counter() - t0)
     for view in views:
-        _sync(device)
+        synchronize(device)
         t0 = time.perf_counter()
         deformed = deform(view)
-        _sync(device)
+        synchronize(device)
         t1 = time.perf_counter()
         raster(view, deformed)
-        _sync(device)
+        synchronize(device)
         mlps.append(t1 - t0)
         rasters.append(time.perf_counter() - t1)
     mean = sum(totals) / len(totals)
@@ -105,14 +101,14 @@ def paired_fps(
     for _ in range(warmup):
         for name in names:
             frames[name]()
-    _sync(device)
+    synchronize(device)
     pass_ms: Dict[str, List[float]] = {name: [] for name in names}
     for p in range(passes):
         for name in names if p % 2 == 0 else names[::-1]:
-            _sync(device)
+            synchronize(device)
             t0 = time.perf_counter()
             count = frames[name]()
-            _sync(device)
+            synchronize(device)
             pass_ms[name].append(1000.0 * (time.perf_counter() - t0) / max(int(count), 1))
     out = {}
     for name, ms in pass_ms.items():
@@ -131,7 +127,7 @@ def frame_pass(model: Any, cameras: Any) -> Callable[[], int]:
     def run() -> int:
         for view in views:
             model.render(view, backgrounds=background)
-            _sync(device)
+            synchronize(device)
         return len(views)
 
     return run
@@ -162,10 +158,10 @@ def measure_same_time(model: Any, cameras: Any) -> float:
     times = []
     for view in prepare_views(model, cameras):
         model.gaussians_at(view.time)
-        _sync(device)
+        synchronize(device)
         t0 = time.perf_counter()
         model.render(view, backgrounds=background, splats=model.gaussians_at(view.time))
-        _sync(device)
+        synchronize(device)
         times.append(time.perf_counter() - t0)
     return 1000.0 * sum(times) / len(times)
 

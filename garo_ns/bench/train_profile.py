@@ -43,6 +43,7 @@ from garo_ns.bench.host_syncs import SyncCounter, host_op_summary
 from garo_ns.bench.kernel_table import kernel_share, top_kernels
 from garo_ns.bench.profile_docs import markdown_table
 from garo_ns.bench.step_phases import StepInstrument, summarise_window
+from garo_ns.tools.eval import synchronize
 
 
 @dataclass
@@ -70,11 +71,6 @@ SETTINGS = ("plain_steps", "phase_steps", "profiler_steps", "host_op_steps", "ti
 """ProfileSettings' step counts, each a command-line option (`--plain-steps` ...) and recorded in the result."""
 
 
-def _sync(cuda: bool) -> None:
-    if cuda:
-        torch.cuda.synchronize()
-
-
 class TrainProfiler:
     """Runs the windows of `settings` inside a nerfstudio Trainer's loop (two training callbacks)."""
 
@@ -83,14 +79,17 @@ class TrainProfiler:
 
         self.trainer, self.settings = trainer, settings
         self.instrument = StepInstrument(trainer)
-        self.cuda = self.instrument.cuda
+        self.cuda, self.device = self.instrument.cuda, self.instrument.model.device
         self.windows: List[Dict[str, Any]] = []
         self._plan: Dict[int, Tuple[str, int]] = {}
-        parts = [("plain", settings.plain_steps), ("phases", settings.phase_steps)]
-        parts += [("profiler", settings.profiler_steps if self.cuda else 0), ("host_ops", settings.host_op_steps)]
-        for start in settings.windows:
+        # Each part of a window and its steps, in the order they run.
+        self._parts = {"plain": settings.plain_steps, "phases": settings.phase_steps}
+        self._parts.update(profiler=settings.profiler_steps if self.cuda else 0, host_ops=settings.host_op_steps)
+        span = sum(self._parts.values())
+        # A window whose steps (every part of it) pass the run's end is skipped.
+        for start in (w for w in settings.windows if w + span <= trainer.config.max_num_iterations):
             step = start
-            for kind, n in parts:
+            for kind, n in self._parts.items():
                 for _ in range(n):
                     self._plan[step] = (kind, start)
                     step += 1
@@ -118,12 +117,12 @@ class TrainProfiler:
             return
 
         def timed(*args: Any, **kwargs: Any) -> Any:
-            _sync(self.cuda)
+            synchronize(self.device)
             t0 = time.perf_counter()
             try:
                 return inner(*args, **kwargs)
             finally:
-                _sync(self.cuda)
+                synchronize(self.device)
                 self.render_choice_seconds = (self.render_choice_seconds or 0.0) + time.perf_counter() - t0
 
         switches.measure_on_training_views = timed
@@ -137,7 +136,7 @@ class TrainProfiler:
             if kind == "plain":
                 self._current = {"step": start, "gaussians": int(self.instrument.model.num_points)}
                 self.windows.append(self._current)
-            _sync(self.cuda)
+            synchronize(self.device)
             self._t0 = time.perf_counter()
             if kind == "phases":
                 self.instrument.active = True
@@ -164,15 +163,10 @@ class TrainProfiler:
         kind, start = self._plan.get(step, (None, None))
         if kind is None or self._plan.get(step + 1, (None, None)) == (kind, start):
             return
-        _sync(self.cuda)
+        synchronize(self.device)
         wall_ms = (time.perf_counter() - self._t0) * 1e3
         window = self._current if self._current is not None else {}
-        n = {
-            "plain": self.settings.plain_steps,
-            "phases": self.settings.phase_steps,
-            "profiler": self.settings.profiler_steps,
-            "host_ops": self.settings.host_op_steps,
-        }[kind]
+        n = self._parts[kind]
         if kind == "plain":
             window["plain_ms_per_step"] = wall_ms / n
         elif kind == "phases":
@@ -288,8 +282,8 @@ def schedule_lengths(config: Any, pairs: Sequence[str]) -> Dict[str, int]:
 
 def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
     from garo_ns.bench import transfer
-    from garo_ns.bench.benchmark import environment
-    from garo_ns.tools.train import QuickSchedule, make_config, seed_everything
+    from garo_ns.bench.benchmark import environment, model_overrides
+    from garo_ns.tools.train import QuickSchedule, make_config, setup_trainer
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scene", type=Path, required=True, help="a D-NeRF scene folder")
@@ -321,10 +315,7 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         "aside). Without it the run writes TensorBoard only, evaluates nothing and saves once, at the end",
     )
     args = parser.parse_args(argv)
-    from garo_ns.bench.benchmark import model_overrides
-
     overrides = model_overrides(args.set)
-
     config = make_config(
         args.method,
         args.scene,
@@ -342,15 +333,8 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
     lr_steps = schedule_lengths(config, args.lr_steps)
     data_settings = dataparser_settings(config, args.data_set)
     loop_work(config, args.method, args.as_ns_train)
-    config.save_config()
-    seed_everything(config.machine.seed)
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
-    # A window whose steps (every pass of it) pass the run's end is skipped.
-    span = args.plain_steps + args.phase_steps + args.host_op_steps
-    span += args.profiler_steps if args.device == "cuda" else 0
-    windows = [w for w in args.windows if w + span <= config.max_num_iterations]
-    settings = ProfileSettings(windows, **{key: getattr(args, key) for key in SETTINGS})
+    trainer = setup_trainer(config)
+    settings = ProfileSettings(args.windows, **{key: getattr(args, key) for key in SETTINGS})
     profiler = TrainProfiler(trainer, settings)
     start = time.perf_counter()
     trainer.train()

@@ -21,7 +21,7 @@ from pathlib import Path
 from statistics import mean
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
-from garo_ns.bench.results import utc_stamp, write_with_table
+from garo_ns.bench.results import cell, utc_stamp, write_with_table
 
 STEPS_40K = 40_000
 WARMUP_SPAN = (1000, 3000)  # inside the field's warm-up, past the start-up's first steps
@@ -117,10 +117,6 @@ def summary(before: Dict[str, List[Path]], after: Dict[str, List[Path]]) -> Dict
     return {"gpus": gpus, "methods": out}
 
 
-def _cell(value: Optional[float], fmt: str) -> str:
-    return "-" if value is None else format(value, fmt)
-
-
 def markdown(result: Dict[str, Any]) -> str:
     """One row per run (method, side, scene, commit, settings): minutes per 40k, of which the render choice,
     steps/s, test PSNR; then each method's ratio over the scenes both sides ran."""
@@ -132,10 +128,10 @@ def markdown(result: Dict[str, Any]) -> str:
         for side in ("before", "after"):
             for r in e.get(side, {}).get("runs", []):
                 settings = ", ".join(f"{k}={v}" for k, v in sorted(r.get("model_settings", {}).items())) or "-"
-                choice = _cell(r.get("render_choice_seconds"), ".0f")
+                choice = cell(r.get("render_choice_seconds"), ".0f")
                 lines.append(
                     f"| {method} | {side} | {r['scene']} | {(r['git_commit'] or '')[:7]} | {settings} | "
-                    f"{r['minutes_per_40k']:.2f} | {choice} | {r['steps_per_second']:.1f} | {_cell(r['psnr'], '.2f')} |"
+                    f"{r['minutes_per_40k']:.2f} | {choice} | {r['steps_per_second']:.1f} | {cell(r['psnr'], '.2f')} |"
                 )
         if "speedup" in e:
             change = f", PSNR {e['psnr_change_db']:+.2f} dB" if e.get("psnr_change_db") is not None else ""
@@ -164,11 +160,7 @@ def main(argv: Optional[Sequence[str]] = None) -> Tuple[Dict[str, Any], str]:
     parser.add_argument("--before", nargs="+", default=[], metavar="METHOD=FILE")
     parser.add_argument("--after", nargs="+", default=[], metavar="METHOD=FILE")
     parser.add_argument("--note", default="", help="what the two recipes are, recorded with the result")
-    parser.add_argument(
-        "--date",
-        default=None,
-        help="when the result was written (default: now, UTC, as 2026-01-31T12:00Z); the README shows the newest",
-    )
+    parser.add_argument("--date", help="when the result was written (default: now, UTC, as 2026-01-31T12:00Z)")
     parser.add_argument("--output", type=Path, required=True)
     args = parser.parse_args(argv)
     date = args.date or utc_stamp()

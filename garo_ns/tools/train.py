@@ -162,13 +162,20 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def train(config: Any) -> Any:
-    """Run training to the end; returns the Trainer (its pipeline holds the trained model)."""
+def setup_trainer(config: Any) -> Any:
+    """The Trainer of `config`, set up as `ns-train` sets it up: the config saved, Python, numpy and torch seeded (the
+    same initial Gaussians in every run of one seed)."""
     if not config.timestamp:
         config.set_timestamp()
     seed_everything(config.machine.seed)
     config.save_config()
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
+    return trainer
+
+
+def train(config: Any) -> Any:
+    """Run training to the end; returns the Trainer (its pipeline holds the trained model)."""
+    trainer = setup_trainer(config)
     trainer.train()
     return trainer
