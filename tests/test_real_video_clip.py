@@ -11,7 +11,7 @@ import os
 import subprocess
 import time
 from pathlib import Path
-from typing import Any, Dict
+from typing import Any, Dict, Tuple
 
 import pytest
 from test_video_e2e import _tool, train_briefly
@@ -44,22 +44,49 @@ def processed(tmp_path_factory) -> Dict[str, Any]:
     clip = root / "clip.mp4"
     cut = ["ffmpeg", "-v", "error", "-i", str(VIDEO), "-t", str(CLIP_SECONDS), "-c:v", "libx264", str(clip)]
     subprocess.run(cut, check=True, timeout=300)
+    return {"data": root / "data", "clip": clip, "seconds": {"process": process_video(clip, root / "data")}}
+
+
+def process_video(clip: Path, out: Path, *options: str) -> float:
+    """`ns-process-data video --no-gpu` of `clip` into `out` with `options`; the seconds it took."""
     start = time.perf_counter()
-    cmd = [_tool("ns-process-data"), "video", "--data", str(clip), "--output-dir", str(root / "data"), "--no-gpu"]
-    cmd += ["--num-frames-target", str(FRAMES)]
+    cmd = [_tool("ns-process-data"), "video", "--data", str(clip), "--output-dir", str(out), "--no-gpu"]
+    cmd += ["--num-frames-target", str(FRAMES), *options]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=2400, env={**os.environ, "COLUMNS": "200"})
     assert proc.returncode == 0, (proc.stdout + proc.stderr)[-3000:]
-    return {"data": root / "data", "seconds": {"process": time.perf_counter() - start}}
+    return time.perf_counter() - start
+
+
+def load_posed(data: Path) -> Tuple[Any, str]:
+    """The capture in `data` as the reader loads it, or None with the pose check's line where COLMAP posed too few
+    of its frames to train on (the line names the remedy)."""
+    from garo_ns.data.nerfds import NerfDSDataParserConfig, load_capture
+    from garo_ns.errors import GaroInputError
+
+    try:
+        return load_capture(data, NerfDSDataParserConfig(data=data, downscale_factor=DOWNSCALE)), ""
+    except GaroInputError as err:
+        assert "--matching-method exhaustive" in str(err), str(err)  # any other refusal is a failure
+        return None, str(err)
 
 
 def test_a_real_clip_is_posed_in_order_and_trains(processed, tmp_path):
-    from garo_ns.data.nerfds import NerfDSDataParserConfig, load_capture
-
     data = processed["data"]
     extracted = sorted(p.name for p in (data / "images").iterdir())
-    config = NerfDSDataParserConfig(data=data, downscale_factor=DOWNSCALE)
-    capture = load_capture(data, config)
+    capture, refusal = load_posed(data)
     figures: Dict[str, Any] = {"seconds": dict(processed["seconds"]), "frames": len(extracted)}
+    if capture is None or len(capture.ids) < MIN_POSED_SHARE * len(extracted):
+        # COLMAP's sequential matching on two cores is not repeatable: 45 of 45 frames posed at 4a4a6f5, 15 of 45 at
+        # d86d9bd. Where it poses too few, docs/data.md (and the pose check's line) say to match every pair: as a user
+        # would, the test processes the clip again with exhaustive matching and goes on with that.
+        figures["sequential"] = refusal or f"{len(capture.ids)} of {len(extracted)} posed"
+        data = processed["data"].with_name("data_exhaustive")
+        figures["seconds"]["process_exhaustive"] = process_video(
+            processed["clip"], data, "--matching-method", "exhaustive"
+        )
+        extracted = sorted(p.name for p in (data / "images").iterdir())
+        capture, refusal = load_posed(data)
+        assert capture is not None, (refusal, figures)
 
     # Posed: nearly every frame COLMAP was given.
     assert len(capture.ids) + len(capture.unposed) == len(extracted) >= FRAMES - 1, figures
