@@ -14,7 +14,8 @@
 #                                   on GPU 0 and `profile NAME_arm_SCENE` with the args on GPU 1, started together
 #   extra NAME CMD...               any other command in the background (parity, ...)
 #   wait SECONDS                    poll until every launched job ended or SECONDS passed, then collect
-#   collect                         pack results, logs and finished exports into $OUT
+#   collect                         pack results and logs into $OUT, and name the finished exports
+#   exports PATTERN                 the finished exports matching PATTERN into $OUT (a call of their own)
 # AFTER="JOB ..." before launch or profile starts it once those jobs have ended (a queue launched in one call);
 # each phase below says more.
 # A pair that does not fit one hold: export one arm in the first hold; here, `mkdir -p .trained/SCENE && cat
@@ -154,13 +155,15 @@ collect)
     mkdir -p $W/pack/$n; cp $d*.log $d*.json $W/pack/$n/ 2>/dev/null
   done
   tar -czf $OUT/results.tar.gz -C $W pack
-  # An export is a folder with model.ckpt and record.json, at any depth (launch with --export-dir $W/exports[/SCENE]);
-  # it comes back as [SCENE_]NAME.tar.part-aa... (15 MiB parts: the most one file from $OUT may be).
+  ls -la $OUT; echo "exports ready: $(cd $W/exports 2>/dev/null && find . -name model.ckpt | sed 's#^\./##; s#/model.ckpt##' | tr '\n' ' ')"
+  cat $W/results/*.md 2>/dev/null ;;
+exports)
+  # Finished exports whose path under $W/exports matches PATTERN (e.g. 'pillow/*'), as [SCENE_]NAME.tar.part-aa...
+  # (15 MiB parts). A call brings back at most 8 files and 64 MiB: one or two exports a call, never with `collect`.
   for e in $(find $W/exports -name record.json 2>/dev/null); do
     e=$(dirname $e); [ -e $e/model.ckpt ] || continue
     rel=${e#$W/exports/}
-    tar -cf - -C $W/exports $rel | split -b 15m - $OUT/${rel//\//_}.tar.part-
+    case $rel in $1) tar -cf - -C $W/exports $rel | split -b 15m - $OUT/${rel//\//_}.tar.part- ;; esac
   done
-  ls -la $OUT
-  cat $W/results/*.md 2>/dev/null ;;
+  ls -la $OUT ;;
 esac
