@@ -88,7 +88,8 @@ gputests)
       tests/test_time_table.py tests/test_render_switches.py tests/test_view.py tests/test_training_graphs.py tests/test_adam.py \
       tests/test_train_raster.py tests/test_train_profile.py tests/test_fused_ssim.py tests/test_dense.py tests/test_fp32_heads.py --tb=line 2>&1 \
       | tee $OUT/gputests_full.log | grep -E "Error|FAILED|ERROR| passed| failed" | tail -n 40
-    echo "last test started: $(grep -E '::' $OUT/gputests_full.log | tail -1)"; } | tee $OUT/gputests.log ;;
+    tail -1 $OUT/gputests_full.log | grep -qE "[0-9]+ (passed|failed)" \
+      || echo "last test started: $(grep -E '::' $OUT/gputests_full.log | tail -1)"; } | tee $OUT/gputests.log ;;
 launch)
   name=$1; scene=$2; split=$3; gpus=$4; shift 4
   [ -d /tmp/$scene ] || cp -r .scenes/$scene /tmp/$scene

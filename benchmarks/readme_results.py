@@ -352,7 +352,8 @@ def tests_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
 def _test_log(path: Path) -> Optional[Tuple[List[str], List[str], str]]:
     """A CUDA test log's first line's words (commit, date, GPU), its other lines and pytest's counts without the
     warnings (None: not such a log, or one that broke off)."""
-    lines = [x for x in path.read_text().splitlines() if x.strip()]
+    # Pytest's `-v` summary is framed in '='; the phase's own "last test started" line follows it.
+    lines = [x.strip("= ") for x in path.read_text().splitlines() if x.strip() and not x.startswith("last test")]
     head = lines[0].split() if lines else []
     if len(head) < 4 or head[0] != "commit" or not re.search(r"\d+ passed", lines[-1]):
         return None

@@ -274,6 +274,12 @@ def test_the_readme_names_the_newest_gpu_test_run(tmp_path):
     (tmp_path / "gputests_H100.log").write_text("commit cccccccccc 2026-11-26 NVIDIA H100\n\n57 passed in 3s\n")
     got = readme_results.gpu_tests_sentence(tmp_path, tmp_path)
     assert "57 passed on an H100, commit ccccccc" in got and "69 passed, 1 skipped on an H200" in got
+    # pytest -v frames its counts in '='; a run the phase's limit stopped names the test it stopped in, after them.
+    (tmp_path / "gputests_H200.log").write_text(
+        "commit bbbbbbbbbb 2026-11-26 NVIDIA H200\n===== 70 passed, 4 warnings in 20.21s =====\n"
+        "last test started: tests/test_a.py::test_x\n"
+    )
+    assert "70 passed on an H200, commit bbbbbbb" in readme_results.gpu_tests_sentence(tmp_path, tmp_path)
     # A run with a failure, and reruns of the failed test's file after a fix: only a passing one of that file, that
     # run and that GPU model is named.
     (tmp_path / "gputests_H100.log").write_text(
