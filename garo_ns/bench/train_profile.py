@@ -43,7 +43,7 @@ from garo_ns.bench.host_syncs import SyncCounter, host_op_summary
 from garo_ns.bench.kernel_table import kernel_share, top_kernels
 from garo_ns.bench.profile_docs import markdown_table
 from garo_ns.bench.step_phases import StepInstrument, summarise_window
-from garo_ns.tools.eval import synchronize
+from garo_ns.tools.fps import synchronize
 
 
 @dataclass

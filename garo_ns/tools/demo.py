@@ -176,8 +176,8 @@ def train_arm(
     """Train one arm with nerfstudio's trainer (progress lines shown) and measure it; returns its figures. `turn`
     (a barrier of every arm and a lock), for arms trained at once: the render is timed once no arm trains any more,
     one arm at a time, so that no arm's time includes another's training."""
-    from garo_ns.bench.timing import measure_fps, model_size_mb
     from garo_ns.tools.eval import evaluate, load_split
+    from garo_ns.tools.fps import measure_fps, model_size_mb
     from garo_ns.tools.train import train
 
     config = demo_config(args, method, scene, out, device)
@@ -187,8 +187,8 @@ def train_arm(
     trainer = train(config)
     seconds = time.perf_counter() - start
     model = trainer.pipeline.model
-    result = evaluate(trainer.pipeline, scene, "test")
-    cameras, _ = load_split(scene, "test", model.background_color)
+    cameras, images = load_split(scene, "test", model.background_color)
+    result = evaluate(trainer.pipeline, scene, "test", (cameras, images))
     if turn is None:
         timing = measure_fps(model, cameras, warmup=1, repeats=1)
     else:
