@@ -155,9 +155,9 @@ def test_a_deleted_precision_row_is_refused_and_no_speed_row_names_it(deleted):
 def test_model_settings_reach_a_loaded_model_and_its_frame_path_and_an_unknown_one_stops_the_run(tmp_path):
     from types import SimpleNamespace
 
-    from garo_ns.bench.benchmark import apply_model_settings
     from garo_ns.garo_model import GaroModelConfig
     from garo_ns.render.frame import FramePath
+    from garo_ns.tools.eval import apply_model_settings
 
     changed = []
     model = SimpleNamespace(

@@ -371,7 +371,7 @@ def test_camera_path_along_capture_reads_the_run_s_training_cameras(garo_run, tm
 def test_eval_times_the_split_it_scores_by_the_fps_protocol(garo_run, tmp_path, monkeypatch, capsys):
     """Speed beside the error: garo-eval's JSON holds the FPS protocol's figures for the views it scored (on a CPU
     through the reference rasterizer), the model's size and the machine that timed them; `--no-fps` leaves them
-    out and scores alike."""
+    out, and `--model-set` scores the run with other settings (an unknown one refused before the run loads)."""
     from garo_ns.tools import eval as garo_eval
     from garo_ns.tools.fps import model_size_mb
 
@@ -390,5 +390,18 @@ def test_eval_times_the_split_it_scores_by_the_fps_protocol(garo_run, tmp_path, 
     assert (
         result["machine"]["rasterizer"] in ("reference", "gsplat CUDA") and "5 warm-up views" in result["fps_protocol"]
     )
-    plain = garo_eval.run(garo_eval.EvalArgs(load_config=cfg, output_path=tmp_path / "plain.json", fps=False))
-    assert "fps" not in plain and "machine" not in plain and plain["psnr"] == pytest.approx(result["psnr"], abs=1e-6)
+    assert result["model_settings"] == {}
+    # --model-set: the run scored with other settings, here the plain render (no switch left to the model).
+    plain_render = ["static_skip=False", "time_table=False", "cuda_graph=False", "lean_raster=False"]
+    args = garo_eval.EvalArgs(load_config=cfg, output_path=tmp_path / "plain.json", fps=False, model_set=plain_render)
+    plain = garo_eval.run(args)
+    assert "fps" not in plain and "machine" not in plain and plain["psnr"] == pytest.approx(result["psnr"], abs=0.5)
+    assert plain["model_settings"] == {
+        "static_skip": False,
+        "time_table": False,
+        "cuda_graph": False,
+        "lean_raster": False,
+    }
+    assert not any(plain["render_switches"]["in_use"][k] for k in ("static_skip", "time_table"))
+    with pytest.raises(SystemExit, match="--model-set expects NAME=VALUE"):  # before the run is loaded
+        garo_eval.run(garo_eval.EvalArgs(load_config=tmp_path / "absent.yml", model_set=["no_such_setting=1"]))

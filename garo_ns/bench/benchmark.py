@@ -162,7 +162,7 @@ class BenchArgs:
     """Measure the approximate render switches again on the loaded model's training views before its rows (as
     the end of training does; for arms trained, or imported, from before a switch existed)."""
     model_set: List[str] = field(default_factory=list)
-    """Model settings of every loaded run, `NAME=VALUE` (`model_overrides`), e.g.
+    """Model settings of every loaded run, `NAME=VALUE` (garo_ns.tools.eval.model_overrides), e.g.
     `time_table_budget_mb=1024` with --remeasure-switches and --pretrained: the same trained arms measured under
     another render setting; recorded as `model_settings`."""
     profile: bool = True
@@ -303,47 +303,14 @@ def train_variant(args: BenchArgs, name: str, deadline: Optional[float]) -> Dict
 
 
 # ---------------------------------------------------------------------------- evaluation and timing
-def setting_pairs(pairs: List[str], known: Any, flag: str, what: str) -> Dict[str, Any]:
-    """`NAME=VALUE` pairs (VALUE read as a Python literal, else kept as a string) with each NAME in `known`; any
-    other pair stops the command with one line naming `flag` and `what` NAME must be."""
-    import ast
-
-    out: Dict[str, Any] = {}
-    for pair in pairs:
-        name, sep, text = pair.partition("=")
-        if not sep or name not in known:
-            raise SystemExit(f"{flag} expects NAME=VALUE with NAME {what}, got {pair!r}")
-        try:
-            out[name] = ast.literal_eval(text)
-        except (ValueError, SyntaxError):
-            out[name] = text
-    return out
-
-
-def model_overrides(pairs: List[str]) -> Dict[str, Any]:
-    """`NAME=VALUE` pairs as model settings; an unknown NAME is refused before anything trains."""
-    from garo_ns.garo_model import GaroModelConfig
-
-    return setting_pairs(pairs, {f.name for f in fields(GaroModelConfig)}, "--set", "a model setting")
-
-
-def apply_model_settings(model: Any, pairs: List[str]) -> None:
-    """Set `NAME=VALUE` model settings on a loaded model, and on its frame path, which reads some of them."""
-    for name, value in model_overrides(pairs).items():
-        setattr(model.config, name, value)
-    if pairs:
-        model.frame.configure(model.config)
-        model.switches.parameters_changed()
-
-
 def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) -> Dict[str, Dict[str, Any]]:
     """Score and time a trained variant (alone on its device) under each render setting in `names`."""
-    import torch
 
     from garo_ns.bench.frame_profile import profile_frame
     from garo_ns.compaction.report import summary_for_json
+    from garo_ns.render.static import sample_times
     from garo_ns.state import storage
-    from garo_ns.tools.eval import evaluate, load_run, split_views
+    from garo_ns.tools.eval import apply_model_settings, evaluate, load_run, split_views
     from garo_ns.tools.eval import train_times as scene_train_times
     from garo_ns.tools.fps import measure_fps, measure_same_time, model_size_mb
 
@@ -353,9 +320,7 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
     views = split_views(pipeline, args.scene, args.split)
     cameras = views[0]
     all_train_times = scene_train_times(pipeline, args.scene)
-    train_times = all_train_times
-    if len(train_times) > model.config.static_times:  # as training samples them
-        train_times = train_times[torch.linspace(0, len(train_times) - 1, model.config.static_times).round().long()]
+    train_times = sample_times(all_train_times, model.config.static_times)  # as training samples them
     trained_threshold = model.config.static_threshold
     if model.static_fraction() is None:  # a checkpoint from before the classification existed
         model.refresh_static(train_times)
@@ -443,7 +408,7 @@ def paired_timing(args: BenchArgs, records: Dict[str, Dict[str, Any]], names: Li
     """Every trained variant loaded at once and its plain render (fp32, no switches) timed in alternating
     passes over the split's views (garo_ns.bench.timing.paired_fps)."""
     from garo_ns.bench.timing import frame_pass, paired_fps
-    from garo_ns.tools.eval import load_run, split_views
+    from garo_ns.tools.eval import apply_model_settings, load_run, split_views
 
     frames, device = {}, None
     for name in names:
@@ -588,12 +553,13 @@ def physical_gpu(index: int) -> str:
 
 def run(args: BenchArgs) -> Dict[str, Any]:
     """Phase 1 (training, parallel) then phase 2 (evaluation and timing, sequential); write outputs."""
+    from garo_ns.tools.eval import model_overrides
     from garo_ns.tools.fps import protocol
 
     names = args.trained_variants()
     for name in args.all_variants():
         check_variant(name)
-    model_overrides(args.model_set)  # an unknown setting refused before anything trains
+    model_overrides(args.model_set, "--model-set")  # an unknown setting refused before anything trains
     deadline = None if args.deadline_s is None else time.time() + args.deadline_s
     args.work_dir.mkdir(parents=True, exist_ok=True)
     imported = {}

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Tuple
 
@@ -86,6 +86,39 @@ def load_run(config_path: Path, data: Optional[Path] = None) -> Tuple[Any, Any, 
             raise
         ckpt = Path(config.output_dir) / config.experiment_name / config.method_name / config.timestamp
         raise GaroInputError(f"cannot load the checkpoint of {config_path} (under {ckpt}): {err}") from None
+
+
+def setting_pairs(pairs: List[str], known: Any, flag: str, what: str) -> Dict[str, Any]:
+    """`NAME=VALUE` pairs (VALUE read as a Python literal, else kept as a string) with each NAME in `known`; any
+    other pair stops the command with one line naming `flag` and `what` NAME must be."""
+    import ast
+
+    out: Dict[str, Any] = {}
+    for pair in pairs:
+        name, sep, text = pair.partition("=")
+        if not sep or name not in known:
+            raise SystemExit(f"{flag} expects NAME=VALUE with NAME {what}, got {pair!r}")
+        try:
+            out[name] = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            out[name] = text
+    return out
+
+
+def model_overrides(pairs: List[str], flag: str = "--set") -> Dict[str, Any]:
+    """`NAME=VALUE` pairs as model settings; an unknown NAME is refused (naming `flag`) before anything runs."""
+    from garo_ns.garo_model import GaroModelConfig
+
+    return setting_pairs(pairs, {f.name for f in fields(GaroModelConfig)}, flag, "a model setting")
+
+
+def apply_model_settings(model: Any, pairs: List[str]) -> None:
+    """Set `NAME=VALUE` model settings on a loaded model, and on its frame path, which reads some of them."""
+    for name, value in model_overrides(pairs).items():
+        setattr(model.config, name, value)
+    if pairs:
+        model.frame.configure(model.config)
+        model.switches.parameters_changed()
 
 
 def scene_dir(config: Any) -> Path:
@@ -206,13 +239,18 @@ class EvalArgs:
     fps: bool = True
     """Also time the split's renders by the FPS protocol (5 warm-up views, 3 passes) and record the model's size
     and the machine; with the switches the scores were rendered with."""
+    model_set: List[str] = field(default_factory=list)
+    """Model settings to score and time the run with, `NAME=VALUE` (recorded as `model_settings`), e.g.
+    `time_table=False static_skip=False`: the plain render of a model whose switches are on."""
 
 
 def run(args: EvalArgs) -> Dict[str, Any]:
     """Evaluate and write JSON; returns the result."""
     check_new_file(args.output_path, "--output-path", overwrite=True)  # before the whole evaluation runs
+    settings = model_overrides(args.model_set, "--model-set")
     started = time.perf_counter()
     config, pipeline, ckpt, step = load_run(args.load_config, args.data)
+    apply_model_settings(pipeline.model, args.model_set)
     synchronize(pipeline.model.device)
     load_s = time.perf_counter() - started  # the checkpoint read, the model built, its time table built
     cameras, images = split_views(pipeline, scene_dir(config), args.split)
@@ -222,6 +260,7 @@ def run(args: EvalArgs) -> Dict[str, Any]:
         result.update(measure_fps(model, cameras), ms_per_view_same_time=measure_same_time(model, cameras))
         result.update(model_size_mb=model_size_mb(model), fps_protocol=protocol(), machine=machine(model.device))
     result.update({"method": config.method_name, "step": int(step), "checkpoint": str(ckpt), "load_seconds": load_s})
+    result["model_settings"] = settings
     # The switches these scores were rendered with, and their measured change against the plain render.
     result["render_switches"] = pipeline.model.render_switch_summary()
     # What compaction decided during training (None for a run without it).
