@@ -176,6 +176,7 @@ def real_test_images(data: Path) -> Tuple[List[str], List[torch.Tensor]]:
 @torch.no_grad()
 def score(model: OfficialRun, data: Path, ssim: Any, lpips: Any) -> Dict[str, Any]:
     """Metrics as garo_ns.tools.eval.evaluate, on renders made as the official code makes them."""
+    from garo_ns.compaction.guard import psnr  # garo-eval's PSNR
     from garo_ns.data.dnerf import read_split
     from garo_ns.engine.metrics import lpips_fits
     from garo_ns.tools.eval import load_split
@@ -191,8 +192,7 @@ def score(model: OfficialRun, data: Path, ssim: Any, lpips: Any) -> Dict[str, An
     for view, gt in zip(model.views, images):
         pred = model.frame(view).clamp(0, 1).permute(1, 2, 0)  # [H, W, 3] like our model's "rgb"
         gt = gt.to(pred.device)
-        mse = torch.mean((pred - gt) ** 2)
-        psnrs.append(float(-10.0 * torch.log10(mse.clamp_min(1e-12))))
+        psnrs.append(psnr(pred, gt))
         p, g = pred.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None]
         ssims.append(float(ssim(g, p)))
         if lpips is not None and (lpips_fits(pred) or not model.real):
@@ -200,7 +200,7 @@ def score(model: OfficialRun, data: Path, ssim: Any, lpips: Any) -> Dict[str, An
         # the official loader's ground truth (8-bit composite), as its training log scores it
         off = view.original_image.clamp(0, 1).permute(1, 2, 0)
         gt_diff = max(gt_diff, float((off - gt).abs().max()))
-        psnrs_off.append(float(-10.0 * torch.log10(torch.mean((pred - off) ** 2).clamp_min(1e-12))))
+        psnrs_off.append(psnr(pred, off))
     h, w = images[0].shape[:2]
     return {
         "psnr": float(np.mean(psnrs)),

@@ -27,6 +27,7 @@ import torch
 from nerfstudio.cameras.cameras import Cameras
 
 from garo_ns import compat
+from garo_ns.compaction.guard import psnr
 from garo_ns.compaction.report import summary_for_json
 from garo_ns.config import METHODS as METHOD_SPECS
 from garo_ns.data.dnerf import read_split, split_cameras
@@ -204,8 +205,7 @@ def evaluate(
             first_frame_s = time.perf_counter() - started
         pred = out["rgb"].clamp(0, 1)
         gt = gt.to(pred.device)
-        mse = torch.mean((pred - gt) ** 2)
-        psnrs.append(float(-10.0 * torch.log10(mse.clamp_min(1e-12))))
+        psnrs.append(psnr(pred, gt))
         p, g = pred.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None]
         ssims.append(float(model.ssim(g, p)))
         if lpips is not None and lpips_fits(pred):
