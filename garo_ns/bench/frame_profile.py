@@ -69,7 +69,7 @@ def profile_frame(
 ) -> Dict[str, float]:
     """Mean milliseconds per view of each stage, of the whole frame, and the overhead.
 
-    Returns a dict with `ms_<stage>` for each of STAGES, `ms_frame` (the timed render_view call),
+    Returns a dict with `ms_<stage>` for each of STAGES, `ms_frame` (the whole frame, `model.render`),
     `ms_python_overhead` (frame minus the stages, clamped at 0), `tile_pairs` (per view) and `backend`.
     `tile_reach=False` profiles the frame with projection's tile squares instead (`projection_squares`).
     """

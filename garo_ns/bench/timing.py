@@ -1,5 +1,5 @@
 """The benchmark's timing beyond the FPS protocol of `garo_ns.tools.fps`: several trained variants timed in
-alternating passes (`paired_fps`), and one view rendered for the tests (`render_view`).
+alternating passes (`paired_fps`), each pass a model's whole view set (`frame_pass`).
 """
 
 from __future__ import annotations
@@ -11,12 +11,6 @@ from typing import Any, Callable, Dict, List
 import torch
 
 from garo_ns.tools.fps import model_background, prepare_views, synchronize
-
-
-@torch.no_grad()
-def render_view(model: Any, camera: Any) -> torch.Tensor:
-    """Deform and rasterize one camera's view, nothing else; returns the RGB render [1, H, W, 3]."""
-    return model.render(model.camera_view(camera.to(model.device)), backgrounds=model_background(model))[0]
 
 
 @torch.no_grad()
