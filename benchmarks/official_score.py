@@ -1,5 +1,5 @@
 """Score runs of the OFFICIAL D-3DGS code (ingra14m/Deformable-3D-Gaussians, branch `paper`) the way
-`garo-eval` scores our models, and time them with the FPS protocol of `garo_ns.bench.timing`.
+`garo-eval` scores our models, and time them with the FPS protocol of `garo_ns.tools.fps`.
 
 Runs on the GPU machine, with the official code (built, see benchmarks/official_d3dgs.sh) importable
 from `--code`. Nothing of the official code is copied here: its own classes load and render.
@@ -21,7 +21,7 @@ Per scene (`--work W`: data in W/data/SCENE, the run in W/out/SCENE, its log in 
   normalize=True). `psnr_official_gt` scores the same renders against the official loader's own
   ground truth (composited, then truncated to 8 bits), for comparison with the PSNR that the
   official training script printed (`official_reported_psnr`, parsed from its log).
-* FPS as `garo_ns.bench.timing.measure_fps`: per view, deformation MLP + rasterization only; the
+* FPS as `garo_ns.tools.fps.measure_fps`: per view, deformation MLP + rasterization only; the
   cameras are prepared (on the GPU) before timing, as the official loader does; CUDA synchronize
   before and after each view; the first 5 views rendered and dropped; 3 passes over all views;
   FPS = 1 / mean seconds; then one more pass timing the MLP and the rasterization apart.
@@ -176,6 +176,7 @@ def real_test_images(data: Path) -> Tuple[List[str], List[torch.Tensor]]:
 @torch.no_grad()
 def score(model: OfficialRun, data: Path, ssim: Any, lpips: Any) -> Dict[str, Any]:
     """Metrics as garo_ns.tools.eval.evaluate, on renders made as the official code makes them."""
+    from garo_ns.compaction.guard import psnr  # garo-eval's PSNR
     from garo_ns.data.dnerf import read_split
     from garo_ns.engine.metrics import lpips_fits
     from garo_ns.tools.eval import load_split
@@ -191,8 +192,7 @@ def score(model: OfficialRun, data: Path, ssim: Any, lpips: Any) -> Dict[str, An
     for view, gt in zip(model.views, images):
         pred = model.frame(view).clamp(0, 1).permute(1, 2, 0)  # [H, W, 3] like our model's "rgb"
         gt = gt.to(pred.device)
-        mse = torch.mean((pred - gt) ** 2)
-        psnrs.append(float(-10.0 * torch.log10(mse.clamp_min(1e-12))))
+        psnrs.append(psnr(pred, gt))
         p, g = pred.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None]
         ssims.append(float(ssim(g, p)))
         if lpips is not None and (lpips_fits(pred) or not model.real):
@@ -200,7 +200,7 @@ def score(model: OfficialRun, data: Path, ssim: Any, lpips: Any) -> Dict[str, An
         # the official loader's ground truth (8-bit composite), as its training log scores it
         off = view.original_image.clamp(0, 1).permute(1, 2, 0)
         gt_diff = max(gt_diff, float((off - gt).abs().max()))
-        psnrs_off.append(float(-10.0 * torch.log10(torch.mean((pred - off) ** 2).clamp_min(1e-12))))
+        psnrs_off.append(psnr(pred, off))
     h, w = images[0].shape[:2]
     return {
         "psnr": float(np.mean(psnrs)),
@@ -224,8 +224,8 @@ def main() -> None:
     args = ap.parse_args()
 
     sys.path.insert(0, str(args.code.resolve()))  # the official top-level packages (scene, utils, ...)
-    from garo_ns.bench.timing import fps_protocol
     from garo_ns.engine.metrics import make_lpips
+    from garo_ns.tools.fps import fps_protocol, protocol
 
     try:  # what GaroModel.ssim is
         from nerfstudio.models.splatfacto import SSIM
@@ -312,8 +312,7 @@ def main() -> None:
             "size_average=True, channel=3), LPIPS garo_ns.engine.metrics.make_lpips() (AlexNet, normalize=True)",
             "render": "official: no_grad, deform.step(xyz.detach(), fid) then gaussian_renderer.render, black bg, "
             "clamp [0, 1], full resolution",
-            "fps": f"garo_ns.bench.timing protocol: MLP + rasterization per view, cameras prepared before timing, "
-            f"synchronize around each view, {WARMUP} warm-up views dropped, {REPEATS} passes, FPS = 1 / mean s",
+            "fps": f"garo_ns.tools.fps: {protocol(WARMUP, REPEATS)}",
         },
         "rows": rows,
     }

@@ -42,6 +42,14 @@ def train_views_l1(pipeline: Any, n: int = 6) -> float:
     return sum(errs) / len(errs)
 
 
+@torch.no_grad()
+def render_view(model: Any, camera: Any) -> torch.Tensor:
+    """Deform and rasterize one camera's view, nothing else; returns the RGB render [1, H, W, 3]."""
+    from garo_ns.tools.fps import model_background
+
+    return model.render(model.camera_view(camera.to(model.device)), backgrounds=model_background(model))[0]
+
+
 def _train(method: str, scene: Path, out: Path, **model_settings: Any) -> Dict[str, Any]:
     from garo_ns.tools.eval import evaluate
     from garo_ns.tools.train import QuickSchedule, make_config, seed_everything

@@ -103,9 +103,11 @@ def test_the_reference_draws_the_same_from_fewer_pairs(monkeypatch, alpha_min):
 def test_the_frame_profile_times_both_tile_lists_and_counts_their_pairs(garo_run):
     """The breakdown before and after (garo_ns.bench.frame_profile): the same image from fewer pairs, and the
     projection squares put back afterwards."""
+    from conftest import render_view
+
     from garo_ns.bench import frame_profile
-    from garo_ns.bench.timing import prepare_views, render_view
     from garo_ns.render import kernels
+    from garo_ns.tools.fps import prepare_views
 
     model = garo_run["trainer"].pipeline.model
     model.eval()

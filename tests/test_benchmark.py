@@ -155,9 +155,9 @@ def test_a_deleted_precision_row_is_refused_and_no_speed_row_names_it(deleted):
 def test_model_settings_reach_a_loaded_model_and_its_frame_path_and_an_unknown_one_stops_the_run(tmp_path):
     from types import SimpleNamespace
 
-    from garo_ns.bench.benchmark import apply_model_settings
     from garo_ns.garo_model import GaroModelConfig
     from garo_ns.render.frame import FramePath
+    from garo_ns.tools.eval import apply_model_settings
 
     changed = []
     model = SimpleNamespace(
@@ -269,10 +269,11 @@ def test_a_result_names_the_hosts_cpu(tmp_path):
     """Host-bound training runs are compared only where the CPU is known: its model name from the cpuinfo file
     (None where there is none) and its core count are in every result's environment."""
     from garo_ns.bench import benchmark
+    from garo_ns.tools.fps import cpu_model
 
     info = tmp_path / "cpuinfo"
     info.write_text("processor\t: 0\nvendor_id\t: AuthenticAMD\nmodel name\t: AMD EPYC 9654 96-Core Processor\n")
-    assert benchmark.cpu_model(info) == "AMD EPYC 9654 96-Core Processor"
-    assert benchmark.cpu_model(tmp_path / "absent") is None
+    assert cpu_model(info) == "AMD EPYC 9654 96-Core Processor"
+    assert cpu_model(tmp_path / "absent") is None
     env = benchmark.environment("cpu")
-    assert env["cpu_model"] == benchmark.cpu_model() and env["cpu_count"] >= 1
+    assert env["cpu_model"] == cpu_model() and env["cpu_count"] >= 1

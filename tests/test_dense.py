@@ -116,10 +116,9 @@ def test_garo_deform_trains_the_built_in_scene_with_fused_layers(scene_dir, tmp_
     """The setting end to end on the CPU: the model builds the fused field, trains to the demo's quality (the bound
     of tests/test_training.py), and its checkpoint loads into a model with the fused field that renders the same
     image."""
-    from conftest import _train
+    from conftest import _train, render_view
     from test_training import MIN_TEST_PSNR
 
-    from garo_ns.bench.timing import render_view
     from garo_ns.tools.eval import load_run
 
     run = _train("garo-deform", scene_dir, tmp_path, deform_fused_layers=True)

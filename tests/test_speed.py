@@ -259,8 +259,10 @@ def test_contribution_pruning_during_training(scene_dir, tmp_path):
 
 @pytest.mark.slow
 def test_compact_storage_halves_the_model_and_renders_alike(garo_run, tmp_path):
-    from garo_ns.bench.timing import model_size_mb, render_view
+    from conftest import render_view
+
     from garo_ns.state import storage
+    from garo_ns.tools.fps import model_size_mb
 
     model = _eval_model(garo_run)
     cam = garo_run["trainer"].pipeline.datamanager.train_dataset.cameras[2:3].to(model.device)

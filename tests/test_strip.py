@@ -1,4 +1,5 @@
-"""The strip of held-out frames: views spread over time, saved per variant, drawn from the saved PNGs."""
+"""The strip of held-out frames: views spread over time (garo_ns.tools.strip, the demo's strip too), saved per
+variant, drawn from the saved PNGs (garo_ns.bench.strip)."""
 
 from pathlib import Path
 
@@ -7,13 +8,14 @@ import pytest
 import torch
 
 from garo_ns.bench import strip
+from garo_ns.tools.strip import spread
 
 
 def test_spread_keeps_the_ends_and_order():
-    assert strip.spread(5, 17) == [0, 4, 8, 12, 16]
-    assert strip.spread(3, 2) == [0, 1]
-    assert strip.spread(1, 9) == [4]
-    assert strip.spread(0, 9) == [] and strip.spread(4, 0) == []
+    assert spread(5, 17) == [0, 4, 8, 12, 16]
+    assert spread(3, 2) == [0, 1]
+    assert spread(1, 9) == [4]
+    assert spread(0, 9) == [] and spread(4, 0) == []
 
 
 class _Cameras:

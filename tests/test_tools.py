@@ -366,3 +366,42 @@ def test_camera_path_along_capture_reads_the_run_s_training_cameras(garo_run, tm
     entries = json.loads(out.read_text())["camera_path"]
     assert len(entries) == len(cams)
     assert [e["render_time"] for e in entries] == pytest.approx(sorted(cams.times.reshape(-1).tolist()))
+
+
+def test_eval_times_the_split_it_scores_by_the_fps_protocol(garo_run, tmp_path, monkeypatch, capsys):
+    """Speed beside the error: garo-eval's JSON holds the FPS protocol's figures for the views it scored (on a CPU
+    through the reference rasterizer), the model's size and the machine that timed them; `--no-fps` leaves them
+    out, and `--model-set` scores the run with other settings (an unknown one refused before the run loads)."""
+    from garo_ns.tools import eval as garo_eval
+    from garo_ns.tools.fps import model_size_mb
+
+    cfg, out = garo_run["config_path"], tmp_path / "eval.json"
+    monkeypatch.setattr(
+        sys, "argv", ["garo-eval", "--load-config", str(cfg), "--split", "test", "--output-path", str(out)]
+    )
+    garo_eval.main()
+    assert "FPS " in capsys.readouterr().out
+    result = json.loads(out.read_text())
+    assert result["fps"] == pytest.approx(1000.0 / result["ms_per_view"])
+    assert result["views"] == result["n_images"] == 6 and result["repeats"] == 3
+    assert min(result["ms_deformation"], result["ms_rasterization"], result["ms_per_view_same_time"]) > 0
+    assert result["model_size_mb"] == pytest.approx(model_size_mb(garo_run["trainer"].pipeline.model))
+    assert result["machine"]["torch"] == torch.__version__ and result["machine"]["cpu_count"] >= 1
+    assert (
+        result["machine"]["rasterizer"] in ("reference", "gsplat CUDA") and "5 warm-up views" in result["fps_protocol"]
+    )
+    assert result["model_settings"] == {}
+    # --model-set: the run scored with other settings, here the plain render (no switch left to the model).
+    plain_render = ["static_skip=False", "time_table=False", "cuda_graph=False", "lean_raster=False"]
+    args = garo_eval.EvalArgs(load_config=cfg, output_path=tmp_path / "plain.json", fps=False, model_set=plain_render)
+    plain = garo_eval.run(args)
+    assert "fps" not in plain and "machine" not in plain and plain["psnr"] == pytest.approx(result["psnr"], abs=0.5)
+    assert plain["model_settings"] == {
+        "static_skip": False,
+        "time_table": False,
+        "cuda_graph": False,
+        "lean_raster": False,
+    }
+    assert not any(plain["render_switches"]["in_use"][k] for k in ("static_skip", "time_table"))
+    with pytest.raises(SystemExit, match="--model-set expects NAME=VALUE"):  # before the run is loaded
+        garo_eval.run(garo_eval.EvalArgs(load_config=tmp_path / "absent.yml", model_set=["no_such_setting=1"]))

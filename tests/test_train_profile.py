@@ -104,7 +104,7 @@ def test_profile_of_a_short_cpu_training(tmp_path):
 
 
 def test_model_overrides_are_literals_of_known_settings():
-    from garo_ns.bench.benchmark import model_overrides
+    from garo_ns.tools.eval import model_overrides
 
     assert model_overrides(["rho_max=0.05", "time_table=None", "rasterizer=reference"]) == {
         "rho_max": 0.05,

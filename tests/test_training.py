@@ -6,8 +6,8 @@ import json
 
 import pytest
 import torch
+from conftest import render_view
 
-from garo_ns.bench.timing import render_view
 from garo_ns.tools.eval import EvalArgs, load_run, run
 
 # Thresholds come from measured runs (64 px scene, 300 steps, seed 42, 2 CPU cores): garo-deform reached

@@ -2,7 +2,7 @@
 
 Phase 1 trains every variant, one process per GPU (round-robin when there are more variants than
 GPUs; several processes may share a GPU). Phase 2, after all training has ended, loads each run in
-turn and evaluates it on the chosen split and times it with the FPS protocol (garo_ns.bench.timing), so
+turn and evaluates it on the chosen split and times it with the FPS protocol (garo_ns.tools.fps), so
 no timing overlaps another job. Phase 3 (`--paired-passes`, on by default) loads every trained variant
 at once and times their plain renders again in alternating passes, reported beside the first timing as
 `fps_paired`: one timing after another can differ by more than a claim's margin when frames take a few
@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
@@ -163,7 +162,7 @@ class BenchArgs:
     """Measure the approximate render switches again on the loaded model's training views before its rows (as
     the end of training does; for arms trained, or imported, from before a switch existed)."""
     model_set: List[str] = field(default_factory=list)
-    """Model settings of every loaded run, `NAME=VALUE` (`model_overrides`), e.g.
+    """Model settings of every loaded run, `NAME=VALUE` (garo_ns.tools.eval.model_overrides), e.g.
     `time_table_budget_mb=1024` with --remeasure-switches and --pretrained: the same trained arms measured under
     another render setting; recorded as `model_settings`."""
     profile: bool = True
@@ -304,58 +303,24 @@ def train_variant(args: BenchArgs, name: str, deadline: Optional[float]) -> Dict
 
 
 # ---------------------------------------------------------------------------- evaluation and timing
-def setting_pairs(pairs: List[str], known: Any, flag: str, what: str) -> Dict[str, Any]:
-    """`NAME=VALUE` pairs (VALUE read as a Python literal, else kept as a string) with each NAME in `known`; any
-    other pair stops the command with one line naming `flag` and `what` NAME must be."""
-    import ast
-
-    out: Dict[str, Any] = {}
-    for pair in pairs:
-        name, sep, text = pair.partition("=")
-        if not sep or name not in known:
-            raise SystemExit(f"{flag} expects NAME=VALUE with NAME {what}, got {pair!r}")
-        try:
-            out[name] = ast.literal_eval(text)
-        except (ValueError, SyntaxError):
-            out[name] = text
-    return out
-
-
-def model_overrides(pairs: List[str]) -> Dict[str, Any]:
-    """`NAME=VALUE` pairs as model settings; an unknown NAME is refused before anything trains."""
-    from garo_ns.garo_model import GaroModelConfig
-
-    return setting_pairs(pairs, {f.name for f in fields(GaroModelConfig)}, "--set", "a model setting")
-
-
-def apply_model_settings(model: Any, pairs: List[str]) -> None:
-    """Set `NAME=VALUE` model settings on a loaded model, and on its frame path, which reads some of them."""
-    for name, value in model_overrides(pairs).items():
-        setattr(model.config, name, value)
-    if pairs:
-        model.frame.configure(model.config)
-        model.switches.parameters_changed()
-
-
 def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) -> Dict[str, Dict[str, Any]]:
     """Score and time a trained variant (alone on its device) under each render setting in `names`."""
-    import torch
 
     from garo_ns.bench.frame_profile import profile_frame
-    from garo_ns.bench.timing import measure_fps, measure_same_time, model_size_mb
     from garo_ns.compaction.report import summary_for_json
+    from garo_ns.render.static import sample_times
     from garo_ns.state import storage
-    from garo_ns.tools.eval import evaluate, load_run, split_views
+    from garo_ns.tools.eval import apply_model_settings, evaluate, load_run, split_views
     from garo_ns.tools.eval import train_times as scene_train_times
+    from garo_ns.tools.fps import measure_fps, measure_same_time, model_size_mb
 
     _, pipeline, _, step = load_run(Path(record["config"]))
     model = pipeline.model
     apply_model_settings(model, args.model_set)
-    cameras, _ = split_views(pipeline, args.scene, args.split)
+    views = split_views(pipeline, args.scene, args.split)
+    cameras = views[0]
     all_train_times = scene_train_times(pipeline, args.scene)
-    train_times = all_train_times
-    if len(train_times) > model.config.static_times:  # as training samples them
-        train_times = train_times[torch.linspace(0, len(train_times) - 1, model.config.static_times).round().long()]
+    train_times = sample_times(all_train_times, model.config.static_times)  # as training samples them
     trained_threshold = model.config.static_threshold
     if model.static_fraction() is None:  # a checkpoint from before the classification existed
         model.refresh_static(train_times)
@@ -387,7 +352,7 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
             state["classified_at"] = trained_threshold
         for key, value in settings.items():
             setattr(model.config, key, value)
-        result = evaluate(pipeline, args.scene, args.split)
+        result = evaluate(pipeline, args.scene, args.split, views)
         timing = measure_fps(model, cameras, warmup=args.warmup_views, repeats=args.timing_repeats)
         out = {
             **{k: result[k] for k in ("psnr", "psnr_per_view", "ssim", "lpips", "num_gaussians")},
@@ -443,7 +408,7 @@ def paired_timing(args: BenchArgs, records: Dict[str, Dict[str, Any]], names: Li
     """Every trained variant loaded at once and its plain render (fp32, no switches) timed in alternating
     passes over the split's views (garo_ns.bench.timing.paired_fps)."""
     from garo_ns.bench.timing import frame_pass, paired_fps
-    from garo_ns.tools.eval import load_run, split_views
+    from garo_ns.tools.eval import apply_model_settings, load_run, split_views
 
     frames, device = {}, None
     for name in names:
@@ -476,22 +441,9 @@ def psnr_difference(row: List[float], plain: List[float]) -> Dict[str, Any]:
 
 
 # ---------------------------------------------------------------------------- report
-def cpu_model(cpuinfo: Path = Path("/proc/cpuinfo")) -> Optional[str]:
-    """The CPU's model name as Linux reports it in `cpuinfo` (None where there is none)."""
-    try:
-        for line in cpuinfo.read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return None
-
-
 def environment(device: str) -> Dict[str, Any]:
-    """GPU, torch and commit of this run."""
-    import torch
-
-    from garo_ns.render.backend import rasterizer_in_use
+    """The machine (garo_ns.tools.fps.machine) and commit of this run."""
+    from garo_ns.tools.fps import machine
 
     # GARO_GIT_COMMIT wins: on the GPU machine the project arrives as a copy whose git metadata
     # need not match the files.
@@ -503,21 +455,12 @@ def environment(device: str) -> Dict[str, Any]:
             ).stdout.strip()
         except (OSError, subprocess.CalledProcessError):
             commit = "unknown"
-    gpu = torch.cuda.get_device_name(0) if device == "cuda" and torch.cuda.is_available() else None
     return {
-        "gpu": gpu,
-        "cpu": platform.processor() or platform.machine(),
-        # Training after densification waits on the host: runs on two machines with the same GPU model differ by
-        # their CPUs (benchmarks/results/train_profile_tf32_*_H100.json against train_profile_gcpreview_*).
-        "cpu_model": cpu_model(),
-        "cpu_count": os.cpu_count(),
-        "torch": torch.__version__,
+        **machine(device),
         "git_commit": commit,
         # Training processes sharing a GPU under CUDA MPS (benchmarks/device_run.sh starts it) run side by side;
         # timing happens after training, one arm at a time, either way.
         "cuda_mps": device == "cuda" and os.environ.get("GARO_MPS_ON") == "1",
-        # A GPU run whose gsplat failed to load renders through the reference: its times say nothing of gsplat's.
-        "rasterizer": rasterizer_in_use(device),
     }
 
 
@@ -610,10 +553,13 @@ def physical_gpu(index: int) -> str:
 
 def run(args: BenchArgs) -> Dict[str, Any]:
     """Phase 1 (training, parallel) then phase 2 (evaluation and timing, sequential); write outputs."""
+    from garo_ns.tools.eval import model_overrides
+    from garo_ns.tools.fps import protocol
+
     names = args.trained_variants()
     for name in args.all_variants():
         check_variant(name)
-    model_overrides(args.model_set)  # an unknown setting refused before anything trains
+    model_overrides(args.model_set, "--model-set")  # an unknown setting refused before anything trains
     deadline = None if args.deadline_s is None else time.time() + args.deadline_s
     args.work_dir.mkdir(parents=True, exist_ok=True)
     imported = {}
@@ -667,9 +613,7 @@ def run(args: BenchArgs) -> Dict[str, Any]:
         "background": args.background,
         "iterations_full_schedule": args.full_schedule(),
         "model_settings": args.model_set,
-        "fps_protocol": "mean over views of synchronised (deformation MLP + rasterization) time, "
-        f"{args.warmup_views} warm-up views dropped, {args.timing_repeats} passes, full resolution, "
-        "camera matrices prepared on the device before timing",
+        "fps_protocol": protocol(args.warmup_views, args.timing_repeats),
         "variants": variants,
     }
     if paired_error is not None:

@@ -2,7 +2,7 @@
 (tile intersection and ordering), compositing, and the Python overhead of the whole call.
 
 Each stage is run on its own between CUDA synchronisations, on the same prepared views as the FPS
-protocol (garo_ns.bench.timing); the overhead is the end-to-end frame time minus the sum of the stages,
+protocol (garo_ns.tools.fps); the overhead is the end-to-end frame time minus the sum of the stages,
 i.e. what the renderer's Python glue costs. The stages run eagerly (the projection outside any
 CUDA graph), so with `cuda_graph` and `lean_raster` the frame can take less than their sum; the
 overhead is then reported as 0. Same stages on the CUDA kernels and on the pure-torch
@@ -19,11 +19,10 @@ from typing import Any, Dict, Iterator
 
 import torch
 
-from garo_ns.bench.timing import _background, prepare_views
 from garo_ns.render.backend import rasterize_lean, resolve_backend
 from garo_ns.render.kernels import TILE_SIZE, lean_front
 from garo_ns.render.view import RenderView
-from garo_ns.tools.eval import synchronize
+from garo_ns.tools.fps import model_background, prepare_views, synchronize
 
 STAGES = ("deformation", "projection", "color", "sorting", "compositing")
 
@@ -70,7 +69,7 @@ def profile_frame(
 ) -> Dict[str, float]:
     """Mean milliseconds per view of each stage, of the whole frame, and the overhead.
 
-    Returns a dict with `ms_<stage>` for each of STAGES, `ms_frame` (the timed render_view call),
+    Returns a dict with `ms_<stage>` for each of STAGES, `ms_frame` (the whole frame, `model.render`),
     `ms_python_overhead` (frame minus the stages, clamped at 0), `tile_pairs` (per view) and `backend`.
     `tile_reach=False` profiles the frame with projection's tile squares instead (`projection_squares`).
     """
@@ -90,7 +89,7 @@ def _profile(model: Any, cameras: Any, warmup: int, repeats: int) -> Dict[str, f
     device = model.device
     backend = resolve_backend(model.config.rasterizer, device)
     views = prepare_views(model, cameras)
-    background = _background(model)
+    background = model_background(model)
     totals: Dict[str, float] = defaultdict(float)
 
     @contextmanager
@@ -125,7 +124,7 @@ def _staged_frame(model: Any, view: RenderView, backend: str, stage: Any) -> Non
     viewmats, Ks, W, H = view.viewmat, view.K, view.width, view.height
     degree = min(model.step // model.config.sh_degree_interval, model.config.sh_degree)
     if backend == "cuda":  # the lean path's own steps, timed where they run
-        background = _background(model)
+        background = model_background(model)
         with stage("projection"):  # as the frame projects: the camera's graph (alpha-reach tile lists) where it has one
             front = model.frame.front(splats, view) if model.render_settings().lean_raster else None
             if front is None:

@@ -16,59 +16,40 @@ from typing import Any, List, Sequence
 
 import numpy as np
 
+from garo_ns.tools import strip
+
 GROUND_TRUTH = "ground-truth"
 
 
-def spread(count: int, total: int) -> List[int]:
-    """`count` indices of `total` items in order, evenly spread and including the first and last (all when fewer)."""
-    if total <= 0 or count <= 0:
-        return []
-    if count >= total:
-        return list(range(total))
-    if count == 1:
-        return [total // 2]
-    return sorted({round(k * (total - 1) / (count - 1)) for k in range(count)})
+def _png(image: Any) -> np.ndarray:
+    """An image [H, W, 3] in [0, 1] as 8-bit pixels."""
+    return (image.clamp(0, 1).numpy() * 255).round().astype(np.uint8)
 
 
 def save_views(pipeline: Any, scene: Path, split: str, out_dir: Path, variant: str, count: int = 5) -> List[Path]:
-    """Render `count` views of `split` spread over time and write them as `out_dir/variant/<index>.png`, with the
-    ground truth in `out_dir/ground-truth/` (written once) and each view's time in `views.json`."""
+    """Render `count` views of `split` spread over time (garo_ns.tools.strip.views_over_time) and write them as
+    `out_dir/variant/<index>.png`, with the ground truth in `out_dir/ground-truth/` (written once) and each view's
+    time in `views.json`."""
     import imageio.v2 as imageio
-    import torch
 
-    from garo_ns.tools.eval import split_views
-
-    model = pipeline.model
-    model.eval()
-    cameras, images = split_views(pipeline, scene, split)
-    times = cameras.times.reshape(-1).tolist() if cameras.times is not None else [0.0] * len(images)
-    order = sorted(range(len(images)), key=lambda i: times[i])
-    picked = [order[k] for k in spread(count, len(order))]
+    picked, times, truths, renders = strip.views_over_time(pipeline, scene, split, count)
     written: List[Path] = []
     for folder in (out_dir / variant, out_dir / GROUND_TRUTH):
         folder.mkdir(parents=True, exist_ok=True)
-    with torch.no_grad():
-        for i in picked:
-            out = model.get_outputs_for_camera(cameras[i : i + 1].to(model.device))
-            render = (out["rgb"].clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8)
-            path = out_dir / variant / f"{i:04d}.png"
-            imageio.imwrite(path, render)
-            written.append(path)
-            truth = out_dir / GROUND_TRUTH / f"{i:04d}.png"
-            if not truth.exists():
-                imageio.imwrite(truth, (images[i].clamp(0, 1).numpy() * 255).round().astype(np.uint8))
-    (out_dir / "views.json").write_text(json.dumps({f"{i:04d}": float(times[i]) for i in picked}, indent=1))
+    for i, truth, render in zip(picked, truths, renders):
+        path = out_dir / variant / f"{i:04d}.png"
+        imageio.imwrite(path, _png(render))
+        written.append(path)
+        if not (out_dir / GROUND_TRUTH / f"{i:04d}.png").exists():
+            imageio.imwrite(out_dir / GROUND_TRUTH / f"{i:04d}.png", _png(truth))
+    (out_dir / "views.json").write_text(json.dumps({f"{i:04d}": t for i, t in zip(picked, times)}, indent=1))
     return written
 
 
 def draw_strip(renders_dir: Path, output: Path, variants: Sequence[str], title: str = "") -> Path:
-    """A PNG: the ground truth's views in the first row and each variant's below, columns by time. A variant
-    without a folder is left out; the views are those every row has."""
+    """A PNG (garo_ns.tools.strip.draw_strip): the ground truth's views in the first row and each variant's below,
+    columns by time. A variant without a folder is left out; the views are those every row has."""
     import imageio.v2 as imageio
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     rows = [(GROUND_TRUTH, "ground truth")] + [(v, v) for v in variants if (renders_dir / v).is_dir()]
     views = sorted(set.intersection(*(set(p.stem for p in (renders_dir / r).glob("*.png")) for r, _ in rows)))
@@ -76,24 +57,8 @@ def draw_strip(renders_dir: Path, output: Path, variants: Sequence[str], title: 
         raise SystemExit(f"{renders_dir}: no views shared by the ground truth and a variant")
     times_file = renders_dir / "views.json"
     times = json.loads(times_file.read_text()) if times_file.exists() else {}
-    fig, axes = plt.subplots(len(rows), len(views), figsize=(1.9 * len(views) + 1.3, 2.0 * len(rows)), squeeze=False)
-    for r, (folder, label) in enumerate(rows):
-        for c, view in enumerate(views):
-            ax = axes[r][c]
-            ax.imshow(imageio.imread(renders_dir / folder / f"{view}.png"))
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if r == 0 and view in times:
-                ax.set_title(f"t = {times[view]:.2f}", fontsize=9)
-            if c == 0:
-                ax.set_ylabel(label, fontsize=8)
-    if title:
-        fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    output.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(output, dpi=90)
-    plt.close(fig)
-    return output
+    images = [(label, [imageio.imread(renders_dir / folder / f"{v}.png") for v in views]) for folder, label in rows]
+    return strip.draw_strip(images, [times.get(v) for v in views], output, title, dpi=90)
 
 
 def main() -> None:

@@ -43,7 +43,7 @@ from garo_ns.bench.host_syncs import SyncCounter, host_op_summary
 from garo_ns.bench.kernel_table import kernel_share, top_kernels
 from garo_ns.bench.profile_docs import markdown_table
 from garo_ns.bench.step_phases import StepInstrument, summarise_window
-from garo_ns.tools.eval import synchronize
+from garo_ns.tools.fps import synchronize
 
 
 @dataclass
@@ -256,7 +256,7 @@ def dataparser_settings(config: Any, pairs: Sequence[str]) -> Dict[str, Any]:
     `data`, which --scene gives) is refused before anything trains."""
     import dataclasses
 
-    from garo_ns.bench.benchmark import setting_pairs
+    from garo_ns.tools.eval import setting_pairs
 
     parser = config.pipeline.datamanager.dataparser
     known = {f.name for f in dataclasses.fields(parser)} - {"data", "_target"}
@@ -282,7 +282,8 @@ def schedule_lengths(config: Any, pairs: Sequence[str]) -> Dict[str, int]:
 
 def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
     from garo_ns.bench import transfer
-    from garo_ns.bench.benchmark import environment, model_overrides
+    from garo_ns.bench.benchmark import environment
+    from garo_ns.tools.eval import model_overrides
     from garo_ns.tools.train import QuickSchedule, make_config, setup_trainer
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

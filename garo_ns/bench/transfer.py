@@ -19,15 +19,10 @@ from typing import Any, Dict, Optional
 
 import torch
 
+from garo_ns.state.checkpoints import checkpoint_name, latest_complete_step
+from garo_ns.tools.files import written_atomically
+
 CKPT = "model.ckpt"
-
-
-def latest_checkpoint(checkpoint_dir: Path) -> Path:
-    """The highest-step `step-*.ckpt` in a nerfstudio checkpoint folder."""
-    found = sorted(Path(checkpoint_dir).glob("step-*.ckpt"), key=lambda p: int(p.stem.split("-")[1]))
-    if not found:
-        raise FileNotFoundError(f"no step-*.ckpt in {checkpoint_dir}")
-    return found[-1]
 
 
 def export_run(record: Dict[str, Any], environment: Dict[str, Any], out: Path) -> Path:
@@ -36,13 +31,13 @@ def export_run(record: Dict[str, Any], environment: Dict[str, Any], out: Path) -
 
     config_path = Path(record["config"])
     config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
-    source = latest_checkpoint(config.get_checkpoint_dir())
+    folder = config.get_checkpoint_dir()
+    source = folder / checkpoint_name(latest_complete_step(folder)[0])
     state = torch.load(source, map_location="cpu", weights_only=False)
     out.mkdir(parents=True, exist_ok=True)
-    # Written to a temporary name first: a machine taken back mid-write leaves no half model behind.
-    tmp = out / (CKPT + ".partial")
-    torch.save({"step": state["step"], "pipeline": state["pipeline"]}, tmp)
-    tmp.replace(out / CKPT)
+    # Written under a temporary name first: a machine taken back mid-write leaves no half model behind.
+    with written_atomically(out / CKPT) as partial:
+        torch.save({"step": state["step"], "pipeline": state["pipeline"]}, partial)
     shutil.copyfile(config_path, out / "config.yml")
     trained_in = {key: environment.get(key) for key in ("gpu", "torch", "git_commit")}
     (out / "record.json").write_text(json.dumps({**record, "trained_in": trained_in}, indent=2))
@@ -80,7 +75,7 @@ def import_run(export: Path, work_dir: Path, scene: Path) -> Dict[str, Any]:
     checkpoint_dir = config.get_checkpoint_dir()
     checkpoint_dir.mkdir(parents=True, exist_ok=True)
     step = int(record["iterations"]) - 1  # training saves its last step, also when stopped by a deadline
-    shutil.copyfile(export / CKPT, checkpoint_dir / f"step-{step:09d}.ckpt")
+    shutil.copyfile(export / CKPT, checkpoint_dir / checkpoint_name(step))
     config_path = config.get_base_dir() / "config.yml"
     config_path.write_text(yaml.dump(config), "utf8")
     record["config"] = str(config_path)

@@ -176,8 +176,9 @@ def train_arm(
     """Train one arm with nerfstudio's trainer (progress lines shown) and measure it; returns its figures. `turn`
     (a barrier of every arm and a lock), for arms trained at once: the render is timed once no arm trains any more,
     one arm at a time, so that no arm's time includes another's training."""
-    from garo_ns.bench.timing import measure_fps, model_size_mb
     from garo_ns.tools.eval import evaluate, load_split
+    from garo_ns.tools.fps import measure_fps, model_size_mb
+    from garo_ns.tools.strip import views_over_time
     from garo_ns.tools.train import train
 
     config = demo_config(args, method, scene, out, device)
@@ -187,8 +188,8 @@ def train_arm(
     trainer = train(config)
     seconds = time.perf_counter() - start
     model = trainer.pipeline.model
-    result = evaluate(trainer.pipeline, scene, "test")
-    cameras, _ = load_split(scene, "test", model.background_color)
+    cameras, images = load_split(scene, "test", model.background_color)
+    result = evaluate(trainer.pipeline, scene, "test", (cameras, images))
     if turn is None:
         timing = measure_fps(model, cameras, warmup=1, repeats=1)
     else:
@@ -216,7 +217,7 @@ def train_arm(
         }
     )
     (config.get_base_dir() / "eval_test.json").write_text(json.dumps(result, indent=2))
-    result["_frames"] = renders_over_time(trainer.pipeline, scene, args.strip_frames)
+    result["_frames"] = views_over_time(trainer.pipeline, scene, "test", args.strip_frames)[1:]
     return result
 
 
@@ -294,57 +295,14 @@ def floor_sentence(check: Optional[Dict[str, Any]]) -> str:
     return line
 
 
-def renders_over_time(pipeline: Any, scene: Path, frames: int) -> Tuple[List[float], List[Any], List[Any]]:
-    """Times, ground truths and renders [H, W, 3] of up to `frames` test views spread over time."""
-    import torch
-
-    from garo_ns.tools.eval import load_split
-
-    model = pipeline.model
-    model.eval()
-    cameras, images = load_split(scene, "test", model.background_color)
-    order = sorted(range(len(images)), key=lambda i: float(cameras.times[i]))
-    pick = [order[round(k * (len(order) - 1) / max(frames - 1, 1))] for k in range(min(frames, len(order)))]
-    renders = []
-    with torch.no_grad():
-        for i in pick:
-            out = model.get_outputs_for_camera(cameras[i : i + 1].to(model.device))
-            renders.append(out["rgb"].clamp(0, 1).cpu())
-    return [float(cameras.times[i]) for i in pick], [images[i] for i in pick], renders
-
-
 def write_strip(arms: List[Dict[str, Any]], path: Path) -> Path:
-    """A PNG: ground truth in the first row, each arm's renders below, test views left to right by time
-    (each arm's `_frames`, from `renders_over_time`)."""
-    import matplotlib
+    """A PNG (garo_ns.tools.strip.draw_strip): ground truth in the first row, each arm's renders below, test views
+    left to right by time (each arm's `_frames`: times, ground truths and renders from `views_over_time`)."""
+    from garo_ns.tools.strip import draw_strip
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    rows = []
-    times: List[float] = []
-    for arm in arms:
-        times, gts, renders = arm["_frames"]
-        if not rows:
-            rows.append(("ground truth", gts))
-        rows.append((f"{arm['method']}\n{arm['psnr']:.2f} dB", renders))
-    cols = len(times)
-    fig, axes = plt.subplots(len(rows), cols, figsize=(1.8 * cols + 1.2, 1.9 * len(rows)), squeeze=False)
-    for r, (label, images) in enumerate(rows):
-        for c, img in enumerate(images):
-            ax = axes[r][c]
-            ax.imshow(img.numpy())
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if r == 0:
-                ax.set_title(f"t = {times[c]:.2f}", fontsize=9)
-            if c == 0:
-                ax.set_ylabel(label, fontsize=9)
-    fig.suptitle("Built-in scene, test views over time", fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    times, truths, _ = arms[0]["_frames"]
+    rows = [("ground truth", truths)] + [(f"{a['method']}\n{a['psnr']:.2f} dB", a["_frames"][2]) for a in arms]
+    return draw_strip(rows, times, path, "Built-in scene, test views over time")
 
 
 def write_speed_error_plot(arms: List[Dict[str, Any]], path: Path) -> Path:

@@ -1,9 +1,12 @@
-"""`garo-eval`: score a trained run on any split of its scene and write JSON.
+"""`garo-eval`: score a trained run on any split of its scene, time its renders, and write JSON.
 
 `ns-eval` always scores the `test` split; D-3DGS scores lego on `val`. This command renders the
 chosen split itself and writes PSNR, SSIM, LPIPS (null without offline weights), the number of
 Gaussians, the split, the render switches used (and what each approximate one was measured to change
-against the plain render), and for a `garo-compact` run what its compaction decided.
+against the plain render), and for a `garo-compact` run what its compaction decided. Beside the error, the
+speed: the same views timed by the benchmark's FPS protocol (garo_ns.tools.fps; the frame rate, the
+milliseconds in the deformation field and in the rasterizer, a view at a time already rendered), the model's
+size and the machine that timed it (`--no-fps` leaves the timing out).
 
 A D-NeRF scene's split comes from its transforms file (cameras and times, images composited on the model's
 background). A real capture (a video processed by ns-process-data, a NeRF-DS / HyperNeRF capture) has training
@@ -15,7 +18,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Tuple
 
@@ -24,12 +27,14 @@ import torch
 from nerfstudio.cameras.cameras import Cameras
 
 from garo_ns import compat
+from garo_ns.compaction.guard import psnr
 from garo_ns.compaction.report import summary_for_json
 from garo_ns.config import METHODS as METHOD_SPECS
 from garo_ns.data.dnerf import read_split, split_cameras
 from garo_ns.engine.metrics import lpips_fits, make_lpips
 from garo_ns.errors import GaroInputError
 from garo_ns.tools.files import check_new_file, written_atomically
+from garo_ns.tools.fps import machine, measure_fps, measure_same_time, model_size_mb, protocol, synchronize
 
 compat.install()
 
@@ -82,6 +87,39 @@ def load_run(config_path: Path, data: Optional[Path] = None) -> Tuple[Any, Any, 
             raise
         ckpt = Path(config.output_dir) / config.experiment_name / config.method_name / config.timestamp
         raise GaroInputError(f"cannot load the checkpoint of {config_path} (under {ckpt}): {err}") from None
+
+
+def setting_pairs(pairs: List[str], known: Any, flag: str, what: str) -> Dict[str, Any]:
+    """`NAME=VALUE` pairs (VALUE read as a Python literal, else kept as a string) with each NAME in `known`; any
+    other pair stops the command with one line naming `flag` and `what` NAME must be."""
+    import ast
+
+    out: Dict[str, Any] = {}
+    for pair in pairs:
+        name, sep, text = pair.partition("=")
+        if not sep or name not in known:
+            raise SystemExit(f"{flag} expects NAME=VALUE with NAME {what}, got {pair!r}")
+        try:
+            out[name] = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            out[name] = text
+    return out
+
+
+def model_overrides(pairs: List[str], flag: str = "--set") -> Dict[str, Any]:
+    """`NAME=VALUE` pairs as model settings; an unknown NAME is refused (naming `flag`) before anything runs."""
+    from garo_ns.garo_model import GaroModelConfig
+
+    return setting_pairs(pairs, {f.name for f in fields(GaroModelConfig)}, flag, "a model setting")
+
+
+def apply_model_settings(model: Any, pairs: List[str]) -> None:
+    """Set `NAME=VALUE` model settings on a loaded model, and on its frame path, which reads some of them."""
+    for name, value in model_overrides(pairs).items():
+        setattr(model.config, name, value)
+    if pairs:
+        model.frame.configure(model.config)
+        model.switches.parameters_changed()
 
 
 def scene_dir(config: Any) -> Path:
@@ -148,11 +186,14 @@ def train_times(pipeline: Any, data: Path) -> torch.Tensor:
 
 
 @torch.no_grad()
-def evaluate(pipeline: Any, data: Path, split: str) -> Dict[str, Any]:
-    """Render every frame of `split` and average PSNR, SSIM and (if available, and the images take it) LPIPS."""
+def evaluate(
+    pipeline: Any, data: Path, split: str, views: Optional[Tuple[Cameras, List[torch.Tensor]]] = None
+) -> Dict[str, Any]:
+    """Render every frame of `split` and average PSNR, SSIM and (if available, and the images take it) LPIPS;
+    `views`: the split's cameras and images where the caller has read them (`split_views`)."""
     model = pipeline.model
     model.eval()
-    cameras, images = split_views(pipeline, data, split)
+    cameras, images = views if views is not None else split_views(pipeline, data, split)
     lpips = make_lpips()
     psnrs, ssims, lpipss = [], [], []
     first_frame_s = None
@@ -164,8 +205,7 @@ def evaluate(pipeline: Any, data: Path, split: str) -> Dict[str, Any]:
             first_frame_s = time.perf_counter() - started
         pred = out["rgb"].clamp(0, 1)
         gt = gt.to(pred.device)
-        mse = torch.mean((pred - gt) ** 2)
-        psnrs.append(float(-10.0 * torch.log10(mse.clamp_min(1e-12))))
+        psnrs.append(psnr(pred, gt))
         p, g = pred.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None]
         ssims.append(float(model.ssim(g, p)))
         if lpips is not None and lpips_fits(pred):
@@ -184,12 +224,6 @@ def evaluate(pipeline: Any, data: Path, split: str) -> Dict[str, Any]:
     }
 
 
-def synchronize(device: Any) -> None:
-    """Wait for the GPU's queued work, so a wall-clock time includes it (nothing to wait for on a CPU)."""
-    if torch.device(device).type == "cuda":
-        torch.cuda.synchronize(device)
-
-
 @dataclass
 class EvalArgs:
     """Score a garo-deform / deform-splatfacto run on a split of its scene."""
@@ -202,17 +236,31 @@ class EvalArgs:
     """Where to write the JSON."""
     data: Optional[Path] = None
     """Scene directory, if it moved since training."""
+    fps: bool = True
+    """Also time the split's renders by the FPS protocol (5 warm-up views, 3 passes) and record the model's size
+    and the machine; with the switches the scores were rendered with."""
+    model_set: List[str] = field(default_factory=list)
+    """Model settings to score and time the run with, `NAME=VALUE` (recorded as `model_settings`), e.g.
+    `time_table=False static_skip=False`: the plain render of a model whose switches are on."""
 
 
 def run(args: EvalArgs) -> Dict[str, Any]:
     """Evaluate and write JSON; returns the result."""
     check_new_file(args.output_path, "--output-path", overwrite=True)  # before the whole evaluation runs
+    settings = model_overrides(args.model_set, "--model-set")
     started = time.perf_counter()
     config, pipeline, ckpt, step = load_run(args.load_config, args.data)
+    apply_model_settings(pipeline.model, args.model_set)
     synchronize(pipeline.model.device)
     load_s = time.perf_counter() - started  # the checkpoint read, the model built, its time table built
-    result = evaluate(pipeline, scene_dir(config), args.split)
+    cameras, images = split_views(pipeline, scene_dir(config), args.split)
+    result = evaluate(pipeline, scene_dir(config), args.split, (cameras, images))
+    if args.fps:  # speed beside the error, on the same views
+        model = pipeline.model
+        result.update(measure_fps(model, cameras), ms_per_view_same_time=measure_same_time(model, cameras))
+        result.update(model_size_mb=model_size_mb(model), fps_protocol=protocol(), machine=machine(model.device))
     result.update({"method": config.method_name, "step": int(step), "checkpoint": str(ckpt), "load_seconds": load_s})
+    result["model_settings"] = settings
     # The switches these scores were rendered with, and their measured change against the plain render.
     result["render_switches"] = pipeline.model.render_switch_summary()
     # What compaction decided during training (None for a run without it).
@@ -233,7 +281,8 @@ def main() -> None:
     except GaroInputError as err:
         raise SystemExit(f"error: {err}") from None
     lp = "n/a" if result["lpips"] is None else f"{result['lpips']:.4f}"
+    fps = f"  FPS {result['fps']:.1f}  {result['model_size_mb']:.1f} MB" if "fps" in result else ""
     print(
         f"{result['method']} step {result['step']} on {result['split']}: PSNR {result['psnr']:.2f}  "
-        f"SSIM {result['ssim']:.4f}  LPIPS {lp}  Gaussians {result['num_gaussians']}  -> {args.output_path}"
+        f"SSIM {result['ssim']:.4f}  LPIPS {lp}  Gaussians {result['num_gaussians']}{fps}  -> {args.output_path}"
     )
