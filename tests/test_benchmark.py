@@ -277,3 +277,40 @@ def test_a_result_names_the_hosts_cpu(tmp_path):
     assert cpu_model(tmp_path / "absent") is None
     env = benchmark.environment("cpu")
     assert env["cpu_model"] == cpu_model() and env["cpu_count"] >= 1
+
+
+@pytest.mark.parametrize("per_gpu, most_at_once", [(1, 1), (0, 2)])
+def test_arms_wait_for_a_place_on_a_gpu_when_asked(tmp_path, monkeypatch, per_gpu, most_at_once):
+    """`--arms-per-gpu 1` trains each arm alone on its GPU (the others wait for one to free up); 0 starts every
+    arm at once, round-robin. A failed arm is named after the others have ended."""
+    import garo_ns.bench.benchmark as bench
+
+    running, most, placed = [], {}, []
+
+    class Worker:  # ends on its second poll
+        def __init__(self, cmd, env, stdout, stderr):
+            self.name, self.gpu, self.polls = cmd[cmd.index("--worker") + 1], env["CUDA_VISIBLE_DEVICES"], 0
+            self.returncode = None
+            running.append(self)
+            placed.append((self.name, self.gpu))
+            on_gpu = sum(w.gpu == self.gpu for w in running)
+            most[self.gpu] = max(most.get(self.gpu, 0), on_gpu)
+
+        def poll(self):
+            self.polls += 1
+            if self.polls >= 2 and self.returncode is None:
+                self.returncode = 3 if self.name == "garo-compact" else 0
+                running.remove(self)
+            return self.returncode
+
+    monkeypatch.setattr(bench.subprocess, "Popen", Worker)
+    monkeypatch.setattr(bench.time, "sleep", lambda s: None)
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    args = BenchArgs(scene=tmp_path, work_dir=tmp_path, gpus=[0, 1], arms_per_gpu=per_gpu, device="cuda")
+    names = ["deform-splatfacto", "garo-deform", "garo-compact"]
+    with pytest.raises(RuntimeError, match="training garo-compact failed"):
+        bench.train_arms(args, names, None)
+    assert sorted(n for n, _ in placed) == sorted(names) and max(most.values()) == most_at_once
+    if per_gpu == 0:
+        assert [g for _, g in placed] == ["0", "1", "0"]
+    assert bench.arms_per_gpu(args, 3) == most_at_once

@@ -392,3 +392,42 @@ def test_a_cuda_runs_host_pass_counts_its_launches(tmp_path):
     assert (
         top and sum(k["ms_per_step"] for k in top) <= window["gpu_busy_share"] * window["profiled_ms_per_step"] + 1e-6
     )
+
+
+def test_train_speed_takes_a_benchmark_arm_only_where_it_trained_alone(tmp_path):
+    """A benchmark result trained with `--arms-per-gpu 1` gives each arm's whole training as a run; one whose arms
+    shared a GPU is refused, as is an arm it did not train."""
+    import json
+
+    import pytest
+
+    from garo_ns.bench.train_speed import main
+
+    arm = {
+        "iterations": 40_000,
+        "train_seconds": 240.0,
+        "train_steps_per_second": 166.7,
+        "psnr": 40.0,
+        "lpips": 0.01,
+        "num_gaussians": 50_000,
+        "trained_in": "this run",
+    }
+    result = {
+        "gpu": "GPU X",
+        "git_commit": "abc",
+        "scene": "s",
+        "model_settings": ["time_table=False"],
+        "arms_per_gpu": 1,
+        "variants": {"garo-deform": arm},
+    }
+    lone = tmp_path / "table1_s_X.json"
+    lone.write_text(json.dumps(result))
+    out, _ = main(["--after", f"garo-deform={lone}", "--output", str(tmp_path / "t.json")])
+    row = out["methods"]["garo-deform"]["after"]["runs"][0]
+    assert row["minutes_per_40k"] == 4.0 and row["model_settings"] == {"time_table": "False"} and row["psnr"] == 40.0
+    shared = tmp_path / "table1_s2_X.json"
+    shared.write_text(json.dumps({**result, "arms_per_gpu": 3}))
+    with pytest.raises(SystemExit, match="3 to a GPU at once"):
+        main(["--after", f"garo-deform={shared}", "--output", str(tmp_path / "t.json")])
+    with pytest.raises(SystemExit, match="no arm 'garo-compact'"):
+        main(["--after", f"garo-compact={lone}", "--output", str(tmp_path / "t.json")])

@@ -175,6 +175,11 @@ class BenchArgs:
     schedule is labelled shortened in the JSON."""
     gpus: List[int] = field(default_factory=lambda: [0])
     """GPUs for the training processes (variants are assigned round-robin)."""
+    arms_per_gpu: int = 0
+    """At most this many arms train on one GPU at a time; the others wait for a place on any of `gpus` (0: every
+    arm at once). 1 trains each arm alone on its GPU, so its `train_seconds` are a lone run's: what
+    garo_ns.bench.train_speed takes from a result file (three 40k arms sharing one GPU under MPS took 1122 s
+    together, against about 240 s each alone, so on few GPUs queueing is also the quicker way)."""
     device: Literal["cuda", "cpu"] = "cuda"
     quick: bool = False
     """CPU smoke test: the compressed schedule of garo_ns.tools.train.QuickSchedule."""
@@ -551,6 +556,50 @@ def physical_gpu(index: int) -> str:
     return visible[index]
 
 
+def train_arms(args: BenchArgs, names: List[str], deadline: Optional[float]) -> List[str]:
+    """Train `names` in worker processes, at most `args.arms_per_gpu` on a GPU at a time (0: all at once), each
+    placed on the GPU of `args.gpus` with the fewest arms; on a CPU one after another (they would only compete for
+    the same cores). Returns `names` once every arm has ended; raises naming the first that failed."""
+    args_json = json.dumps(vars(args), default=str)
+    places = len(names) if args.arms_per_gpu <= 0 else args.arms_per_gpu
+    if args.device != "cuda":
+        places = 1
+    pending, running, failed = list(names), [], []
+    load = {g: 0 for g in args.gpus}
+    while pending or running:
+        while pending and min(load.values()) < places:
+            gpu = min(args.gpus, key=lambda g: load[g])  # the first of the least loaded, as round-robin does
+            name = pending.pop(0)
+            env = dict(os.environ)
+            if args.device == "cuda":
+                env["CUDA_VISIBLE_DEVICES"] = physical_gpu(gpu)
+            log = open(args.work_dir / f"{name}.log", "w")
+            cmd = [sys.executable, "-m", "garo_ns.bench.benchmark", "--worker", name, "--args", args_json]
+            if deadline is not None:
+                cmd += ["--deadline", str(deadline)]
+            running.append((name, gpu, subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT), log))
+            load[gpu] += 1
+            print(f"training {name}" + (f" on GPU {gpu}" if args.device == "cuda" else ""), flush=True)
+        time.sleep(0.05 if args.device != "cuda" else 2.0)
+        for name, gpu, proc, log in [r for r in running if r[2].poll() is not None]:
+            running.remove((name, gpu, proc, log))
+            log.close()
+            load[gpu] -= 1
+            if proc.returncode != 0:
+                failed.append(f"training {name} failed (exit {proc.returncode}); see {args.work_dir / (name + '.log')}")
+    if failed:
+        raise RuntimeError(failed[0])
+    return names
+
+
+def arms_per_gpu(args: BenchArgs, arms: int) -> int:
+    """How many arms trained on one GPU at once (1: each alone; on a CPU they train one after another)."""
+    if args.device != "cuda" or arms == 0:
+        return min(arms, 1)
+    most = -(-arms // len(args.gpus))  # all at once, round-robin
+    return min(args.arms_per_gpu, most) if args.arms_per_gpu > 0 else most
+
+
 def run(args: BenchArgs) -> Dict[str, Any]:
     """Phase 1 (training, parallel) then phase 2 (evaluation and timing, sequential); write outputs."""
     from garo_ns.tools.eval import model_overrides
@@ -570,25 +619,9 @@ def run(args: BenchArgs) -> Dict[str, Any]:
         if record["iterations"] != args.steps():
             raise ValueError(f"{export} trained {record['iterations']} steps, this run {args.steps()}")
         imported[record["variant"]] = record
-    procs, args_json = [], json.dumps(vars(args), default=str)
-    for i, name in enumerate(n for n in names if n not in imported):
-        env = dict(os.environ)
-        if args.device == "cuda":
-            env["CUDA_VISIBLE_DEVICES"] = physical_gpu(args.gpus[i % len(args.gpus)])
-        log = open(args.work_dir / f"{name}.log", "w")
-        cmd = [sys.executable, "-m", "garo_ns.bench.benchmark", "--worker", name, "--args", args_json]
-        if deadline is not None:
-            cmd += ["--deadline", str(deadline)]
-        proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)
-        procs.append((name, proc, log))
-        if args.device != "cuda":
-            proc.wait()  # on a CPU the runs would only compete for the same cores
     records = dict(imported)
-    for name, proc, log in procs:
-        code = proc.wait()
-        log.close()
-        if code != 0:
-            raise RuntimeError(f"training {name} failed (exit {code}); see {args.work_dir / (name + '.log')}")
+    trained = [n for n in names if n not in imported]
+    for name in train_arms(args, trained, deadline):
         records[name] = json.loads((args.work_dir / f"{name}.record.json").read_text())
     variants: Dict[str, Dict[str, Any]] = {}
     everything = args.all_variants()
@@ -614,6 +647,8 @@ def run(args: BenchArgs) -> Dict[str, Any]:
         "iterations_full_schedule": args.full_schedule(),
         "model_settings": args.model_set,
         "fps_protocol": protocol(args.warmup_views, args.timing_repeats),
+        # How many of this run's arms trained on one GPU at once: 1 makes each train_seconds a lone run's.
+        "arms_per_gpu": arms_per_gpu(args, len(trained)),
         "variants": variants,
     }
     if paired_error is not None:

@@ -11,6 +11,9 @@ machines, not the recipes: two GPUs of one host differed by 2 to 8% on those ste
 
     python -m garo_ns.bench.train_speed --before garo-deform=OLD.json --after garo-deform=NEW1.json \\
         garo-deform=NEW2.json --output benchmarks/results/train_speed_H200.json
+
+A FILE may also be a benchmark result (garo_ns.bench.benchmark) trained with `--arms-per-gpu 1`, each arm alone on
+its GPU: METHOD names the arm, and its whole training is the run's time.
 """
 
 from __future__ import annotations
@@ -36,9 +39,12 @@ def warmup_ms_per_step(r: Dict[str, Any]) -> Optional[float]:
     return (at[last] - at[first]) / (last - first) * 1000.0
 
 
-def run_row(path: Path) -> Dict[str, Any]:
-    """One run's figures from its `train_profile` result file."""
+def run_row(path: Path, method: Optional[str] = None) -> Dict[str, Any]:
+    """One run's figures from its `train_profile` result file, or `method`'s arm of a benchmark result file
+    (garo_ns.bench.benchmark) whose arms each trained alone on a GPU (`--arms-per-gpu 1`)."""
     r = json.loads(Path(path).read_text())
+    if "variants" in r:
+        return benchmark_row(Path(path), r, method)
     env = r.get("environment", {})
     score = r.get("score") or {}
     choice = r.get("render_choice_seconds")  # measured by train_profile (None in files from before it was)
@@ -60,6 +66,38 @@ def run_row(path: Path) -> Dict[str, Any]:
         "psnr": score.get("psnr"),
         "lpips": score.get("lpips"),
         "gaussians_final": r.get("gaussians_final"),
+    }
+
+
+def benchmark_row(path: Path, r: Dict[str, Any], method: Optional[str]) -> Dict[str, Any]:
+    """`run_row` of one arm of a benchmark result: its whole training as the worker timed it (the render choice
+    after the last step included, not apart: the benchmark does not time it alone)."""
+    if r.get("arms_per_gpu") != 1:
+        raise SystemExit(
+            f"{path.name}: its arms trained {r.get('arms_per_gpu', 'several')} to a GPU at once, so their times are "
+            "not lone runs' (train with --arms-per-gpu 1)"
+        )
+    v = (r.get("variants") or {}).get(method or "")
+    if v is None or v.get("trained_in", "this run") != "this run":
+        raise SystemExit(f"{path.name}: no arm {method!r} trained in that run")
+    settings = dict(s.split("=", 1) for s in r.get("model_settings") or [])
+    return {
+        "file": path.name,
+        "scene": r.get("scene"),
+        "gpu": r.get("gpu"),
+        "git_commit": r.get("git_commit"),
+        "model_settings": settings,
+        "steps": v["iterations"],
+        "train_seconds": v["train_seconds"],
+        "steps_per_second": v["train_steps_per_second"],
+        "minutes_per_40k": v["train_seconds"] / v["iterations"] * STEPS_40K / 60.0,
+        "render_choice_seconds": None,
+        "render_choice_source": None,
+        "minutes_per_40k_steps": None,
+        "warmup_ms_per_step": None,
+        "psnr": v.get("psnr"),
+        "lpips": v.get("lpips"),
+        "gaussians_final": v.get("num_gaussians"),
     }
 
 
@@ -99,7 +137,7 @@ def summary(before: Dict[str, List[Path]], after: Dict[str, List[Path]]) -> Dict
         entry: Dict[str, Any] = {}
         for name, side in (("before", before), ("after", after)):
             if side.get(method):
-                entry[name] = _side([run_row(p) for p in side[method]])
+                entry[name] = _side([run_row(p, method) for p in side[method]])
         if "before" in entry and "after" in entry:
             b, a = entry["before"]["runs"], entry["after"]["runs"]
             scenes = sorted({r["scene"] for r in b} & {r["scene"] for r in a})
