@@ -520,18 +520,14 @@ class TimeTable:
         """`frame_rows` of a `graphable` table with the time a device scalar: the segment, its keys and anchors
         found on the device (gathers, no host reads), so that a CUDA graph can replay the whole frame."""
         spec = self.spec
-        if self._key_anchor is None:  # per key, the anchor line it lies on; the anchors' key indices
-            keys = torch.tensor(self._anchor_keys, device=rows.device)
-            k = torch.arange(spec.intervals + 2 * PAD, device=rows.device)
-            self._key_anchor = (torch.searchsorted(keys, k, right=True) - 1).clamp(0, len(keys) - 2)
-            self._anchor_at = keys.to(rows.dtype)
+        key_anchor, anchor_at = self.anchor_index(rows.device)
         u = (time.clamp(spec.t_lo, spec.t_hi) - spec.t_lo) / spec.spacing + (PAD - 0.5)
         i = u.floor().clamp(PAD - 1, spec.intervals + PAD - 1)
         f = u - i
         pair = torch.stack([i, i + 1]).long()
-        j = self._key_anchor.index_select(0, pair[:1])
+        j = key_anchor.index_select(0, pair[:1])
         ends = torch.cat([j, j + 1])
-        at = self._anchor_at.index_select(0, ends)
+        at = anchor_at.index_select(0, ends)
         line = self.anchors.index_select(0, ends)
         out = torch.lerp(line[0], line[1], (i + f - at[0]) / (at[1] - at[0]))
         keys2 = self.residual.index_select(0, pair).float()
@@ -540,6 +536,16 @@ class TimeTable:
         if self.moving.numel() == rows.shape[0]:
             return out.add_(rows)
         return rows.clone().index_add_(0, self.moving, out)
+
+    def anchor_index(self, device: torch.device) -> Tuple[Tensor, Tensor]:
+        """Per key, the anchor line it lies on [K] (int64), and each anchor's key index [A] (fp32): what a frame
+        on the device reads to find its segment's anchors (made once)."""
+        if self._key_anchor is None:
+            keys = torch.tensor(self._anchor_keys, device=device)
+            k = torch.arange(self.spec.intervals + 2 * PAD, device=device)
+            self._key_anchor = (torch.searchsorted(keys, k, right=True) - 1).clamp(0, len(keys) - 2)
+            self._anchor_at = keys.float()
+        return self._key_anchor, self._anchor_at  # type: ignore[return-value]
 
     def frame_rows(self, rows: Tensor, network_rows: Optional[Tensor], field: Any, xyz: Tensor, time: float) -> Tensor:
         """Every Gaussian's means, quaternions and scale rows [N, 10] at `time` for a frame: `rows` are the
