@@ -38,7 +38,7 @@ class SummaryArgs:
     """Summary JSON; the .md table and .png plot go next to it."""
     variants: List[str] = field(default_factory=lambda: ["garo-deform"])
     """Variants set against the baseline (each must be in every file)."""
-    target: Optional[Literal["compaction", "time-table"]] = None
+    target: Optional[Literal["compaction", "time-table", "frame"]] = None
     """Also judge a speed and quality target (garo_ns.bench.targets) for `--target-variant`."""
     target_variant: Optional[str] = None
     """The variant the target is judged for (one of --variants), e.g. garo-compact+auto."""
