@@ -407,7 +407,7 @@ def training_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
     # The newest file (its `date`; one without is older than any with): earlier ones are in docs/benchmarks.md.
     path = max(files, key=lambda p: json.loads(p.read_text()).get("date") or "")
     data = json.loads(path.read_text())
-    parts = []
+    parts, scene_sets, commits = [], set(), set()
     for method, e in data["methods"].items():
         if "after" not in e:
             continue
@@ -416,15 +416,23 @@ def training_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
         named = f" with `{', '.join(settings)}`" if settings else ""
         steps = a.get("minutes_per_40k_steps")
         without = f" ({steps:.1f})" if steps is not None else ""
-        scenes = ", ".join(sorted({r["scene"] for r in a["runs"]}))
+        ran = ", ".join(sorted({r["scene"] for r in a["runs"]}))
+        scene_sets.add(ran)
+        commits |= {r["git_commit"][:7] for r in a["runs"] if r.get("git_commit")}
         psnr = f", {a['psnr']:.2f} dB" if a.get("psnr") is not None else ""
-        was = f", {e['speedup']:.2f}x before's speed on {', '.join(e['scenes_compared'])}" if e.get("speedup") else ""
+        compared = ", ".join(e.get("scenes_compared") or [])
+        was = f", {e['speedup']:.2f}x the speed before" if e.get("speedup") else ""
+        was += f" on {compared}" if was and compared != ran else ""
         slowest = a.get("slowest_minutes_per_40k")
-        worst = f", the slowest run {slowest:.1f}," if slowest is not None and len(a["runs"]) > 1 else ""
-        parts.append(f"`{method}`{named} {a['minutes_per_40k']:.1f} min{without}{worst} on {scenes}{psnr}{was}")
+        worst = f", the slowest run {slowest:.1f}" if slowest is not None and len(a["runs"]) > 1 else ""
+        parts.append(f"`{method}`{named} {a['minutes_per_40k']:.1f} min{without}{worst}{psnr}{was}")
+    scenes = " / ".join(sorted(scene_sets))
     return (
-        f"\nTraining 40k steps alone on one {', '.join(data['gpus'])} ({_link(path, readme_dir)}; mean minutes, in "
-        f"brackets without the finished model's render choice; test PSNR): {'; '.join(parts)}.\n"
+        f"\nTraining 40k steps alone on one {', '.join(data['gpus'])}"
+        + (f" at {', '.join(sorted(commits))}" if commits else "")
+        + f" on {scenes} "
+        f"({_link(path, readme_dir)}; mean minutes, in brackets without the finished model's render choice where "
+        f"timed apart; test PSNR): {'; '.join(parts)}.\n"
     )
 
 

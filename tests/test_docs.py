@@ -246,14 +246,14 @@ def test_training_line_reads_the_newest_train_speed_file(tmp_path):
     newer = {"date": "2026-01-02", "gpus": ["GPU Y"], "methods": {"garo-deform": {"after": side(3.25, 30.2)}}}
     (tmp_path / "train_speed_Y.json").write_text(json.dumps(newer))
     line = training_block(tmp_path, tmp_path)
-    assert "alone on one GPU Y" in line and "`garo-deform` 3.2 min on lego, 30.20 dB." in line and "GPU X" not in line
+    assert "alone on one GPU Y on lego (" in line and "`garo-deform` 3.2 min, 30.20 dB." in line and "GPU X" not in line
     (tmp_path / "train_speed_Y.json").unlink()
     line = training_block(tmp_path, tmp_path)
-    assert "alone on one GPU X" in line
-    assert "`garo-deform` 4.5 min (4.0) on lego, ship, 30.10 dB, 2.07x before's speed on lego." in line
+    assert "alone on one GPU X on lego, ship (" in line
+    assert "`garo-deform` 4.5 min (4.0), 30.10 dB, 2.07x the speed before on lego." in line
     entry["after"]["slowest_minutes_per_40k"] = 4.75
     (tmp_path / "train_speed_X.json").write_text(json.dumps({"gpus": ["GPU X"], "methods": {"garo-deform": entry}}))
-    assert "4.5 min (4.0), the slowest run 4.8, on lego, ship" in training_block(tmp_path, tmp_path)
+    assert "4.5 min (4.0), the slowest run 4.8, 30.10 dB" in training_block(tmp_path, tmp_path)
 
 
 def test_the_readme_names_the_newest_gpu_test_run(tmp_path):
