@@ -281,7 +281,6 @@ def schedule_lengths(config: Any, pairs: Sequence[str]) -> Dict[str, int]:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
-    from garo_ns.bench import transfer
     from garo_ns.bench.benchmark import environment
     from garo_ns.tools.eval import model_overrides
     from garo_ns.tools.train import QuickSchedule, make_config, setup_trainer
@@ -298,7 +297,6 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
     parser.add_argument("--split", choices=("test", "val"), default="test", help="eval split of the run's config")
     parser.add_argument("--work-dir", type=Path, default=Path("outputs/train_profile"))
     parser.add_argument("--score", action="store_true", help="score the trained model on --split at the end")
-    parser.add_argument("--export-dir", type=Path, default=None, help="also export the trained model here")
     parser.add_argument("--output", type=Path, required=True)
     parser.add_argument(
         "--set", nargs="+", default=[], metavar="NAME=VALUE", help="model settings, e.g. deform_cuda_graph=True"
@@ -381,19 +379,6 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         kept = ("psnr", "ssim", "lpips", "num_gaussians", "split", "background", "n_images")
         result["score"] = {k: scores.get(k) for k in kept if k in scores}
         args.output.write_text(json.dumps(result, indent=2) + "\n")
-    if args.export_dir is not None:
-        record = {
-            "variant": args.method,
-            "method": args.method,
-            "config": str(config.get_base_dir() / "config.yml"),
-            "iterations": steps,
-            "train_seconds": seconds,
-            "train_steps_per_second": steps / seconds,
-            "stopped_by_deadline": False,
-            "train_peak_memory_mb": None,
-            "deformation_collapsed": False,
-        }
-        transfer.export_run(record, result["environment"], args.export_dir / args.method)
     print(markdown_table(result))
     return result
 
