@@ -116,37 +116,6 @@ def test_model_overrides_are_literals_of_known_settings():
             model_overrides(bad)
 
 
-def test_lr_steps_set_the_named_schedules_only():
-    import copy
-
-    from garo_ns.bench.train_profile import schedule_lengths
-    from garo_ns.config import deform_splatfacto_real
-
-    config = copy.deepcopy(deform_splatfacto_real.config)
-    before = {g: o["scheduler"].max_steps for g, o in config.optimizers.items() if o["scheduler"] is not None}
-    assert schedule_lengths(config, ["means=20000", "deformation=25000"]) == {"means": 20000, "deformation": 25000}
-    after = {g: o["scheduler"].max_steps for g, o in config.optimizers.items() if o["scheduler"] is not None}
-    assert after == {**before, "means": 20000, "deformation": 25000} and before["means"] == 30000
-    for bad in (["opacities=100"], ["means=0"], ["means=3e4"], ["nothing=5"]):
-        with pytest.raises(SystemExit, match="GROUP=STEPS"):
-            schedule_lengths(config, bad)
-
-
-def test_data_settings_reach_the_dataparser_and_unknown_ones_are_refused():
-    import copy
-
-    from garo_ns.bench.train_profile import dataparser_settings
-    from garo_ns.config import deform_splatfacto_real
-
-    config = copy.deepcopy(deform_splatfacto_real.config)
-    assert dataparser_settings(config, ["camera_distance=0", "eval_every=4"]) == {"camera_distance": 0, "eval_every": 4}
-    parser = config.pipeline.datamanager.dataparser
-    assert parser.camera_distance == 0 and parser.eval_every == 4
-    for bad in (["no_such=1"], ["camera_distance"], ["data=/tmp"]):
-        with pytest.raises(SystemExit, match="NAME=VALUE"):
-            dataparser_settings(config, bad)
-
-
 def test_the_docs_profile_block_is_written_from_the_committed_files(tmp_path):
     from pathlib import Path
 

@@ -251,35 +251,6 @@ def render_choice_record(model: Any) -> Optional[Dict[str, Any]]:
     }
 
 
-def dataparser_settings(config: Any, pairs: Sequence[str]) -> Dict[str, Any]:
-    """Set `NAME=VALUE` pairs on the run's dataparser config, e.g. `camera_distance=0`; a NAME it does not have (or
-    `data`, which --scene gives) is refused before anything trains."""
-    import dataclasses
-
-    from garo_ns.tools.eval import setting_pairs
-
-    parser = config.pipeline.datamanager.dataparser
-    known = {f.name for f in dataclasses.fields(parser)} - {"data", "_target"}
-    out = setting_pairs(list(pairs), known, "--data-set", "a dataparser setting")
-    for name, value in out.items():
-        setattr(parser, name, value)
-    return out
-
-
-def schedule_lengths(config: Any, pairs: Sequence[str]) -> Dict[str, int]:
-    """Set each `GROUP=STEPS` pair's learning-rate schedule to decay over STEPS steps (whatever the run's length: the
-    official D-3DGS code anneals positions over 30k and its field over 40k steps in a run of any length); a group
-    without a schedule, or a count that is not a positive integer, is refused before anything trains."""
-    out: Dict[str, int] = {}
-    for pair in pairs:
-        group, _, text = pair.partition("=")
-        scheduler = config.optimizers.get(group, {}).get("scheduler")
-        if scheduler is None or not text.isdigit() or int(text) <= 0:
-            raise SystemExit(f"--lr-steps expects GROUP=STEPS with GROUP a scheduled parameter group, got {pair!r}")
-        scheduler.max_steps = out[group] = int(text)
-    return out
-
-
 def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
     from garo_ns.bench.benchmark import environment
     from garo_ns.tools.eval import model_overrides
@@ -300,12 +271,6 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
     parser.add_argument("--output", type=Path, required=True)
     parser.add_argument(
         "--set", nargs="+", default=[], metavar="NAME=VALUE", help="model settings, e.g. deform_cuda_graph=True"
-    )
-    parser.add_argument(
-        "--data-set", nargs="+", default=[], metavar="NAME=VALUE", help="dataparser settings, e.g. camera_distance=0"
-    )
-    parser.add_argument(
-        "--lr-steps", nargs="+", default=[], metavar="GROUP=STEPS", help="schedule lengths, e.g. means=30000"
     )
     parser.add_argument(
         "--as-ns-train",
@@ -329,8 +294,6 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         setattr(config.pipeline.model, name, value)
     if args.steps:
         config.max_num_iterations = args.steps
-    lr_steps = schedule_lengths(config, args.lr_steps)
-    data_settings = dataparser_settings(config, args.data_set)
     loop_work(config, args.method, args.as_ns_train)
     trainer = setup_trainer(config)
     settings = ProfileSettings(args.windows, **{key: getattr(args, key) for key in SETTINGS})
@@ -354,8 +317,6 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         "seconds_before_first_step": None if profiler.run_start is None else profiler.run_start - start,
         "timeline": profiler.timeline,
         "model_settings": overrides,
-        "lr_steps": lr_steps,
-        "data_settings": data_settings,
         "as_ns_train": bool(args.as_ns_train),
         "adam_graph": adam_graph_counts(trainer.optimizers),
         "splats_graph": splats_graph_counts(trainer.pipeline.model),
