@@ -191,19 +191,10 @@ class TrainProfiler:
             self._prof = None
 
 
-def loop_work(config: Any, method: str, as_ns_train: bool) -> None:
-    """Set what the training loop does besides training: with `as_ns_train`, the method's own eval images,
-    checkpoints and console log, as `ns-train` runs them (the viewer aside); else one checkpoint, at the end (the
-    harness's config already evaluates nothing and writes TensorBoard only)."""
-    if not as_ns_train:
-        config.steps_per_save = config.max_num_iterations
-        return
-    from garo_ns.config import METHODS
-
-    own = METHODS[method].config
-    for name in ("steps_per_eval_image", "steps_per_eval_all_images", "steps_per_save"):
-        setattr(config, name, getattr(own, name))
-    config.logging.local_writer.enable = own.logging.local_writer.enable
+def loop_work(config: Any) -> None:
+    """The training loop without what `ns-train` does besides training: the harness's config already evaluates
+    nothing and writes TensorBoard only; one checkpoint, at the end."""
+    config.steps_per_save = config.max_num_iterations
 
 
 def adam_graph_counts(optimizers: Any) -> Optional[Dict[str, int]]:
@@ -272,12 +263,6 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
     parser.add_argument(
         "--set", nargs="+", default=[], metavar="NAME=VALUE", help="model settings, e.g. deform_cuda_graph=True"
     )
-    parser.add_argument(
-        "--as-ns-train",
-        action="store_true",
-        help="keep the method's own eval images, checkpoints and console log (as `ns-train` runs them; the viewer "
-        "aside). Without it the run writes TensorBoard only, evaluates nothing and saves once, at the end",
-    )
     args = parser.parse_args(argv)
     overrides = model_overrides(args.set)
     config = make_config(
@@ -294,7 +279,7 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         setattr(config.pipeline.model, name, value)
     if args.steps:
         config.max_num_iterations = args.steps
-    loop_work(config, args.method, args.as_ns_train)
+    loop_work(config)
     trainer = setup_trainer(config)
     settings = ProfileSettings(args.windows, **{key: getattr(args, key) for key in SETTINGS})
     profiler = TrainProfiler(trainer, settings)
@@ -317,7 +302,6 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         "seconds_before_first_step": None if profiler.run_start is None else profiler.run_start - start,
         "timeline": profiler.timeline,
         "model_settings": overrides,
-        "as_ns_train": bool(args.as_ns_train),
         "adam_graph": adam_graph_counts(trainer.optimizers),
         "splats_graph": splats_graph_counts(trainer.pipeline.model),
         "gaussians_final": int(trainer.pipeline.model.num_points),
