@@ -167,9 +167,6 @@ class BenchArgs:
     another render setting; recorded as `model_settings`."""
     profile: bool = True
     """Add a per-stage breakdown of one frame (garo_ns.bench.frame_profile) to every variant."""
-    profile_projection_squares: bool = False
-    """Also break each variant's frame down with gsplat's 3-sigma tile squares (`profile_projection_squares`):
-    the frame before the tile lists were cut to each splat's alpha reach, beside `profile`."""
     iterations: Optional[int] = None
     """Training steps of every variant (None: the full schedule, 40k; a real capture's 20k); fewer than the full
     schedule is labelled shortened in the JSON."""
@@ -386,8 +383,6 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
         }
         if args.profile:
             out["profile"] = profile_frame(model, cameras)
-        if args.profile_projection_squares:
-            out["profile_projection_squares"] = profile_frame(model, cameras, tile_reach=False)
         if args.renders_dir is not None and "+" not in name:
             from garo_ns.bench.strip import save_views
 
