@@ -44,7 +44,7 @@ def run_row(path: Path, method: Optional[str] = None) -> Dict[str, Any]:
     (garo_ns.bench.benchmark) whose arms each trained alone on a GPU (`--arms-per-gpu 1`)."""
     r = json.loads(Path(path).read_text())
     if "variants" in r:
-        return benchmark_row(Path(path), r, method)
+        r = benchmark_run(Path(path), r, method)
     env = r.get("environment", {})
     score = r.get("score") or {}
     choice = r.get("render_choice_seconds")  # measured by train_profile (None in files from before it was)
@@ -69,9 +69,10 @@ def run_row(path: Path, method: Optional[str] = None) -> Dict[str, Any]:
     }
 
 
-def benchmark_row(path: Path, r: Dict[str, Any], method: Optional[str]) -> Dict[str, Any]:
-    """`run_row` of one arm of a benchmark result: its whole training as the worker timed it (the render choice
-    after the last step included, not apart: the benchmark does not time it alone)."""
+def benchmark_run(path: Path, r: Dict[str, Any], method: Optional[str]) -> Dict[str, Any]:
+    """One arm of a benchmark result as a `train_profile` result holds a run: its whole training as the worker
+    timed it (the render choice after the last step included, not apart: the benchmark does not time it alone;
+    no timeline)."""
     if r.get("arms_per_gpu") != 1:
         raise SystemExit(
             f"{path.name}: its arms trained {r.get('arms_per_gpu', 'several')} to a GPU at once, so their times are "
@@ -80,23 +81,14 @@ def benchmark_row(path: Path, r: Dict[str, Any], method: Optional[str]) -> Dict[
     v = (r.get("variants") or {}).get(method or "")
     if v is None or v.get("trained_in", "this run") != "this run":
         raise SystemExit(f"{path.name}: no arm {method!r} trained in that run")
-    settings = dict(s.split("=", 1) for s in r.get("model_settings") or [])
     return {
-        "file": path.name,
         "scene": r.get("scene"),
-        "gpu": r.get("gpu"),
-        "git_commit": r.get("git_commit"),
-        "model_settings": settings,
+        "environment": {"gpu": r.get("gpu"), "git_commit": r.get("git_commit")},
+        "model_settings": dict(s.split("=", 1) for s in r.get("model_settings") or []),
         "steps": v["iterations"],
         "train_seconds": v["train_seconds"],
         "steps_per_second": v["train_steps_per_second"],
-        "minutes_per_40k": v["train_seconds"] / v["iterations"] * STEPS_40K / 60.0,
-        "render_choice_seconds": None,
-        "render_choice_source": None,
-        "minutes_per_40k_steps": None,
-        "warmup_ms_per_step": None,
-        "psnr": v.get("psnr"),
-        "lpips": v.get("lpips"),
+        "score": {"psnr": v.get("psnr"), "lpips": v.get("lpips")},
         "gaussians_final": v.get("num_gaussians"),
     }
 
