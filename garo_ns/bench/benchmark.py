@@ -556,9 +556,7 @@ def train_arms(args: BenchArgs, names: List[str], deadline: Optional[float]) -> 
     placed on the GPU of `args.gpus` with the fewest arms; on a CPU one after another (they would only compete for
     the same cores). Returns `names` once every arm has ended; raises naming the first that failed."""
     args_json = json.dumps(vars(args), default=str)
-    places = len(names) if args.arms_per_gpu <= 0 else args.arms_per_gpu
-    if args.device != "cuda":
-        places = 1
+    places = arms_per_gpu(args, len(names))
     pending, running, failed = list(names), [], []
     load = {g: 0 for g in args.gpus}
     while pending or running:
