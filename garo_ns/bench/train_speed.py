@@ -19,12 +19,13 @@ its GPU: METHOD names the arm, and its whole training is the run's time.
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 from pathlib import Path
 from statistics import mean
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
-from garo_ns.bench.results import cell, utc_stamp, write_with_table
+from garo_ns.bench.results import cell
 
 STEPS_40K = 40_000
 WARMUP_SPAN = (1000, 3000)  # inside the field's warm-up, past the start-up's first steps
@@ -193,9 +194,15 @@ def main(argv: Optional[Sequence[str]] = None) -> Tuple[Dict[str, Any], str]:
     parser.add_argument("--date", help="when the result was written (default: now, UTC, as 2026-01-31T12:00Z)")
     parser.add_argument("--output", type=Path, required=True)
     args = parser.parse_args(argv)
-    date = args.date or utc_stamp()
+    # The README shows the newest file of a kind, by this date.
+    date = args.date or datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%MZ")
     result = {"note": args.note, "date": date, **summary(_pairs(args.before), _pairs(args.after))}
-    return result, write_with_table(result, markdown, args.output)
+    table = markdown(result)
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps(result, indent=2) + "\n")
+    args.output.with_suffix(".md").write_text(table)
+    print(table)
+    return result, table
 
 
 if __name__ == "__main__":
