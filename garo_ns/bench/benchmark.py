@@ -43,7 +43,6 @@ from garo_ns.bench.results import publish, save_figure
 
 compat.install()
 
-RHO_SWEEP = (0.005, 0.01, 0.02, 0.05, 0.1)
 FULL_ITERATIONS = 40_000
 RENDER_SWITCHES: Dict[str, Dict[str, Any]] = {
     "static": {"static_skip": True},
@@ -152,10 +151,6 @@ class BenchArgs:
     work_dir: Path = Path("runs/benchmark")
     """Where the runs (checkpoints, logs) go."""
     variants: List[str] = field(default_factory=lambda: ["deform-splatfacto", "garo-deform"])
-    ablations: bool = False
-    """Also train garo-oaa, garo-gca and garo-alltime (the paper's Table 3, plus activity over all of training)."""
-    rho_sweep: bool = False
-    """Also train garo-rho<r> for r in 0.005, 0.01, 0.02, 0.05, 0.1."""
     speed: bool = False
     """Also report every trained variant with the render-time switches of SPEED_ROWS."""
     remeasure_switches: bool = False
@@ -203,10 +198,6 @@ class BenchArgs:
 
     def all_variants(self) -> List[str]:
         names = list(self.variants)
-        if self.ablations:
-            names += ["garo-oaa", "garo-gca", "garo-alltime"]
-        if self.rho_sweep:
-            names += [f"garo-rho{r}" for r in RHO_SWEEP if abs(r - 0.02) > 1e-12]
         if self.speed:
             names = [m for n in names for m in [n] + [split_variant(n)[0] + row for row in SPEED_ROWS]]
         return list(dict.fromkeys(names))
