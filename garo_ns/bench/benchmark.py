@@ -3,10 +3,8 @@
 Phase 1 trains every variant, one process per GPU (round-robin when there are more variants than
 GPUs; several processes may share a GPU). Phase 2, after all training has ended, loads each run in
 turn and evaluates it on the chosen split and times it with the FPS protocol (garo_ns.tools.fps), so
-no timing overlaps another job. Phase 3 (`--paired-passes`, on by default) loads every trained variant
-at once and times their plain renders again in alternating passes, reported beside the first timing as
-`fps_paired`: one timing after another can differ by more than a claim's margin when frames take a few
-ms. One JSON holds everything; a Markdown table and a PNG plot (FPS against PSNR, marker area by
+no timing overlaps another job. Phase 3 (`--paired-passes`) times the plain renders again in alternating
+passes (`fps_paired`). One JSON holds everything; a Markdown table and a PNG plot (FPS against PSNR, marker area by
 Gaussian count) are written next to it.
 
 Variants: deform-splatfacto (baseline), garo-deform (full GARO), and on request garo-oaa, garo-gca

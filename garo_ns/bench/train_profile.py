@@ -20,9 +20,7 @@ pass gives the share of the step's wall time the GPU spends in kernels. A last p
 that take the most of the Python thread's time, which is where a host-bound step can be cut. On a CPU the marks
 are host clocks and both columns agree, so the same code runs in the tests.
 
-This module runs the run and writes its result file; the parts it measures with are modules of their own: the
-phases' marks (`step_phases`), the host synchronisations and host operations (`host_syncs`), the GPU's events
-(`kernel_table`), and the tables and the docs' block (`profile_docs`).
+It measures with `step_phases`, `host_syncs`, `kernel_table` and writes with `profile_docs`.
 
     python -m garo_ns.bench.train_profile --scene data/dnerf/jumpingjacks --method garo-deform \
         --windows 2000 10000 30000 --output train_profile.json
