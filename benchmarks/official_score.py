@@ -21,10 +21,8 @@ Per scene (`--work W`: data in W/data/SCENE, the run in W/out/SCENE, its log in 
   normalize=True). `psnr_official_gt` scores the same renders against the official loader's own
   ground truth (composited, then truncated to 8 bits), for comparison with the PSNR that the
   official training script printed (`official_reported_psnr`, parsed from its log).
-* FPS as `garo_ns.tools.fps.measure_fps`: per view, deformation MLP + rasterization only; the
-  cameras are prepared (on the GPU) before timing, as the official loader does; CUDA synchronize
-  before and after each view; the first 5 views rendered and dropped; 3 passes over all views;
-  FPS = 1 / mean seconds; then one more pass timing the MLP and the rasterization apart.
+* FPS by the protocol of `garo_ns.tools.fps` (`fps_protocol`, as `garo-eval` times ours), on the official
+  renderer and the cameras the official loader prepares on the GPU.
 
 A real capture (W/data/SCENE has test_frames.txt: `official_d3dgs.sh prepare-real`) is scored as `garo-eval
 --split val` scores our run of it (`garo_ns.tools.eval.capture_views`): the held-out frames test_frames.txt names,
