@@ -222,18 +222,13 @@ def main() -> None:
     args = ap.parse_args()
 
     sys.path.insert(0, str(args.code.resolve()))  # the official top-level packages (scene, utils, ...)
+    from pytorch_msssim import SSIM  # nerfstudio 1.1.5's splatfacto SSIM, the same class
+
     from garo_ns.engine.metrics import make_lpips
+    from garo_ns.engine.ssim import SSIM as GaroSSIM  # GaroModel.ssim: scores the real captures, as garo-eval does
     from garo_ns.tools.fps import fps_protocol, protocol
 
-    try:  # what GaroModel.ssim is
-        from nerfstudio.models.splatfacto import SSIM
-    except ImportError:  # nerfstudio 1.1.5 re-exports pytorch_msssim's
-        from pytorch_msssim import SSIM
     ssim = SSIM(data_range=1.0, size_average=True, channel=3)
-    from garo_ns.engine.ssim import (
-        SSIM as GaroSSIM,  # what GaroModel.ssim is: scores the real captures, as garo-eval does
-    )
-
     real_ssim = GaroSSIM(data_range=1.0).cuda()
     lpips = make_lpips()
     sources = json.loads(args.sources.read_text()) if args.sources and args.sources.is_file() else {}
