@@ -13,6 +13,7 @@ after (a load above the CPU count means the run shared the cores), and the free-
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import re
@@ -31,14 +32,6 @@ TIME_FIELDS = {
 }
 
 
-def elapsed_seconds(text: str) -> float:
-    """Seconds of /usr/bin/time's `h:mm:ss` or `m:ss.ss`."""
-    seconds = 0.0
-    for part in text.split(":"):
-        seconds = seconds * 60 + float(part)
-    return seconds
-
-
 def parse_time_v(text: str) -> dict:
     """The fields of TIME_FIELDS from /usr/bin/time -v's report."""
     out = {}
@@ -47,8 +40,10 @@ def parse_time_v(text: str) -> dict:
         if key in TIME_FIELDS:
             value = value.strip()
             out[TIME_FIELDS[key]] = int(value) if re.fullmatch(r"\d+", value) else value
-    if "time_v_elapsed" in out:
-        out["time_v_elapsed_s"] = elapsed_seconds(out["time_v_elapsed"])
+    if "time_v_elapsed" in out:  # `h:mm:ss` or `m:ss.ss`
+        out["time_v_elapsed_s"] = functools.reduce(
+            lambda t, part: t * 60 + float(part), out["time_v_elapsed"].split(":"), 0.0
+        )
     for key in ("time_v_user_s", "time_v_system_s"):
         if key in out:
             out[key] = float(out[key])

@@ -48,12 +48,8 @@
 # HERE, after assemble (SCENES=" " assembles without D-NeRF scenes), once per capture (about 20 s; needs the
 # capture's colmap/sparse/0 and images_2/):
 #   bash benchmarks/official_d3dgs.sh prepare-real /work/real/pillow pillow   (benchmarks/official_real.py)
-#        .d3dgs/scenes/NAME   the official COLMAP layout (13-14 MB for pillow, teddy): the posed frames as our
-#                             datamanager caches them (images_2/, undistorted by nerfstudio, uint8) renamed
-#                             00000.png... in video order (official time = place / (count - 1): ours where COLMAP
-#                             posed every frame), one PINHOLE camera (the undistorted intrinsics), COLMAP's own poses
-#                             and points, test_frames.txt (our reader's held-out frames), garo_frames.json (the
-#                             mapping and its checks). Not `colmap image_undistorter` or `-r 2`: other pixels than ours.
+#        .d3dgs/scenes/NAME   the official COLMAP layout (13-14 MB for pillow, teddy) of our frames, pixels and
+#                             held-out split: official_real.py's docstring says what it holds, how and why
 # THERE, one capture per hold (20000 iterations of 183x239 frames), e.g. pillow:
 #   call 1  carry .d3dgs/code .d3dgs/garo_head .whl .d3dgs/scenes/pillow:
 #           bash benchmarks/official_d3dgs.sh start pillow 6011

@@ -21,10 +21,8 @@ Per scene (`--work W`: data in W/data/SCENE, the run in W/out/SCENE, its log in 
   normalize=True). `psnr_official_gt` scores the same renders against the official loader's own
   ground truth (composited, then truncated to 8 bits), for comparison with the PSNR that the
   official training script printed (`official_reported_psnr`, parsed from its log).
-* FPS as `garo_ns.tools.fps.measure_fps`: per view, deformation MLP + rasterization only; the
-  cameras are prepared (on the GPU) before timing, as the official loader does; CUDA synchronize
-  before and after each view; the first 5 views rendered and dropped; 3 passes over all views;
-  FPS = 1 / mean seconds; then one more pass timing the MLP and the rasterization apart.
+* FPS by the protocol of `garo_ns.tools.fps` (`fps_protocol`, as `garo-eval` times ours), on the official
+  renderer and the cameras the official loader prepares on the GPU.
 
 A real capture (W/data/SCENE has test_frames.txt: `official_d3dgs.sh prepare-real`) is scored as `garo-eval
 --split val` scores our run of it (`garo_ns.tools.eval.capture_views`): the held-out frames test_frames.txt names,
@@ -224,18 +222,13 @@ def main() -> None:
     args = ap.parse_args()
 
     sys.path.insert(0, str(args.code.resolve()))  # the official top-level packages (scene, utils, ...)
+    from pytorch_msssim import SSIM  # nerfstudio 1.1.5's splatfacto SSIM, the same class
+
     from garo_ns.engine.metrics import make_lpips
+    from garo_ns.engine.ssim import SSIM as GaroSSIM  # GaroModel.ssim: scores the real captures, as garo-eval does
     from garo_ns.tools.fps import fps_protocol, protocol
 
-    try:  # what GaroModel.ssim is
-        from nerfstudio.models.splatfacto import SSIM
-    except ImportError:  # nerfstudio 1.1.5 re-exports pytorch_msssim's
-        from pytorch_msssim import SSIM
     ssim = SSIM(data_range=1.0, size_average=True, channel=3)
-    from garo_ns.engine.ssim import (
-        SSIM as GaroSSIM,  # what GaroModel.ssim is: scores the real captures, as garo-eval does
-    )
-
     real_ssim = GaroSSIM(data_range=1.0).cuda()
     lpips = make_lpips()
     sources = json.loads(args.sources.read_text()) if args.sources and args.sources.is_file() else {}

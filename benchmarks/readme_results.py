@@ -3,12 +3,12 @@
     python benchmarks/readme_results.py            # rewrite the blocks between the markers in README.md
     python benchmarks/readme_results.py --check    # exit 1 if a block of README.md differs from what it would write
 
-Seven blocks, each between `<!-- NAME:begin -->` and `<!-- NAME:end -->`: `results` (below), `ablation` (from
-`paper_table3_<GPU>.json` and `paper_fig5_<GPU>.json`, written by `garo_ns/bench/ablation.py`, retired: HISTORY),
-`compaction` (from `compact_<GPU>.json`, written by `python -m garo_ns.bench.summary --target compaction`), `demo`
-(from `demo_cpu.json`, written by benchmarks/demo_measure.py), `tests` (from `test_time_cpu.json`, written by
-benchmarks/test_time.py), `training` (from the newest `train_speed_<GPU>.json`, python -m garo_ns.bench.train_speed)
-and `real` (from `real_<GPU>.json`, python -m garo_ns.bench.summary).
+Six blocks, each between `<!-- NAME:begin -->` and `<!-- NAME:end -->`: `results` (below), `compaction` (from
+`compact_<GPU>.json`, written by `python -m garo_ns.bench.summary --target compaction`), `demo` (from `demo_cpu.json`,
+written by benchmarks/demo_measure.py), `tests` (from `test_time_cpu.json`, written by benchmarks/test_time.py),
+`training` (from the newest `train_speed_<GPU>.json`, python -m garo_ns.bench.train_speed) and `real` (from
+`real_<GPU>.json`, python -m garo_ns.bench.summary). The README's Table 3 and Fig. 5 text, from the files of the
+retired garo_ns/bench/ablation.py, stays as this script last wrote it (HISTORY).
 
 Reads every `benchmarks/results/table1_<scene>_<GPU>.json` (written by `python -m garo_ns.bench.benchmark`;
 see docs/benchmarks.md) and makes one row per run: the baseline (`deform-splatfacto`) against GARO
@@ -194,109 +194,6 @@ def _gpu(path: Path) -> str:
 def _load(results: Path, name: str) -> Tuple[Path, Optional[Dict[str, Any]]]:
     path = results / name
     return path, json.loads(path.read_text()) if path.exists() else None
-
-
-WHAT_IT_PRUNES = {
-    "garo-oaa": "activity alone",
-    "garo-gca": "curvature alone",
-    "garo-deform": "both (GARO)",
-}
-
-
-def _commits(value: Any) -> List[str]:
-    """A row's commit or commits (a pooled row names each run's)."""
-    if isinstance(value, str):
-        return [value]
-    return [c for c in value or [] if isinstance(c, str)]
-
-
-def paired_text(v: Dict[str, Any], runs: int) -> str:
-    """The re-timed speed-up as a table shows it, naming how many of the variant's runs it comes from when
-    not all."""
-    if v.get("fps_ratio_paired") is None:
-        return "-"
-    some = v.get("fps_ratio_paired_runs", runs)
-    return f"{v['fps_ratio_paired']:.2f}x" + (f" ({some} of {runs} runs)" if some < runs else "")
-
-
-def rho_places(rhos: List[float]) -> str:
-    """Where a claim holds, in words: `at rho_max 0.05, 0.1` or `at no rho_max tried`."""
-    return f"at rho_max {', '.join(f'{r:g}' for r in rhos)}" if rhos else "at no rho_max tried"
-
-
-def ablation_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
-    """The paper's Table 3 (one scene: each criterion alone against both) and Fig. 5 (rho_max), from the files the
-    retired garo_ns/bench/ablation.py wrote (benchmarks/HISTORY.md, "Retired scripts")."""
-    out = []
-    for path in gpu_files(results, "paper_table3"):
-        data = json.loads(path.read_text())
-        arms = [arm for name in data["variants"] for arm in (data["rows"][name][name], data["rows"][name][BASELINE])]
-        steps = sorted({f"{a['iterations']:,}" if a.get("iterations") else "mixed" for a in arms})
-        commits = sorted({c[:7] for name in data["variants"] for c in _commits(data["rows"][name].get("git_commit"))})
-        out += [
-            "",
-            f"{data['scene']} ({data['split']}), {' / '.join(steps)} steps, {data['gpu']}; each variant against the "
-            f"baseline trained in its own run ({_link(path, readme_dir)}), at commit{'s' if len(commits) > 1 else ''} "
-            f"{', '.join(commits) or '?'}: "
-            "the recipe of those commits, older than the tables above ([docs/recipe.md](docs/recipe.md)):",
-            "",
-            "| variant | prunes by | runs | PSNR change | LPIPS base / variant | speed-up | Gaussians of base |",
-            "|---|---|---|---|---|---|---|",
-        ]
-        for name in data["variants"]:
-            row = data["rows"][name]
-            v, base = row[name], row[BASELINE]
-            out.append(
-                f"| `{name}` | {WHAT_IT_PRUNES.get(name, '-')} | {len(row.get('runs', [row]))} | "
-                f"{-v['psnr_drop_db']:+.2f} dB | {cell(base['lpips'], '.4f')} / {cell(v['lpips'], '.4f')} | "
-                f"{v['fps_ratio']:.2f}x | {v['gaussian_ratio']:.0%} |"
-            )
-        out += ["", data["ordering_sentence"]]
-        for name in data["variants"]:
-            v = data["rows"][name][name]
-            if "fps_ratio_range" in v:
-                lo, hi = v["fps_ratio_range"]
-                out += [
-                    "",
-                    f"`{name}`'s runs range from {lo:.2f}x to {hi:.2f}x: one run per variant is noise-level evidence "
-                    "for differences smaller than that.",
-                ]
-    for path in gpu_files(results, "paper_fig5"):
-        out += rho_lines(json.loads(path.read_text()), path, readme_dir)
-    return "\n".join(out + [""])
-
-
-def rho_lines(data: Dict[str, Any], path: Path, readme_dir: Path) -> List[str]:
-    """The paper's Fig. 5 as a table: what each rho_max tried buys and costs, with both readings of each."""
-    pooled = data["baseline_pooled"]
-    out = [
-        "",
-        f"How far GARO prunes is set by rho_max (the paper's Fig. 5; {data['scene']}, {data['gpu']}, "
-        f"{_link(path, readme_dir)}). PSNR change against the baseline of the same run and against the mean of "
-        f"all {pooled['runs']} baselines ({pooled['psnr_range'][0]:.2f} to {pooled['psnr_range'][1]:.2f} dB: "
-        "one run's baseline strays by tenths of a dB); speed-up from the first timing and from the alternating "
-        "re-timing:",
-        "",
-        "| rho_max | runs | PSNR change | vs all baselines | speed-up | re-timed | Gaussians of base |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    for step in data["sweep"]:
-        row = data["rows"][step["variant"]]
-        v = row[step["variant"]]
-        paired = paired_text(v, len(row.get("runs", [row])))
-        out.append(
-            f"| {step['rho_max']:g} | {len(row.get('runs', [row]))} | {-step['psnr_drop_db']:+.2f} dB | "
-            f"{-step['psnr_drop_vs_pooled_db']:+.2f} dB | {step['fps_ratio']:.2f}x | {paired} | "
-            f"{v['gaussian_ratio']:.0%} |"
-        )
-
-    out += [
-        "",
-        f"The paper's claim ({CLAIM_FPS_RATIO:.1f}x at <= {CLAIM_PSNR_DROP_DB:g} dB) holds "
-        f"{rho_places(data['claim_met_at_rho'])} within each run, and "
-        f"{rho_places(data['claim_met_at_rho_pooled_paired'])} against all baselines with the re-timed speed-up.",
-    ]
-    return out
 
 
 def demo_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
@@ -582,7 +479,6 @@ def real_block(results: Path = RESULTS, readme_dir: Path = ROOT) -> str:
 BLOCKS = {
     "results": render_block,
     "real": real_block,
-    "ablation": ablation_block,
     "compaction": compaction_block,
     "demo": demo_block,
     "tests": tests_block,

@@ -86,7 +86,7 @@ def test_benchmarks_holds_only_scripts_the_docs_name_and_none_that_history_retir
     assert retired and not set(retired) & set(scripts), "a retired script is back in benchmarks/"
 
 
-@pytest.mark.parametrize("block", ["ablation", "compaction", "demo", "tests", "training"])
+@pytest.mark.parametrize("block", ["compaction", "demo", "tests", "training"])
 def test_readme_demo_and_test_figures_come_from_their_result_files(tmp_path, block):
     """The demo's and the tests' figures are rewritten from their files; a typed change is caught."""
     readme = tmp_path / "README.md"
@@ -301,18 +301,6 @@ def test_the_readme_names_the_newest_gpu_test_run(tmp_path):
     )
     got = readme_results.gpu_tests_sentence(tmp_path, tmp_path)
     assert "fixed at 3333333 (its files: 12 passed, [`cuda_subset_5.log`]" in got
-
-
-def test_a_re_timed_speed_up_from_some_of_a_variants_runs_says_how_many():
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        from readme_results import paired_text
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
-    v = {"fps_ratio_paired": 1.8, "fps_ratio_paired_runs": 1}
-    assert paired_text(v, 2) == "1.80x (1 of 2 runs)"
-    assert paired_text(v, 1) == "1.80x"
-    assert paired_text({"fps_ratio_paired": None}, 2) == "-"
 
 
 def test_real_block_says_why_each_capture_misses_the_target(tmp_path):

@@ -138,9 +138,6 @@ def _lines(paths) -> int:
     return sum(len(p.read_text().splitlines()) for p in paths)
 
 
-@pytest.mark.xfail(
-    strict=True, reason="issue 72's target, not met yet (the message gives the share); strict: remove this when met"
-)
 def test_the_harness_is_at_most_a_quarter_of_the_code():
     harness = _lines((PACKAGE / "bench").glob("*.py")) + _lines(
         p for p in (ROOT / "benchmarks").iterdir() if p.suffix in (".py", ".sh")

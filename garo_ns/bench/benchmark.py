@@ -3,10 +3,8 @@
 Phase 1 trains every variant, one process per GPU (round-robin when there are more variants than
 GPUs; several processes may share a GPU). Phase 2, after all training has ended, loads each run in
 turn and evaluates it on the chosen split and times it with the FPS protocol (garo_ns.tools.fps), so
-no timing overlaps another job. Phase 3 (`--paired-passes`, on by default) loads every trained variant
-at once and times their plain renders again in alternating passes, reported beside the first timing as
-`fps_paired`: one timing after another can differ by more than a claim's margin when frames take a few
-ms. One JSON holds everything; a Markdown table and a PNG plot (FPS against PSNR, marker area by
+no timing overlaps another job. Phase 3 (`--paired-passes`) times the plain renders again in alternating
+passes (`fps_paired`). One JSON holds everything; a Markdown table and a PNG plot (FPS against PSNR, marker area by
 Gaussian count) are written next to it.
 
 Variants: deform-splatfacto (baseline), garo-deform (full GARO), and on request garo-oaa, garo-gca
@@ -43,7 +41,6 @@ from garo_ns.bench.results import publish, save_figure
 
 compat.install()
 
-RHO_SWEEP = (0.005, 0.01, 0.02, 0.05, 0.1)
 FULL_ITERATIONS = 40_000
 RENDER_SWITCHES: Dict[str, Dict[str, Any]] = {
     "static": {"static_skip": True},
@@ -152,10 +149,6 @@ class BenchArgs:
     work_dir: Path = Path("runs/benchmark")
     """Where the runs (checkpoints, logs) go."""
     variants: List[str] = field(default_factory=lambda: ["deform-splatfacto", "garo-deform"])
-    ablations: bool = False
-    """Also train garo-oaa, garo-gca and garo-alltime (the paper's Table 3, plus activity over all of training)."""
-    rho_sweep: bool = False
-    """Also train garo-rho<r> for r in 0.005, 0.01, 0.02, 0.05, 0.1."""
     speed: bool = False
     """Also report every trained variant with the render-time switches of SPEED_ROWS."""
     remeasure_switches: bool = False
@@ -167,9 +160,6 @@ class BenchArgs:
     another render setting; recorded as `model_settings`."""
     profile: bool = True
     """Add a per-stage breakdown of one frame (garo_ns.bench.frame_profile) to every variant."""
-    profile_projection_squares: bool = False
-    """Also break each variant's frame down with gsplat's 3-sigma tile squares (`profile_projection_squares`):
-    the frame before the tile lists were cut to each splat's alpha reach, beside `profile`."""
     iterations: Optional[int] = None
     """Training steps of every variant (None: the full schedule, 40k; a real capture's 20k); fewer than the full
     schedule is labelled shortened in the JSON."""
@@ -206,10 +196,6 @@ class BenchArgs:
 
     def all_variants(self) -> List[str]:
         names = list(self.variants)
-        if self.ablations:
-            names += ["garo-oaa", "garo-gca", "garo-alltime"]
-        if self.rho_sweep:
-            names += [f"garo-rho{r}" for r in RHO_SWEEP if abs(r - 0.02) > 1e-12]
         if self.speed:
             names = [m for n in names for m in [n] + [split_variant(n)[0] + row for row in SPEED_ROWS]]
         return list(dict.fromkeys(names))
@@ -386,8 +372,6 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
         }
         if args.profile:
             out["profile"] = profile_frame(model, cameras)
-        if args.profile_projection_squares:
-            out["profile_projection_squares"] = profile_frame(model, cameras, tile_reach=False)
         if args.renders_dir is not None and "+" not in name:
             from garo_ns.bench.strip import save_views
 
@@ -561,9 +545,7 @@ def train_arms(args: BenchArgs, names: List[str], deadline: Optional[float]) -> 
     placed on the GPU of `args.gpus` with the fewest arms; on a CPU one after another (they would only compete for
     the same cores). Returns `names` once every arm has ended; raises naming the first that failed."""
     args_json = json.dumps(vars(args), default=str)
-    places = len(names) if args.arms_per_gpu <= 0 else args.arms_per_gpu
-    if args.device != "cuda":
-        places = 1
+    places = arms_per_gpu(args, len(names))
     pending, running, failed = list(names), [], []
     load = {g: 0 for g in args.gpus}
     while pending or running:

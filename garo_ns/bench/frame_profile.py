@@ -19,6 +19,8 @@ from typing import Any, Dict, Iterator
 
 import torch
 
+from garo_ns.ops.alpha_reach import reach_radii
+from garo_ns.render import reference
 from garo_ns.render.backend import rasterize_lean, resolve_backend
 from garo_ns.render.kernels import TILE_SIZE, lean_front
 from garo_ns.render.view import RenderView
@@ -27,28 +29,9 @@ from garo_ns.tools.fps import model_background, prepare_views, synchronize
 STAGES = ("deformation", "projection", "color", "sorting", "compositing")
 
 
-@contextmanager
-def projection_squares() -> Iterator[None]:
-    """Tile lists from projection's 3-sigma squares, as gsplat 1.4 builds them: the frame before the lists were cut
-    to where each splat's alpha reaches 1/255 (garo_ns.ops.alpha_reach), for a before-and-after breakdown."""
-    from garo_ns.render import kernels, reference, train_raster
-
-    modules = (kernels, reference, train_raster)
-    saved = [m.reach_radii for m in modules]
-    try:
-        for m in modules:
-            m.reach_radii = lambda radii, *args, **kwargs: radii
-        yield
-    finally:
-        for m, fn in zip(modules, saved):
-            m.reach_radii = fn
-
-
-def tile_pairs(model: Any, views: Any, reach: bool) -> float:
-    """Mean (tile, Gaussian) pairs per view that sorting orders: the count compositing walks."""
-    from garo_ns.ops.alpha_reach import reach_radii
-    from garo_ns.render import reference
-
+def tile_pairs(model: Any, views: Any) -> float:
+    """Mean (tile, Gaussian) pairs per view that sorting orders, each splat's box cut to its alpha reach: the count
+    compositing walks."""
     total = 0
     for view in views:
         means, quats, scales, opacities = model.gaussians_at(view.time)[:4]
@@ -56,35 +39,19 @@ def tile_pairs(model: Any, views: Any, reach: bool) -> float:
         radii, means2d, _, conics = reference.project(
             means, reference.covariance(quats, scales), view.viewmat, view.K, W, H
         )
-        if reach:
-            radii = reach_radii(radii, conics, opacities)
+        radii = reach_radii(radii, conics, opacities)
         lo, hi = reference.tile_bounds(means2d, radii, TILE_SIZE, math.ceil(W / TILE_SIZE), math.ceil(H / TILE_SIZE))
         total += int((hi - lo).prod(-1).sum())
     return total / max(len(views), 1)
 
 
 @torch.no_grad()
-def profile_frame(
-    model: Any, cameras: Any, warmup: int = 3, repeats: int = 2, tile_reach: bool = True
-) -> Dict[str, float]:
+def profile_frame(model: Any, cameras: Any, warmup: int = 3, repeats: int = 2) -> Dict[str, float]:
     """Mean milliseconds per view of each stage, of the whole frame, and the overhead.
 
     Returns a dict with `ms_<stage>` for each of STAGES, `ms_frame` (the whole frame, `model.render`),
     `ms_python_overhead` (frame minus the stages, clamped at 0), `tile_pairs` (per view) and `backend`.
-    `tile_reach=False` profiles the frame with projection's tile squares instead (`projection_squares`).
     """
-    if tile_reach:
-        out = _profile(model, cameras, warmup, repeats)
-    else:  # the camera's graph was captured with the cut: captured again without it, and with it after
-        with projection_squares():
-            model.frame.forget_camera_graph()
-            out = _profile(model, cameras, warmup, repeats)
-        model.frame.forget_camera_graph()
-    out["tile_pairs"] = tile_pairs(model, prepare_views(model, cameras), tile_reach)
-    return out
-
-
-def _profile(model: Any, cameras: Any, warmup: int, repeats: int) -> Dict[str, float]:
     model.eval()
     device = model.device
     backend = resolve_backend(model.config.rasterizer, device)
@@ -112,6 +79,7 @@ def _profile(model: Any, cameras: Any, warmup: int, repeats: int) -> Dict[str, f
     out = {f"ms_{k}": 1000.0 * v / max(count, 1) for k, v in totals.items()}
     out["ms_python_overhead"] = max(0.0, out["ms_frame"] - sum(out[f"ms_{s}"] for s in STAGES))
     out["backend"] = backend  # type: ignore[assignment]
+    out["tile_pairs"] = tile_pairs(model, views)
     return out
 
 
@@ -135,7 +103,6 @@ def _staged_frame(model: Any, view: RenderView, backend: str, stage: Any) -> Non
         return
     tw, th = math.ceil(W / TILE_SIZE), math.ceil(H / TILE_SIZE)
     campos = torch.linalg.inv(viewmats)[:, :3, 3]
-    from garo_ns.render import reference
     from garo_ns.render.sh import eval_sh
 
     with stage("projection"):

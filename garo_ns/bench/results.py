@@ -16,23 +16,6 @@ def publish(result: Dict[str, Any], output: Path, report: Callable[[Dict[str, An
     print(f"wrote {output}, {md}, {png}")
 
 
-def utc_stamp() -> str:
-    """Now, UTC, as a result file's `date` (2026-01-31T12:00Z): the README shows the newest file of a kind."""
-    import datetime
-
-    return datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%MZ")
-
-
-def write_with_table(result: Dict[str, Any], markdown: Callable[[Dict[str, Any]], str], output: Path) -> str:
-    """Write `result` to `output` (JSON) and `markdown(result)` next to it (.md); print and return the table."""
-    table = markdown(result)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    output.write_text(json.dumps(result, indent=2) + "\n")
-    output.with_suffix(".md").write_text(table)
-    print(table)
-    return table
-
-
 def save_figure(fig: Any, output: Path) -> Path:
     """Save a report's plot next to its JSON (`output` with .png) and close it; returns the path."""
     import matplotlib.pyplot as plt

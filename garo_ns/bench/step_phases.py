@@ -159,18 +159,15 @@ class StepInstrument:
 
         setattr(obj, name, wrapped)
 
-    def _point(self, name: str) -> Callable[[Any], None]:
-        step = self.steps[-1]
-
-        def hook(grad: Any) -> None:
-            step.points.setdefault(name, self.mark())
-
-        return hook
-
     def _hook(self, tensor: Any, name: str) -> None:
-        """Mark the point `name` when the gradient reaches `tensor` (a training step's tensors only)."""
+        """Mark the point `name` of this step when the gradient reaches `tensor` (a training step's tensors only)."""
         if self.model.training and isinstance(tensor, torch.Tensor) and tensor.requires_grad:
-            self._handles.append(tensor.register_hook(self._point(name)))
+            points = self.steps[-1].points
+
+            def hook(grad: Any) -> None:  # returns None: the gradient passes on unchanged
+                points.setdefault(name, self.mark())
+
+            self._handles.append(tensor.register_hook(hook))
 
     def begin_step(self) -> None:
         if self.active:

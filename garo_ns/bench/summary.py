@@ -223,13 +223,12 @@ def write_report(summary: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
     for scene, split, row in entries:
         for name in [BASELINE, *summary["variants"]]:
             v = row[name]
-            gaussians = "-" if v["num_gaussians"] is None else f"{v['num_gaussians']:.0f}"
             lines.append(
                 f"| {scene} | {split} | {name} | {v.get('iterations', '') or ''} | {cell(v['psnr'], '.2f')} | "
-                f"{cell(v['ssim'], '.4f')} | "
-                f"{cell(v['lpips'], '.4f')} | {cell(v['fps'], '.1f')} | "
+                f"{cell(v['ssim'], '.4f')} | {cell(v['lpips'], '.4f')} | {cell(v['fps'], '.1f')} | "
                 f"{cell(v.get('fps_ratio'), '.2f') + 'x' if v.get('fps_ratio') else '-'} | "
-                f"{cell(v.get('psnr_drop_db'), '+.2f')} | {gaussians} | {cell(v['model_size_mb'], '.1f')} |"
+                f"{cell(v.get('psnr_drop_db'), '+.2f')} | {cell(v['num_gaussians'], '.0f')} | "
+                f"{cell(v['model_size_mb'], '.1f')} |"
             )
     lines += ["", claim_sentence(summary, summary["variants"])]
     if summary["shortened_scenes"]:

@@ -20,9 +20,7 @@ pass gives the share of the step's wall time the GPU spends in kernels. A last p
 that take the most of the Python thread's time, which is where a host-bound step can be cut. On a CPU the marks
 are host clocks and both columns agree, so the same code runs in the tests.
 
-This module runs the run and writes its result file; the parts it measures with are modules of their own: the
-phases' marks (`step_phases`), the host synchronisations and host operations (`host_syncs`), the GPU's events
-(`kernel_table`), and the tables and the docs' block (`profile_docs`).
+It measures with `step_phases`, `host_syncs`, `kernel_table` and writes with `profile_docs`.
 
     python -m garo_ns.bench.train_profile --scene data/dnerf/jumpingjacks --method garo-deform \
         --windows 2000 10000 30000 --output train_profile.json
@@ -191,19 +189,10 @@ class TrainProfiler:
             self._prof = None
 
 
-def loop_work(config: Any, method: str, as_ns_train: bool) -> None:
-    """Set what the training loop does besides training: with `as_ns_train`, the method's own eval images,
-    checkpoints and console log, as `ns-train` runs them (the viewer aside); else one checkpoint, at the end (the
-    harness's config already evaluates nothing and writes TensorBoard only)."""
-    if not as_ns_train:
-        config.steps_per_save = config.max_num_iterations
-        return
-    from garo_ns.config import METHODS
-
-    own = METHODS[method].config
-    for name in ("steps_per_eval_image", "steps_per_eval_all_images", "steps_per_save"):
-        setattr(config, name, getattr(own, name))
-    config.logging.local_writer.enable = own.logging.local_writer.enable
+def loop_work(config: Any) -> None:
+    """The training loop without what `ns-train` does besides training: the harness's config already evaluates
+    nothing and writes TensorBoard only; one checkpoint, at the end."""
+    config.steps_per_save = config.max_num_iterations
 
 
 def adam_graph_counts(optimizers: Any) -> Optional[Dict[str, int]]:
@@ -251,37 +240,7 @@ def render_choice_record(model: Any) -> Optional[Dict[str, Any]]:
     }
 
 
-def dataparser_settings(config: Any, pairs: Sequence[str]) -> Dict[str, Any]:
-    """Set `NAME=VALUE` pairs on the run's dataparser config, e.g. `camera_distance=0`; a NAME it does not have (or
-    `data`, which --scene gives) is refused before anything trains."""
-    import dataclasses
-
-    from garo_ns.tools.eval import setting_pairs
-
-    parser = config.pipeline.datamanager.dataparser
-    known = {f.name for f in dataclasses.fields(parser)} - {"data", "_target"}
-    out = setting_pairs(list(pairs), known, "--data-set", "a dataparser setting")
-    for name, value in out.items():
-        setattr(parser, name, value)
-    return out
-
-
-def schedule_lengths(config: Any, pairs: Sequence[str]) -> Dict[str, int]:
-    """Set each `GROUP=STEPS` pair's learning-rate schedule to decay over STEPS steps (whatever the run's length: the
-    official D-3DGS code anneals positions over 30k and its field over 40k steps in a run of any length); a group
-    without a schedule, or a count that is not a positive integer, is refused before anything trains."""
-    out: Dict[str, int] = {}
-    for pair in pairs:
-        group, _, text = pair.partition("=")
-        scheduler = config.optimizers.get(group, {}).get("scheduler")
-        if scheduler is None or not text.isdigit() or int(text) <= 0:
-            raise SystemExit(f"--lr-steps expects GROUP=STEPS with GROUP a scheduled parameter group, got {pair!r}")
-        scheduler.max_steps = out[group] = int(text)
-    return out
-
-
 def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
-    from garo_ns.bench import transfer
     from garo_ns.bench.benchmark import environment
     from garo_ns.tools.eval import model_overrides
     from garo_ns.tools.train import QuickSchedule, make_config, setup_trainer
@@ -298,22 +257,9 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
     parser.add_argument("--split", choices=("test", "val"), default="test", help="eval split of the run's config")
     parser.add_argument("--work-dir", type=Path, default=Path("outputs/train_profile"))
     parser.add_argument("--score", action="store_true", help="score the trained model on --split at the end")
-    parser.add_argument("--export-dir", type=Path, default=None, help="also export the trained model here")
     parser.add_argument("--output", type=Path, required=True)
     parser.add_argument(
         "--set", nargs="+", default=[], metavar="NAME=VALUE", help="model settings, e.g. deform_cuda_graph=True"
-    )
-    parser.add_argument(
-        "--data-set", nargs="+", default=[], metavar="NAME=VALUE", help="dataparser settings, e.g. camera_distance=0"
-    )
-    parser.add_argument(
-        "--lr-steps", nargs="+", default=[], metavar="GROUP=STEPS", help="schedule lengths, e.g. means=30000"
-    )
-    parser.add_argument(
-        "--as-ns-train",
-        action="store_true",
-        help="keep the method's own eval images, checkpoints and console log (as `ns-train` runs them; the viewer "
-        "aside). Without it the run writes TensorBoard only, evaluates nothing and saves once, at the end",
     )
     args = parser.parse_args(argv)
     overrides = model_overrides(args.set)
@@ -331,9 +277,7 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         setattr(config.pipeline.model, name, value)
     if args.steps:
         config.max_num_iterations = args.steps
-    lr_steps = schedule_lengths(config, args.lr_steps)
-    data_settings = dataparser_settings(config, args.data_set)
-    loop_work(config, args.method, args.as_ns_train)
+    loop_work(config)
     trainer = setup_trainer(config)
     settings = ProfileSettings(args.windows, **{key: getattr(args, key) for key in SETTINGS})
     profiler = TrainProfiler(trainer, settings)
@@ -356,9 +300,6 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         "seconds_before_first_step": None if profiler.run_start is None else profiler.run_start - start,
         "timeline": profiler.timeline,
         "model_settings": overrides,
-        "lr_steps": lr_steps,
-        "data_settings": data_settings,
-        "as_ns_train": bool(args.as_ns_train),
         "adam_graph": adam_graph_counts(trainer.optimizers),
         "splats_graph": splats_graph_counts(trainer.pipeline.model),
         "gaussians_final": int(trainer.pipeline.model.num_points),
@@ -381,19 +322,6 @@ def main(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
         kept = ("psnr", "ssim", "lpips", "num_gaussians", "split", "background", "n_images")
         result["score"] = {k: scores.get(k) for k in kept if k in scores}
         args.output.write_text(json.dumps(result, indent=2) + "\n")
-    if args.export_dir is not None:
-        record = {
-            "variant": args.method,
-            "method": args.method,
-            "config": str(config.get_base_dir() / "config.yml"),
-            "iterations": steps,
-            "train_seconds": seconds,
-            "train_steps_per_second": steps / seconds,
-            "stopped_by_deadline": False,
-            "train_peak_memory_mb": None,
-            "deformation_collapsed": False,
-        }
-        transfer.export_run(record, result["environment"], args.export_dir / args.method)
     print(markdown_table(result))
     return result
 

@@ -19,12 +19,13 @@ its GPU: METHOD names the arm, and its whole training is the run's time.
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 from pathlib import Path
 from statistics import mean
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
-from garo_ns.bench.results import cell, utc_stamp, write_with_table
+from garo_ns.bench.results import cell
 
 STEPS_40K = 40_000
 WARMUP_SPAN = (1000, 3000)  # inside the field's warm-up, past the start-up's first steps
@@ -44,7 +45,7 @@ def run_row(path: Path, method: Optional[str] = None) -> Dict[str, Any]:
     (garo_ns.bench.benchmark) whose arms each trained alone on a GPU (`--arms-per-gpu 1`)."""
     r = json.loads(Path(path).read_text())
     if "variants" in r:
-        return benchmark_row(Path(path), r, method)
+        r = benchmark_run(Path(path), r, method)
     env = r.get("environment", {})
     score = r.get("score") or {}
     choice = r.get("render_choice_seconds")  # measured by train_profile (None in files from before it was)
@@ -69,9 +70,10 @@ def run_row(path: Path, method: Optional[str] = None) -> Dict[str, Any]:
     }
 
 
-def benchmark_row(path: Path, r: Dict[str, Any], method: Optional[str]) -> Dict[str, Any]:
-    """`run_row` of one arm of a benchmark result: its whole training as the worker timed it (the render choice
-    after the last step included, not apart: the benchmark does not time it alone)."""
+def benchmark_run(path: Path, r: Dict[str, Any], method: Optional[str]) -> Dict[str, Any]:
+    """One arm of a benchmark result as a `train_profile` result holds a run: its whole training as the worker
+    timed it (the render choice after the last step included, not apart: the benchmark does not time it alone;
+    no timeline)."""
     if r.get("arms_per_gpu") != 1:
         raise SystemExit(
             f"{path.name}: its arms trained {r.get('arms_per_gpu', 'several')} to a GPU at once, so their times are "
@@ -80,23 +82,14 @@ def benchmark_row(path: Path, r: Dict[str, Any], method: Optional[str]) -> Dict[
     v = (r.get("variants") or {}).get(method or "")
     if v is None or v.get("trained_in", "this run") != "this run":
         raise SystemExit(f"{path.name}: no arm {method!r} trained in that run")
-    settings = dict(s.split("=", 1) for s in r.get("model_settings") or [])
     return {
-        "file": path.name,
         "scene": r.get("scene"),
-        "gpu": r.get("gpu"),
-        "git_commit": r.get("git_commit"),
-        "model_settings": settings,
+        "environment": {"gpu": r.get("gpu"), "git_commit": r.get("git_commit")},
+        "model_settings": dict(s.split("=", 1) for s in r.get("model_settings") or []),
         "steps": v["iterations"],
         "train_seconds": v["train_seconds"],
         "steps_per_second": v["train_steps_per_second"],
-        "minutes_per_40k": v["train_seconds"] / v["iterations"] * STEPS_40K / 60.0,
-        "render_choice_seconds": None,
-        "render_choice_source": None,
-        "minutes_per_40k_steps": None,
-        "warmup_ms_per_step": None,
-        "psnr": v.get("psnr"),
-        "lpips": v.get("lpips"),
+        "score": {"psnr": v.get("psnr"), "lpips": v.get("lpips")},
         "gaussians_final": v.get("num_gaussians"),
     }
 
@@ -201,9 +194,15 @@ def main(argv: Optional[Sequence[str]] = None) -> Tuple[Dict[str, Any], str]:
     parser.add_argument("--date", help="when the result was written (default: now, UTC, as 2026-01-31T12:00Z)")
     parser.add_argument("--output", type=Path, required=True)
     args = parser.parse_args(argv)
-    date = args.date or utc_stamp()
+    # The README shows the newest file of a kind, by this date.
+    date = args.date or datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%MZ")
     result = {"note": args.note, "date": date, **summary(_pairs(args.before), _pairs(args.after))}
-    return result, write_with_table(result, markdown, args.output)
+    table = markdown(result)
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps(result, indent=2) + "\n")
+    args.output.with_suffix(".md").write_text(table)
+    print(table)
+    return result, table
 
 
 if __name__ == "__main__":

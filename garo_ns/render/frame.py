@@ -328,10 +328,6 @@ class FramePath:
         front = self.front(splats, view) if lean_raster and render_mode in ("RGB", "RGB+ED") else None
         return render_splats(splats, view, sh_degree, backgrounds, render_mode, backend, lean_raster, front)
 
-    def forget_camera_graph(self) -> None:
-        """Drop the camera's graph, so that the next frame captures it again (with what its functions do then)."""
-        self._camera_graph.release()
-
     def front(self, splats: Splats, view: RenderView) -> Optional[Front]:
         """The lean path's projection of `splats` for `view` by replay of the camera's CUDA graph, with the tile
         lists cut to each splat's alpha reach (inside the graph the cut costs no launches); None where `splats` are
