@@ -303,11 +303,14 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
     from garo_ns.state import storage
     from garo_ns.tools.eval import apply_model_settings, evaluate, load_run, split_views
     from garo_ns.tools.eval import train_times as scene_train_times
-    from garo_ns.tools.fps import measure_fps, measure_same_time, model_size_mb
+    from garo_ns.tools.fps import measure_fps, measure_same_time, model_size_mb, synchronize
 
+    started = time.perf_counter()
     _, pipeline, _, step = load_run(Path(record["config"]))
     model = pipeline.model
     apply_model_settings(model, args.model_set)
+    synchronize(model.device)
+    load_s = time.perf_counter() - started  # as garo-eval's: the checkpoint read, the model and its time table built
     views = split_views(pipeline, args.scene, args.split)
     cameras = views[0]
     all_train_times = scene_train_times(pipeline, args.scene)
@@ -367,6 +370,9 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
             **{k: getattr(model.config, k) for k in ("garo_mode", "rho_max", "prune_contribution_ratio")},
             "compaction": summary_for_json(model.strategy_state.get("compact")),
             "checkpoint_step": int(step),
+            # Load to first frame (issue 70's load_s): the loaded model's, then this row's first view.
+            "load_seconds": load_s,
+            "first_frame_seconds": result["first_frame_seconds"],
             # Where this arm trained: this run, or (imported with --pretrained) an earlier run's machine and commit.
             "trained_in": record.get("trained_in", "this run"),
         }
