@@ -280,3 +280,27 @@ def test_the_time_table_target_judges_the_worst_view_against_the_plain_render():
     assert check["missed"] == ["worst view vs plain render, each scene (dB)"]
     check = check_target(runs(None), "garo-compact+auto", TIME_TABLE)  # a file without the comparison
     assert check["criteria"][-1]["met"] is None and not check["met"] and check["missed"] == []
+
+
+def test_table_cost_lists_each_tabled_row_with_its_load_to_first_frame(tmp_path):
+    import json
+
+    from garo_ns.bench.summary import SummaryArgs, main
+
+    a = _result("lego", 100.0, 200.0, 30.0, 29.8)
+    a["variants"]["garo-deform"].update(
+        time_table={"mb": 900.0, "build_s": 4.0}, profile={"ms_deformation": 0.1}, load_seconds=3.0,
+        first_frame_seconds=0.5,
+    )  # fmt: skip
+    b = _result("ship", 100.0, 250.0, 30.0, 29.9)
+    b["variants"]["garo-deform"]["time_table"] = {"mb": 1200.0, "build_s": 6.0}  # from before load times were kept
+    paths = []
+    for r in (a, b):
+        paths.append(tmp_path / f"{r['scene']}.json")
+        paths[-1].write_text(json.dumps(r))
+    cost = tmp_path / "table_cost.json"
+    main(SummaryArgs(results=paths, output=tmp_path / "s.json", table_cost=cost))
+    rows = json.loads(cost.read_text())["rows"]
+    assert [(r["scene"], r["variant"]) for r in rows] == [("lego", "garo-deform"), ("ship", "garo-deform")]
+    assert rows[0]["load_s"] == 3.5 and rows[0]["lookup_ms"] == 0.1 and rows[0]["frame_ms"] == 5.0
+    assert rows[1]["load_s"] is None and rows[1]["lookup_ms"] is None and rows[1]["table_mb"] == 1200.0

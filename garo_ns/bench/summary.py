@@ -11,6 +11,7 @@ once: each value of its row is the mean over its runs, with the runs kept beside
 from __future__ import annotations
 
 import itertools
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Tuple
@@ -49,6 +50,8 @@ class SummaryArgs:
     scene's official arm goes under `official` in that scene's row, beside the baseline."""
     note: str = ""
     """How the runs were made (machine, sharing, what was cut short), recorded before the summary's own note."""
+    table_cost: Optional[Path] = None
+    """Also write here, as JSON, what each tabled row's time table costs (issue 70, `table_cost`)."""
 
 
 def _mean(values: List[Optional[float]]) -> Optional[float]:
@@ -295,6 +298,23 @@ def write_report(summary: Dict[str, Any], output: Path) -> Tuple[Path, Path]:
     return md, save_figure(fig, output)
 
 
+def table_cost(loaded: List[Tuple[str, Dict[str, Any]]]) -> List[Dict[str, Any]]:
+    """Per scene and variant that rendered with a time table: its MB, load to first frame (where the run recorded
+    it: `load_seconds` plus `first_frame_seconds`), the profile's lookup stage and the frame, in milliseconds."""
+    rows = []
+    for source, r in loaded:
+        for name, v in r["variants"].items():
+            if not v.get("time_table"):
+                continue
+            load = v.get("load_seconds")
+            table, lookup = v["time_table"], (v.get("profile") or {}).get("ms_deformation")
+            rows.append({"scene": r["scene"], "variant": name, "source": source, "git_commit": r.get("git_commit"),
+                         "table_mb": table.get("mb"), "build_s": table.get("build_s"),
+                         "load_s": None if load is None else load + v["first_frame_seconds"],
+                         "lookup_ms": lookup, "frame_ms": 1000.0 / v["fps"]})  # fmt: skip
+    return rows
+
+
 def main(args: SummaryArgs) -> Dict[str, Any]:
     """Read, summarise, write JSON, table and plot; print the table."""
     loaded = read_results(args.results)
@@ -312,6 +332,8 @@ def main(args: SummaryArgs) -> Dict[str, Any]:
     except ValueError as err:
         raise SystemExit(f"error: {err}") from None
     publish(summary, args.output, write_report)
+    if args.table_cost is not None:
+        args.table_cost.write_text(json.dumps({"gpus": summary["gpus"], "rows": table_cost(loaded)}, indent=1))
     return summary
 
 
