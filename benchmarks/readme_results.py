@@ -7,8 +7,8 @@ Six blocks, each between `<!-- NAME:begin -->` and `<!-- NAME:end -->`: `results
 `compact_<GPU>.json`, written by `python -m garo_ns.bench.summary --target compaction`), `demo` (from `demo_cpu.json`,
 written by benchmarks/demo_measure.py), `tests` (from `test_time_cpu.json`, written by benchmarks/test_time.py),
 `training` (from the newest `train_speed_<GPU>.json`, python -m garo_ns.bench.train_speed) and `real` (from
-`real_<GPU>.json`, python -m garo_ns.bench.summary). The README's Table 3 and Fig. 5 text, from the files of the
-retired garo_ns/bench/ablation.py, stays as this script last wrote it (HISTORY).
+`real_<GPU>.json`, python -m garo_ns.bench.summary). The Table 3 and Fig. 5 text this script last wrote from the
+files of the retired garo_ns/bench/ablation.py is kept in docs/benchmarks.md (HISTORY).
 
 Reads every `benchmarks/results/table1_<scene>_<GPU>.json` (written by `python -m garo_ns.bench.benchmark`;
 see docs/benchmarks.md) and makes one row per run: the baseline (`deform-splatfacto`) against GARO
