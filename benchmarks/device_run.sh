@@ -141,6 +141,7 @@ wait)
   done
   nvidia-smi --query-gpu=index,utilization.gpu,memory.used --format=csv,noheader
   for d in $W/*/; do
+    case $(basename $d) in pack|results|jobs|src|exports) continue;; esac  # a run's arms only
     for f in $d*.log; do
       [ -e "$f" ] && echo "$(basename $d)/$(basename $f): $(grep -o '^[0-9]* ([0-9.]*%)' $f | tail -1)"
     done
