@@ -38,19 +38,17 @@ def test_the_one_kernel_frame_is_the_torch_frame(monkeypatch, precision, scale_o
             assert torch.allclose(g, w, rtol=1e-6, atol=1e-7), (name, t, float((g - w).abs().max()))
 
 
-def test_a_table_with_still_gaussians_or_no_device_kernel_takes_the_torch_path(monkeypatch):
+def test_a_table_with_still_gaussians_or_no_device_kernel_is_left_to_the_torch_path(monkeypatch):
     field = _field(amp=0.05)
     field.amp[48:] = 0.0
     table = TimeTable.build(_spec(61, tolerance=1e-2, anchor_every=4), field, _xyz())
     rows = torch.randn(64, 10, generator=torch.Generator().manual_seed(2))
     monkeypatch.setenv("TRITON_INTERPRET", "1")
     assert table.moving.numel() == 48 and not fused_available(table, rows)
-    monkeypatch.delenv("TRITON_INTERPRET")
     moving = TimeTable.build(_spec(61, tolerance=1e-2, anchor_every=4), _field(amp=0.05), _xyz())
+    assert fused_available(moving, rows)
+    monkeypatch.delenv("TRITON_INTERPRET")
     assert not fused_available(moving, rows)  # a CPU tensor without the interpreter
-    for t in (0.0, 0.37, 1.0):
-        for g, w in zip(table_splats(table, rows, torch.tensor(t)), _torch_splats(table, rows, t)):
-            assert torch.equal(g, w)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")

@@ -22,7 +22,7 @@ from garo_ns.deformation import DeformationField, ScaleOffset, log_scale_offset
 from garo_ns.render.backend import Backend, rasterize
 from garo_ns.render.graphs import InputGraph, TimeGraph, graphs_available, parameter_list, versions
 from garo_ns.render.kernels import Front, lean_front
-from garo_ns.render.table_lookup import table_splats
+from garo_ns.render.table_lookup import fused_available, table_splats
 from garo_ns.render.time_table import (
     TableSpec,
     TimeTable,
@@ -185,7 +185,9 @@ class FramePath:
                     rows, _, opacities, colors = self._table_rows
 
                     def step(t: Tensor) -> Splats:
-                        return Splats(*table_splats(tabled, rows, t), opacities, colors)
+                        if fused_available(tabled, rows):
+                            return Splats(*table_splats(tabled, rows, t), opacities, colors)
+                        return rows_splats(tabled.rows_at(rows, t), opacities, colors, tabled.scale_offset)
 
                     # The network's graph and this one share a TimeGraph: one capture counter names the buffers
                     # the camera's projection graph reads (Splats.graph). The table's key changes with its tensors.

@@ -4,9 +4,9 @@ A linear time table's frame (garo_ns.render.time_table.TimeTable.rows_at, then t
 and scales) is some twenty small kernels: the segment found from the time on the device, two anchors and two keys
 gathered, two interpolations, the scales put back, the rows split into the rasterizer's tensors. Each moves well
 under a megabyte at 50k Gaussians, so the frame pays their launches, not their bytes. `table_splats` does all of it
-in one Triton kernel where it can (a CUDA device, Triton importable, every Gaussian moving), and through the torch
-path otherwise: the same numbers to float rounding, which tests/test_table_lookup.py checks on a CPU with Triton's
-interpreter.
+in one Triton kernel where `fused_available` says it can (a CUDA device, Triton importable, every Gaussian moving);
+the frame path takes the torch path otherwise. Both give the same numbers to float rounding, which
+tests/test_table_lookup.py checks on a CPU with Triton's interpreter.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from garo_ns.deformation import SCALE_FLOOR
-from garo_ns.render.time_table import CHANNELS, PAD, TimeTable, row_scales
+from garo_ns.render.time_table import CHANNELS, PAD, TimeTable
 
 BLOCK = 1024  # table entries (Gaussian x channel) per program
 _kernels: Dict[bool, Any] = {}
@@ -41,17 +41,15 @@ def fused_available(table: TimeTable, rows: Tensor) -> bool:
 
 def table_splats(table: TimeTable, rows: Tensor, time: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
     """Means [N, 3], quaternions [N, 4] and scales [N, 3] at `time` (a device scalar, so a CUDA graph can replay
-    the frame) of a `graphable` table, `rows` being the canonical rows plus the table's base (frame.table_rows)."""
-    if not fused_available(table, rows):
-        d = table.rows_at(rows, time)
-        return d[:, :3].contiguous(), d[:, 3:7].contiguous(), row_scales(d[:, 7:], table.scale_offset)
+    the frame) of a table `fused_available` accepts, `rows` being the canonical rows plus the table's base
+    (frame.table_rows): what frame.rows_splats makes of `TimeTable.rows_at`, in one kernel."""
     key_anchor, anchor_at = table.anchor_index(rows.device)
     spec, n = table.spec, rows.shape[0]
     means = torch.empty(n, 3, device=rows.device)
     quats = torch.empty(n, 4, device=rows.device)
     scales = torch.empty(n, 3, device=rows.device)
     scale = table.codec.scale
-    _kernel()[(triton_cdiv(n * CHANNELS, BLOCK),)](
+    _kernel()[(-(-n * CHANNELS // BLOCK),)](
         time.reshape(1).float(),
         key_anchor,
         anchor_at,
@@ -76,10 +74,6 @@ def table_splats(table: TimeTable, rows: Tensor, time: Tensor) -> Tuple[Tensor, 
         BLOCK=BLOCK,
     )
     return means, quats, scales
-
-
-def triton_cdiv(a: int, b: int) -> int:
-    return -(-a // b)
 
 
 def _interpret() -> bool:
