@@ -13,10 +13,12 @@ from garo_ns.render.time_table import (
     TableSpec,
     TimeTable,
     build_bytes,
+    fitting_intervals,
     plan_intervals,
     spec_for,
     table_bytes,
     weights,
+    window_spec,
 )
 
 W = 2 * math.pi  # one period over the time range
@@ -671,3 +673,68 @@ def test_a_builds_scratch_is_what_the_budget_leaves_and_the_table_is_the_same_wi
     two_passes = TimeTable.build(spec, field, xyz, scratch_bytes=0)
     assert field.calls - calls > calls  # the keys sampled twice
     assert torch.equal(one_pass.residual, two_passes.residual)
+
+
+@pytest.mark.parametrize("whole_intervals, intervals", [(40, 8), (41, 9), (40, 1), (97, 30)])
+def test_a_window_holds_the_whole_tables_keys_around_the_time_on_a_half_window_grid(whole_intervals, intervals):
+    spec = _spec(whole_intervals, t_lo=0.2, t_hi=0.9)
+    keys = spec.key_times().double()
+    starts = set()
+    for t in torch.linspace(0.2, 0.9, 57).tolist():
+        w = window_spec(spec, t, intervals)
+        assert w.intervals == intervals and w.t_lo <= t <= w.t_hi
+        assert w.spacing == pytest.approx(spec.spacing, rel=1e-12)
+        start = round((w.t_lo - spec.t_lo) / spec.spacing)
+        # Its keys are the whole table's keys start .. start + intervals + 2 PAD - 1, at the same times.
+        assert torch.allclose(w.key_times().double(), keys[start : start + intervals + 2 * PAD], atol=1e-6)
+        step = max(intervals // 2, 1)
+        assert start % step == 0 or start == whole_intervals - intervals
+        if intervals >= 2 and 0 < start < whole_intervals - intervals:  # away from the ends: a quarter inside
+            assert w.t_lo + 0.25 * intervals * w.spacing - 1e-9 <= t <= w.t_hi - 0.25 * intervals * w.spacing + 1e-9
+        starts.add(start)
+    assert len(starts) > 2  # the window moves with the time
+    assert window_spec(spec, 0.5, whole_intervals) == spec and window_spec(spec, 0.5, 10**6) == spec
+
+
+@pytest.mark.parametrize("precision", ["fp32", "int16"])
+def test_a_frame_in_a_window_is_the_whole_tables_frame(precision):
+    """A frame path under `time_table_window_mb` holds a window of the table around the frame's time (within the
+    budget), builds the next one only when the time leaves it, and renders the whole table's frames: the same keys,
+    so fp32 keys give the same numbers up to the order of sums; int16 keys are scaled to the window's own
+    residuals, a finer step than the whole table's."""
+    from garo_ns.deformation import DeformationField
+    from garo_ns.render.frame import FramePath, FrameSettings
+
+    g = torch.Generator().manual_seed(3)
+    n = 64
+    field = DeformationField(pos_freqs=4, time_freqs=3, depth=2, width=32, skip=1).eval()
+    for p in field.parameters():  # heads that move every Gaussian
+        p.data.normal_(0, 0.3, generator=g)
+    parts = (torch.rand(n, 3, generator=g), torch.randn(n, 4, generator=g), 0.1 * torch.randn(n, 3, generator=g))
+    canonical = Canonical(*parts, torch.zeros(n, 1), torch.zeros(n, 3), torch.zeros(n, 15, 3))
+    spec = _spec(120, precision=precision, tolerance=1.0)
+    whole, windowed, tabled = FramePath(), FramePath(), FrameSettings(time_table=True)
+    budget = table_bytes(120, n, precision) / 2**20 / 3
+    windowed.table_window_mb = budget
+    fit = fitting_intervals(120, n, budget, precision)
+    assert 2 <= fit < 120
+    builds, last = 0, None
+    with torch.no_grad():
+        for t in torch.linspace(0, 1, 41).tolist():
+            want = whole.splats(field, canonical, None, None, t, tabled, spec)
+            got = windowed.splats(field, canonical, None, None, t, tabled, spec)
+            table = windowed.table
+            assert table is not None and table.spec.intervals == fit and table.nbytes() <= budget * 2**20
+            assert table.spec.t_lo <= t <= table.spec.t_hi
+            builds += table is not last
+            last = table
+            scale = float(want.means.abs().max())
+            assert float((got.means - want.means).abs().max()) <= (1e-6 if precision == "fp32" else 1e-4) * scale
+            assert float((got.quats - want.quats).abs().max()) <= (1e-6 if precision == "fp32" else 1e-4) * scale
+    assert whole.table.spec == spec and windowed.built_info(spec)["window"]["of_intervals"] == 120
+    # Built again only as the time left each window: far fewer builds than frames.
+    assert 3 <= builds <= 2 + 120 // (fit // 2)
+    # A budget that holds fewer than two intervals: no table, and why.
+    windowed.table_window_mb = 1e-6
+    assert windowed.time_table(field, canonical, spec, 0.5) is None
+    assert "holds fewer than two" in windowed.table_failures[spec]

@@ -277,3 +277,28 @@ def test_a_loaded_model_trusts_its_record_until_its_values_are_rounded_to_storag
     assert not model.render_settings().time_table
     storage.restore(model, original)
     assert model.switches.distrust() is None
+
+
+@pytest.mark.slow
+def test_a_model_under_a_window_budget_holds_a_window_of_its_table_and_renders_the_same_frames(trained):
+    from garo_ns.render.time_table import build_bytes
+
+    model, _ = _load(trained)
+    model.config.time_table = True  # whatever was measured
+    spec = model.switches.table_spec()
+    times = (0.05, 0.3, 0.55, 0.95)
+    with torch.no_grad():
+        whole = {t: model.gaussians_at(t).means.clone() for t in times}
+    assert model.frame.table.spec == spec
+    window = spec.intervals // 3
+    model.config.time_table_window_mb = build_bytes(window, model.num_points, spec.precision) / 2**20
+    model.frame.configure(model.config)
+    with torch.no_grad():
+        for t in times:
+            got = model.gaussians_at(t).means
+            table = model.frame.table
+            assert table.spec.intervals == window and table.spec.t_lo <= t <= table.spec.t_hi
+            assert table.nbytes() <= model.config.time_table_window_mb * 2**20
+            assert torch.allclose(got, whole[t], atol=1e-4 * float(whole[t].abs().max()))
+    line = model.switches.line(model.config, False, model.device)
+    assert f"a window of {window} of {spec.intervals} intervals" in line, line

@@ -27,10 +27,12 @@ from garo_ns.render.time_table import (
     TableSpec,
     TimeTable,
     build_bytes,
+    fitting_intervals,
     row_scales,
     scale_rows,
     scratch_limit,
     tf32_products,
+    window_spec,
 )
 from garo_ns.render.view import RenderView
 
@@ -145,13 +147,18 @@ class FramePath:
         # The model's time_table_budget_mb: a build's fp32 scratch gets what the budget leaves after the table
         # and its copies (`build_bytes`), so that the whole build stays within it (None: no cap but free memory).
         self.table_budget_mb: Optional[float] = None
+        # The model's time_table_window_mb: a larger table is held a window of time at a time (`window`).
+        self.table_window_mb: Optional[float] = None
+        self._whole: Optional[TableSpec] = None  # the table `_table` holds, or holds a window of
 
     def configure(self, config: Any) -> None:
         """Take the model config's settings that the frame path reads (`deform_scale_offset`, `time_table_tf32`,
-        `time_table_budget_mb`): at the model's construction, and again when a loaded model's config is changed."""
+        `time_table_budget_mb`, `time_table_window_mb`): at the model's construction, and again when a loaded model's
+        config is changed."""
         self.scale_offset = config.deform_scale_offset
         self.table_tf32 = config.time_table_tf32
         self.table_budget_mb = config.time_table_budget_mb
+        self.table_window_mb = getattr(config, "time_table_window_mb", None)
 
     def splats(
         self,
@@ -172,7 +179,7 @@ class FramePath:
         # time slider past the last training frame, a held-out last frame) goes through the network, exact.
         inside = table is not None and table.t_lo <= float(time) <= table.t_hi
         if settings.time_table and inside and not torch.is_grad_enabled():
-            tabled = self.time_table(field, canonical, table)
+            tabled = self.time_table(field, canonical, table, float(time))
             if tabled is not None:
                 table_key = self._table[0]  # type: ignore[index]  # the spec, the parameters' versions, the scales
                 cache_key = ("table", float(time), self.halfway, table_key)
@@ -217,7 +224,7 @@ class FramePath:
 
     def built_info(self, spec: TableSpec) -> Optional[Dict[str, Any]]:
         """What the table of `spec` was built as (`table_info`), if it is the table built last; else None."""
-        if self._table is not None and self._table[1] is not None and self._table[0][0] == spec and self.table_info:
+        if self._table is not None and self._table[1] is not None and self._whole == spec and self.table_info:
             return None if self.table_info.get("preview") else self.table_info
         return None
 
@@ -236,14 +243,45 @@ class FramePath:
         left = self.table_budget_mb * 2**20 - build_bytes(spec.intervals, n, spec.precision, spec.anchor_every)
         return max(0, min(free, int(left)))
 
-    def time_table(self, field: DeformationField, canonical: Canonical, spec: TableSpec) -> Optional[TimeTable]:
-        """The table of `spec` for these parameters, built on first use (and again when they change); None
-        when it cannot be built (out of memory, ...): the reason is in `table_info` and the network renders. While
-        `preview` is set, the table's `TimeTable.preview` instead (halfway frames only)."""
+    def window(self, spec: TableSpec, time: Optional[float], gaussians: int) -> Tuple[Optional[TableSpec], int]:
+        """The table to build for a frame at `time` (None: the start of the range) from the table of `spec`, and how
+        many midpoints its build checks: `spec` itself, or under `time_table_window_mb` the window around `time` of
+        as many of its intervals as the budget holds (`window_spec`: the same keys there), checked at the whole
+        table's density of midpoints; None where the budget holds fewer than two intervals. While the render
+        switches are measured (`halfway`, `preview`) the whole table: their views range over all training times."""
+        samples = 64  # TimeTable.build's default
+        if self.table_window_mb is None or self.halfway or self.preview:
+            return spec, samples
+        fit = fitting_intervals(spec.intervals, gaussians, self.table_window_mb, spec.precision, spec.anchor_every)
+        if fit == 0:
+            return None, samples
+        if self._table is not None and self._whole == spec and self._table[1] is not None:
+            held = self._table[0][0]  # the window built last: kept while the time stays inside it
+            if held.intervals == fit and held.t_lo <= float(time if time is not None else spec.t_lo) <= held.t_hi:
+                return held, max(2, -(-samples * fit // spec.intervals))
+        t = spec.t_lo if time is None else float(time)
+        return window_spec(spec, t, fit), max(2, -(-samples * fit // spec.intervals))
+
+    def time_table(
+        self, field: DeformationField, canonical: Canonical, spec: TableSpec, time: Optional[float] = None
+    ) -> Optional[TimeTable]:
+        """The table of `spec` for these parameters (or its window around `time`: `window`), built on first use (and
+        again when they change, or the time leaves the window); None when it cannot be built (out of memory, ...):
+        the reason is in `table_info` and the network renders. While `preview` is set, the table's
+        `TimeTable.preview` instead (halfway frames only)."""
         params = versions([*canonical, *parameter_list(field)])
+        whole = spec
+        built_spec, samples = self.window(whole, time, canonical.means.shape[0])
+        if built_spec is None:
+            reason = f"time_table_window_mb {self.table_window_mb:g} holds fewer than two of its intervals"
+            self._table, self._table_rows, self._whole, self.table_info = None, None, whole, {"error": reason}
+            self.table_failures[whole] = reason
+            return None
+        spec = built_spec
         key = (spec, params, self.scale_offset, self.preview, self.table_tf32)
-        if self._table is None or self._table[0] != key:
+        if self._table is None or self._table[0] != key or self._whole != whole:
             self._table, self._table_rows = None, None  # the old table's memory first
+            self._whole = whole
             start = perf_counter()
             try:
                 xyz = canonical.means.detach()
@@ -255,17 +293,20 @@ class FramePath:
                             spec,
                             field,
                             xyz,
+                            midpoint_samples=samples,
                             scale_offset=self.scale_offset,
                             scratch_bytes=self.scratch_bytes(spec, xyz),
                         )
                 built.tf32 = self.table_tf32  # type: ignore[union-attr]
                 self.table_info = {**built.info, "build_s": perf_counter() - start}  # type: ignore[union-attr]
+                if spec != whole:  # a window: which stretch of which table
+                    self.table_info["window"] = {"t_lo": spec.t_lo, "t_hi": spec.t_hi, "of_intervals": whole.intervals}
                 # A preview renders halfway frames only (the reference path): no frame rows for it.
                 self._table_rows = None if self.preview else table_rows(canonical, built)  # type: ignore[arg-type]
-                self.table_failures.pop(spec, None)
+                self.table_failures.pop(whole, None)
             except (RuntimeError, MemoryError) as err:  # torch's out-of-memory is a RuntimeError
                 built, self.table_info = None, {"error": f"{type(err).__name__}: {err}"[:300]}
-                self.table_failures[spec] = self.table_info["error"]
+                self.table_failures[whole] = self.table_info["error"]
             self._table = (key, built)
         return self._table[1]
 

@@ -185,6 +185,12 @@ class RenderSettings:
     """Largest time table in MB (int16: 20 bytes per moving Gaussian and key, so 32 keys per frame of 200
     frames take 4.4 GB at 34k Gaussians). At the end of training a model that would need more gets fewer
     keyframes; a loaded model whose recorded table exceeds it renders through the network (and says so)."""
+    time_table_window_mb: Optional[float] = None
+    """Largest time table in MB that a finished model holds while it renders (None: the whole table). A larger table
+    is held a window of time at a time: the keys of the stretch of time around the frame being shown, at the same
+    times as the whole table's (so the same frames there), as many as this holds; when the time leaves the window,
+    the next one is built before that frame (a pause of the window's build). Less memory and a quicker first frame
+    after a load (docs/rendering.md). The end of training measures the whole table, within time_table_budget_mb."""
     time_table_precision: Literal["int16", "int8", "fp16", "fp32"] = "int16"
     """Storage of the table's fine residuals (each key less the mid-range offsets and less the line between its two
     fp32 anchors); int16 with a scale per Gaussian and channel resolves each Gaussian's bends evenly at fp16's size."""
@@ -481,13 +487,21 @@ class SwitchDecision:
         if used["time_table"] and (built or "info" in table):
             t = built or table["info"]  # the table this model renders with, where it has been built
             recorded = table.get("info") or {}
+            # What the line says of each: the order and the Gaussians on the network (a window's spec is its own).
+            said = ("network", "order")
             differs = (
-                built and recorded and (built["network"], built["spec"]) != (recorded["network"], recorded["spec"])
+                built
+                and recorded
+                and [built.get(k, built["spec"].get(k)) for k in said]
+                != [recorded.get(k, recorded["spec"].get(k)) for k in said]
             )
+            window = ""
+            if "window" in t:
+                window = f"a window of {t['spec']['intervals']} of {t['window']['of_intervals']} intervals, "
             on.insert(
                 0,
-                f"time_table ({t['keys']} keys, {t['spec']['order']}, {t['mb']:.0f} MB, "
-                f"{t['network']} of {t['gaussians']} Gaussians on the network"
+                f"time_table ({t['keys']} keys, {t['spec']['order']}, {t['mb']:.0f} MB, {window}"
+                + f"{t['network']} of {t['gaussians']} Gaussians on the network"
                 + (
                     f"; measured as {recorded['spec']['order']} with {recorded['network']} on the network)"
                     if differs

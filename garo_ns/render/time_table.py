@@ -658,6 +658,11 @@ def plan_intervals(
     most whose build (`build_bytes`: the table and what its build holds besides) fits `budget_mb` (0: not even two
     intervals fit)."""
     want = max(1, keys_per_frame * max(frames - 1, 1))
+    return fitting_intervals(want, gaussians, budget_mb, precision, anchor_every)
+
+
+def fitting_intervals(want: int, gaussians: int, budget_mb: float, precision: str, anchor_every: int = 16) -> int:
+    """The most intervals, up to `want`, whose build (`build_bytes`) fits `budget_mb` (0: not even two fit)."""
     budget = budget_mb * 2**20
     lo, hi = 1, want  # the most intervals that fit lies in [lo, hi] once lo fits
     if build_bytes(lo, gaussians, precision, anchor_every) > budget:
@@ -669,6 +674,21 @@ def plan_intervals(
         else:
             hi = mid - 1
     return lo if lo >= 2 else 0
+
+
+def window_spec(spec: TableSpec, time: float, intervals: int) -> TableSpec:
+    """The stretch of `spec`'s table around `time` that `intervals` of its intervals cover: keys at the same times as
+    the whole table's there (its spacing, on its grid), so a frame inside interpolates the same keys. Windows start
+    on a grid of half a window: nearby times share one, and a time lies at least a quarter of a window inside its own
+    (but at the ends of the range). `spec` itself where `intervals` cover the whole range."""
+    if intervals >= spec.intervals:
+        return spec
+    step = max(intervals // 2, 1)
+    u = (min(max(float(time), spec.t_lo), spec.t_hi) - spec.t_lo) / spec.spacing
+    start = min(max(round((u - 0.5 * intervals) / step) * step, 0), spec.intervals - intervals)
+    end, h = start + intervals, spec.spacing
+    t_lo, t_hi = spec.t_lo + start * h, spec.t_hi if end == spec.intervals else spec.t_lo + end * h
+    return TableSpec(**{**spec.to_dict(), "t_lo": t_lo, "t_hi": t_hi, "intervals": intervals})
 
 
 def spec_for(
