@@ -445,6 +445,35 @@ def test_a_tabled_frame_replayed_as_a_cuda_graph_is_the_eager_frame():
     assert graphed._graph.captures == 1  # one capture, replayed at every time
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need CUDA")
+def test_a_windowed_table_replayed_as_a_cuda_graph_is_the_whole_tables_frame():
+    """Under `time_table_window_mb` the graphed frame (the one-kernel lookup where Triton runs) takes each window's
+    table: a capture per window, the whole table's frames."""
+    from garo_ns.deformation import DeformationField
+    from garo_ns.render.frame import FramePath, FrameSettings
+
+    device = torch.device("cuda")
+    g = torch.Generator().manual_seed(4)
+    n = 4096
+    field = DeformationField(pos_freqs=4, time_freqs=3, depth=3, width=64, skip=1).to(device).eval()
+    parts = (torch.rand(n, 3, generator=g), torch.randn(n, 4, generator=g), 0.1 * torch.randn(n, 3, generator=g) - 3)
+    rest = (torch.randn(n, 1, generator=g), torch.randn(n, 3, generator=g), torch.randn(n, 15, 3, generator=g))
+    canonical = Canonical(*(x.to(device) for x in (*parts, *rest)))
+    spec = _spec(120, tolerance=1.0)
+    whole, windowed = FramePath(), FramePath()
+    windowed.table_window_mb = table_bytes(120, n, "fp32") / 2**20 / 3
+    settings = FrameSettings(time_table=True, cuda_graph=True)
+    with torch.no_grad():
+        for t in torch.linspace(0, 1, 13).tolist():
+            a = whole.splats(field, canonical, None, None, t, settings, spec)
+            a = [x.clone() for x in a[:5]]
+            b = windowed.splats(field, canonical, None, None, t, settings, spec)
+            assert b.graph is not None and windowed.table.spec.intervals < 120
+            for x, y in zip(a, b[:5]):
+                assert torch.allclose(x, y, rtol=1e-5, atol=1e-6), t
+    assert whole._graph.captures == 1 and 3 <= windowed._graph.captures <= 13
+
+
 def test_a_field_that_takes_a_time_per_row_is_sampled_several_times_per_call():
     """A table's keys on a model of some 10^4 Gaussians are thousands of small field calls: the deformation field
     takes one time per row, so the keys are sampled several at a time (from SAMPLER_TIMES times on through its

@@ -302,3 +302,10 @@ def test_a_model_under_a_window_budget_holds_a_window_of_its_table_and_renders_t
             assert torch.allclose(got, whole[t], atol=1e-4 * float(whole[t].abs().max()))
     line = model.switches.line(model.config, False, model.device)
     assert f"a window of {window} of {spec.intervals} intervals" in line, line
+    # Set when loading (garo-eval --model-set, the benchmark's): the load builds the first window, not the whole table.
+    from garo_ns.tools.eval import load_run
+
+    config = trained["config"].get_base_dir() / "config.yml"
+    settings = {"time_table": True, "time_table_window_mb": model.config.time_table_window_mb}
+    loaded = load_run(config, settings=settings)[1].model
+    assert loaded.frame.table.spec.intervals == window and loaded.frame.table.spec.t_lo == spec.t_lo

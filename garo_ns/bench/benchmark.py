@@ -301,12 +301,12 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
     from garo_ns.compaction.report import summary_for_json
     from garo_ns.render.static import sample_times
     from garo_ns.state import storage
-    from garo_ns.tools.eval import apply_model_settings, evaluate, load_run, split_views
+    from garo_ns.tools.eval import apply_model_settings, evaluate, load_run, model_overrides, split_views
     from garo_ns.tools.eval import train_times as scene_train_times
     from garo_ns.tools.fps import measure_fps, measure_same_time, model_size_mb, synchronize
 
     started = time.perf_counter()
-    _, pipeline, _, step = load_run(Path(record["config"]))
+    _, pipeline, _, step = load_run(Path(record["config"]), settings=model_overrides(args.model_set))
     model = pipeline.model
     apply_model_settings(model, args.model_set)
     synchronize(model.device)

@@ -51,9 +51,13 @@ def register_methods() -> None:
         descriptions.setdefault(name, spec.description)
 
 
-def load_run(config_path: Path, data: Optional[Path] = None) -> Tuple[Any, Any, Path, int]:
+def load_run(
+    config_path: Path, data: Optional[Path] = None, settings: Optional[Dict[str, Any]] = None
+) -> Tuple[Any, Any, Path, int]:
     """Load a trained garo_ns run: (config, pipeline, checkpoint path, step); `data` replaces the scene folder the
-    run was trained on (a scene that moved since).
+    run was trained on (a scene that moved since); `settings` (`model_overrides`) are set on the model's config
+    before the model is made, so the load already renders with them (a time table built at load, or not, as they
+    say).
 
     Raises GaroInputError for a missing config, a run of another method, or an unreadable
     (e.g. truncated) checkpoint. Nothing on disk is modified.
@@ -73,15 +77,18 @@ def load_run(config_path: Path, data: Optional[Path] = None) -> Tuple[Any, Any, 
         raise GaroInputError(f"{config_path} is a run of '{method}', not of {' or '.join(METHODS)}")
     register_methods()
 
-    def moved(loaded: Any) -> Any:
-        loaded.pipeline.datamanager.data = Path(data)
-        loaded.pipeline.datamanager.dataparser.data = Path(data)
+    def update(loaded: Any) -> Any:
+        if data is not None:
+            loaded.pipeline.datamanager.data = Path(data)
+            loaded.pipeline.datamanager.dataparser.data = Path(data)
+        for name, value in (settings or {}).items():
+            setattr(loaded.pipeline.model, name, value)
         return loaded
 
     if data is not None and not Path(data).is_dir():
         raise GaroInputError(f"--data {data} is not a folder")
     try:
-        return eval_setup(config_path, test_mode="inference", update_config_callback=moved if data else None)
+        return eval_setup(config_path, test_mode="inference", update_config_callback=update)
     except (RuntimeError, EOFError, OSError, KeyError, AssertionError) as err:
         if isinstance(err, AssertionError) and "does not exist" not in str(err):
             raise
@@ -249,7 +256,7 @@ def run(args: EvalArgs) -> Dict[str, Any]:
     check_new_file(args.output_path, "--output-path", overwrite=True)  # before the whole evaluation runs
     settings = model_overrides(args.model_set, "--model-set")
     started = time.perf_counter()
-    config, pipeline, ckpt, step = load_run(args.load_config, args.data)
+    config, pipeline, ckpt, step = load_run(args.load_config, args.data, settings)
     apply_model_settings(pipeline.model, args.model_set)
     synchronize(pipeline.model.device)
     load_s = time.perf_counter() - started  # the checkpoint read, the model built, its time table built
