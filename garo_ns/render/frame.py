@@ -150,6 +150,7 @@ class FramePath:
         # The model's time_table_window_mb: a larger table is held a window of time at a time (`window`).
         self.table_window_mb: Optional[float] = None
         self._whole: Optional[TableSpec] = None  # the table `_table` holds, or holds a window of
+        self._fit: Optional[Tuple[Any, int]] = None  # the intervals a window holds, for (spec, Gaussians, budget)
 
     def configure(self, config: Any) -> None:
         """Take the model config's settings that the frame path reads (`deform_scale_offset`, `time_table_tf32`,
@@ -252,15 +253,18 @@ class FramePath:
         samples = 64  # TimeTable.build's default
         if self.table_window_mb is None or self.halfway or self.preview:
             return spec, samples
-        fit = fitting_intervals(spec.intervals, gaussians, self.table_window_mb, spec.precision, spec.anchor_every)
+        key = (spec, gaussians, self.table_window_mb)
+        if self._fit is None or self._fit[0] != key:  # a search over sizes: once per table, not every frame
+            self._fit = (key, fitting_intervals(spec.intervals, gaussians, *key[2:], spec.precision, spec.anchor_every))
+        fit = self._fit[1]
         if fit == 0:
             return None, samples
+        t, samples = spec.t_lo if time is None else float(time), max(2, -(-samples * fit // spec.intervals))
         if self._table is not None and self._whole == spec and self._table[1] is not None:
             held = self._table[0][0]  # the window built last: kept while the time stays inside it
-            if held.intervals == fit and held.t_lo <= float(time if time is not None else spec.t_lo) <= held.t_hi:
-                return held, max(2, -(-samples * fit // spec.intervals))
-        t = spec.t_lo if time is None else float(time)
-        return window_spec(spec, t, fit), max(2, -(-samples * fit // spec.intervals))
+            if held.intervals == fit and held.t_lo <= t <= held.t_hi:
+                return held, samples
+        return window_spec(spec, t, fit), samples
 
     def time_table(
         self, field: DeformationField, canonical: Canonical, spec: TableSpec, time: Optional[float] = None
