@@ -44,9 +44,10 @@
 # and valid_ssim; all four at once make the official code's terms ours. The patches are named in SOURCES.json's
 # "patches" and in the result's file name (official_d3dgs_<P+P>_<GPU>.json).
 #
-# REAL CAPTURES (issue #68 item 3: an `ns-process-data video` folder, on our frames, pixels and held-out split).
-# HERE, after assemble (SCENES=" " assembles without D-NeRF scenes), once per capture (about 20 s; needs the
-# capture's colmap/sparse/0 and images_2/):
+# REAL CAPTURES (issue #68 item 3: an `ns-process-data video` folder or a Nerfies-layout one, on our frames, pixels,
+# times and held-out split).
+# HERE, after assemble (SCENES=" " assembles without D-NeRF scenes), once per capture (about 20 s; needs a video's
+# colmap/sparse/0 and images_2/, or a Nerfies capture's rgb/2x/):
 #   bash benchmarks/official_d3dgs.sh prepare-real /work/real/pillow pillow   (benchmarks/official_real.py)
 #        .d3dgs/scenes/NAME   the official COLMAP layout (13-14 MB for pillow, teddy) of our frames, pixels and
 #                             held-out split: official_real.py's docstring says what it holds, how and why
@@ -58,11 +59,11 @@
 #           (all in one call would carry about 55 MB of the 64 MiB; two leave room)
 # `start` sees test_frames.txt and then trains as the official README trains NeRF-DS / HyperNeRF:
 #   python train.py -s W/data/NAME -m W/out/NAME --eval --iterations 20000 (no --is_blender, no --is_6dof; saves and
-#   tests at 10k, 15k, 20k), on the official code patched twice (named in SOURCES.json): split_file (the test frames
-#   are test_frames.txt's, not every 8th by name) and principal_point (the camera projects with the PINHOLE cx, cy;
-#   the official camera is centred, and these frames' principal points lie 1.4 and 3.6 px (pillow) and 8.1 px
-#   (teddy) off centre). OFFICIAL_CENTRED=1 (on a fresh W: W/code keeps its patches) leaves principal_point out,
-#   to measure what it does (result tag `centred`). `score` scores the held-out frames as `garo-eval --split val`
+#   tests at 10k, 15k, 20k), on the official code patched (named in SOURCES.json): split_file (test_frames.txt's
+#   test frames), frame_times (our times; the official place over the frames puts a Nerfies held-out frame a place
+#   from its twin) and principal_point (the official camera is centred; these lie 1.4 and 3.6 px (pillow), 8.1 px
+#   (teddy), 43 px (nerfies-cake) off). On a fresh W, OFFICIAL_CENTRED=1 / OFFICIAL_INDEX_TIMES=1 leave the last two
+#   out (result tags `centred`, `index_times`). `score` scores the held-out frames as `garo-eval --split val`
 #   scores ours (official_score.py) into official_real_[TAG_]GPU.json and official_NAME.json;
 #   `python -m garo_ns.bench.summary ... --official FILE` puts each row under `official` in the capture's row of
 #   real_<GPU>.json, with the baseline's PSNR minus the official one (`psnr_gap_db`).
@@ -191,6 +192,11 @@ def garo_held_out(path, cam, default):  # split_file (garo_ns benchmarks/officia
     return cam.image_name in open(names).read().split() if os.path.exists(names) else default
 PY
     what="scene/dataset_readers.py: readColmapSceneInfo holds out the frames test_frames.txt names" ;;
+  frame_times) # a real capture: each frame's time is ours (frame_times.json), not its place over the frames
+    replace $c/scene/dataset_readers.py 1 '        fid = int(image_name) / (num_frames - 1)$' \
+      '        times = os.path.join(images_folder, "..", "frame_times.json")  # frame_times (garo_ns)\n        fid = json.load(open(times))[image_name] if os.path.exists(times) else int(image_name) / (num_frames - 1)' ||
+      return 1
+    what="scene/dataset_readers.py: readColmapCameras gives each frame the time frame_times.json names" ;;
   principal_point) # the PINHOLE principal point the COLMAP reader reads, in the projection (the official: centred)
     replace $c/scene/dataset_readers.py 1 '    depth: Optional\[np.array\] = None$' \
       '    depth: Optional[np.array] = None\n    cxcy: Optional[tuple] = None' &&
@@ -202,7 +208,7 @@ PY
         'fovY=self.FoVy).transpose(0, 1).to(self.data_device)\n        if cxcy is not None:  # P[0, 2], P[1, 2] (transposed): pixel centres at +0.5, as COLMAP\n            self.projection_matrix[2, 0] = 2 * cxcy[0] / self.image_width - 1\n            self.projection_matrix[2, 1] = 2 * cxcy[1] / self.image_height - 1' ||
       return 1
     what="scene/cameras.py projects with the PINHOLE camera's cx, cy (read in scene/dataset_readers.py, passed by utils/camera_utils.py)" ;;
-  *) echo "unknown patch $1 (normalized_rotation, alpha_0999, log_scale, valid_ssim, split_file, principal_point)"; return 1 ;;
+  *) echo "unknown patch $1 (see apply_patch)"; return 1 ;;
   esac
   python3 - $c/SOURCES.json "$1: $what" <<'PY'
 import json, sys
@@ -231,7 +237,7 @@ start)
     for patch in $(echo "${OFFICIAL_PATCH:-}" | tr ',' ' '); do
       ensure_patch $patch || exit 1
     done
-    [ -n "${OFFICIAL_PATCH:-}" ] && echo "$OFFICIAL_PATCH" | tr ',' '+' > $W/patch
+    [ -n "${OFFICIAL_PATCH:-}" ] && echo "$OFFICIAL_PATCH" | tr ',' '\n' >>$W/patch
     python3 -m pip install -q --no-index --no-deps .whl/*.whl
     nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
     python3 -c "import torch; print('torch', torch.__version__, torch.version.cuda)"
@@ -252,7 +258,10 @@ start)
   train_args="--eval --is_blender" its=$ITERS
   if [ -e $W/data/$scene/test_frames.txt ]; then
     ensure_patch split_file || exit 1
-    if [ "${OFFICIAL_CENTRED:-0}" = 1 ]; then echo centred >$W/patch; else ensure_patch principal_point || exit 1; fi
+    if [ "${OFFICIAL_CENTRED:-0}" = 1 ]; then echo centred >>$W/patch; else ensure_patch principal_point || exit 1; fi
+    if [ "${OFFICIAL_INDEX_TIMES:-0}" = 1 ] || [ ! -e $W/data/$scene/frame_times.json ]; then
+      grep -qx index_times $W/patch 2>/dev/null || echo index_times >>$W/patch
+    else ensure_patch frame_times || exit 1; fi
     train_args="--eval --iterations 20000" its=$ITERS_REAL
   fi
   # The run: waits for the build, trains with the official defaults (D-NeRF: 40000 iterations), killed at the deadline.
@@ -298,7 +307,7 @@ score)
   if [ -e /tmp/kit/prelude.sh ]; then source /tmp/kit/prelude.sh; else source .device/prelude.sh; fi
   export PYTHONPATH=$W/garo_head:${PYTHONPATH:-} # the committed evaluation code (SOURCES.json names the commit)
   gpu=$(nvidia-smi --query-gpu=name --format=csv,noheader | head -1 | grep -o 'H[0-9]\{3\}' || echo GPU)
-  tag=; [ -e $W/patch ] && tag="$(cat $W/patch)_"
+  tag=; [ -e $W/patch ] && tag="$(sort -u $W/patch | paste -sd+)_"
   kind=d3dgs_; [ -e "$W/data/$(head -1 $W/scenes)/test_frames.txt" ] && kind=real_
   # Scored and timed on the GPU the runs trained on: on a 2-GPU machine the other may be timing our arms.
   CUDA_VISIBLE_DEVICES=${GPU:-0} python3 benchmarks/official_score.py --work $W --code $W/code --scenes $(cat $W/scenes) \

@@ -106,6 +106,41 @@ def test_prepare_writes_our_pixels_split_and_cameras(tmp_path):
     assert (gts[0].shape[1], gts[0].shape[0]) == (camera.width, camera.height)
 
 
+@pytest.mark.parametrize("with_points", [True, False])
+def test_a_nerfies_capture_gets_our_cameras_times_and_seed_points(tmp_path, with_points):
+    """A Nerfies-layout capture has no COLMAP model: the official layout takes our reader's cameras, our times
+    (frame_times.json, read by the official code patched with frame_times) and the points our recipe starts from."""
+    from garo_ns.data.nerfds import read_capture
+    from garo_ns.engine.initialisation import initial_gaussians
+    from garo_ns.tools.scene import SceneSpec, generate_scene
+
+    capture = generate_scene(tmp_path / "capture", SceneSpec(resolution=32, n_train=9, n_val=2, n_test=1), "nerfds")
+    if not with_points:
+        (capture / "points.npy").unlink()
+    out = tmp_path / "scene"
+    m = official_real.prepare(capture, out)
+    ours = read_capture(capture)
+    assert m["layout"] == "nerfies" and m["pose_agreement"] is None
+    by_name = {f["name"]: f for f in m["frames"]}
+    assert [by_name[n]["ours"] for n in (out / "test_frames.txt").read_text().split()] == ours.splits["val"]
+    assert json.loads((out / "frame_times.json").read_text()) == {n: ours.times[f["ours"]] for n, f in by_name.items()}
+    # each official camera (world-to-camera, OpenCV axes) is our reader's camera-to-world pose (OpenGL axes)
+    for image in colmap.read_images_text(out / "sparse" / "0" / "images.txt").values():
+        c2w = ours.c2w[by_name[Path(image.name).stem]["ours"]]
+        rotation = colmap.qvec2rotmat(image.qvec)
+        assert np.allclose(rotation.T @ np.diag([1.0, -1.0, -1.0]), c2w[:, :3], atol=1e-6)
+        assert np.allclose(-rotation.T @ image.tvec, c2w[:, 3], atol=1e-6)
+    points = colmap.read_points3D_binary(out / "sparse" / "0" / "points3D.bin")
+    xyz = np.stack([p.xyz for p in points.values()])
+    if with_points:
+        expected = np.load(capture / "points.npy")
+        expected = (expected - np.array(json.loads((capture / "scene.json").read_text())["center"])) * ours.scale
+    else:
+        expected = initial_gaussians(None, False, 100_000, 2.0, 0)["means"].numpy()
+    assert xyz.shape == expected.shape and np.allclose(xyz, expected, atol=1e-5)
+    assert set(np.stack([p.rgb for p in points.values()]).ravel()) <= {127, 128}  # our start's near grey
+
+
 def test_prepare_stops_when_colmap_holds_other_frames(tmp_path):
     capture = make_folder(tmp_path / "capture", n=12, downscales=1)
     _colmap_model(capture, list(range(1, 12)))  # frame 12 missing from COLMAP's model

@@ -30,6 +30,11 @@ def rgb_to_dc(rgb: Tensor) -> Tensor:
     return (rgb - 0.5) / _C0
 
 
+def dc_to_rgb(dc: Tensor) -> Tensor:
+    """The colour (unclamped) that the degree-0 coefficient `dc` renders: `rgb_to_dc`'s inverse."""
+    return dc * _C0 + 0.5
+
+
 def sh_bases(degree: int, dirs: Tensor) -> Tensor:
     """Evaluate the basis functions at unit directions.
 
