@@ -150,7 +150,7 @@ def read_video_capture(
     eval_every: int = 8,
     min_posed_fraction: float = 0.5,
     use_points: bool = True,
-    camera_distance: float = 1.0,
+    camera_distance: float = 0.0,
 ) -> Capture:
     """Read and validate an ns-process-data folder as a `Capture` (garo_ns.data.capture) with times, train and val
     frames (every `eval_every`-th frame of the capture order held out) and COLMAP's points, oriented and centred as
