@@ -86,7 +86,7 @@ gputests)
   { echo "commit ${GARO_GIT_COMMIT:-$(git rev-parse HEAD 2>/dev/null)} $(date -u +%F) $(nvidia-smi --query-gpu=name --format=csv,noheader | head -1)"
     timeout ${GPUTESTS_S:-400} python3 -m pytest -v -p no:cacheprovider tests/test_graphs.py tests/test_rendering_cuda.py \
       tests/test_time_table.py tests/test_render_switches.py tests/test_view.py tests/test_training_graphs.py tests/test_adam.py \
-      tests/test_train_raster.py tests/test_train_profile.py tests/test_fused_ssim.py tests/test_dense.py tests/test_fp32_heads.py tests/test_table_lookup.py --tb=line 2>&1 \
+      tests/test_train_raster.py tests/test_train_profile.py tests/test_fused_ssim.py tests/test_dense.py tests/test_fp32_heads.py tests/test_table_lookup.py tests/test_frame_graph.py --tb=line 2>&1 \
       | tee $OUT/gputests_full.log | grep -E "Error|FAILED|ERROR| passed| failed" | tail -n 40
     tail -1 $OUT/gputests_full.log | grep -qE "[0-9]+ (passed|failed)" \
       || echo "last test started: $(grep -E '::' $OUT/gputests_full.log | tail -1)"; } | tee $OUT/gputests.log ;;

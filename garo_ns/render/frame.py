@@ -19,7 +19,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from garo_ns.deformation import DeformationField, ScaleOffset, log_scale_offset
-from garo_ns.render.backend import Backend, rasterize
+from garo_ns.render.backend import Backend, rasterize, resolve_backend
+from garo_ns.render.frame_graph import FrameGraph
 from garo_ns.render.graphs import InputGraph, TimeGraph, graphs_available, parameter_list, versions
 from garo_ns.render.kernels import Front, lean_front
 from garo_ns.render.table_lookup import fused_available, table_splats
@@ -150,6 +151,8 @@ class FramePath:
         # The model's time_table_window_mb: a larger table is held a window of time at a time (`window`).
         self.table_window_mb: Optional[float] = None
         self._whole: Optional[TableSpec] = None  # the table `_table` holds, or holds a window of
+        self.one_graph = False  # the model's frame_graph: the camera's share of a frame as one replay
+        self._frame_graph = FrameGraph()
         self._fit: Optional[Tuple[Any, int]] = None  # the intervals a window holds, for (spec, Gaussians, budget)
 
     def configure(self, config: Any) -> None:
@@ -160,6 +163,7 @@ class FramePath:
         self.table_tf32 = config.time_table_tf32
         self.table_budget_mb = config.time_table_budget_mb
         self.table_window_mb = getattr(config, "time_table_window_mb", None)
+        self.one_graph = getattr(config, "frame_graph", False)
 
     def splats(
         self,
@@ -372,6 +376,20 @@ class FramePath:
         """Rasterize outside training. With `lean_raster`, gsplat's kernels are called directly; and
         when `splats` are a CUDA graph's buffers, the camera's projection of them replays as a
         second graph, fed the camera's matrices (`front`)."""
+        one = self.one_graph and lean_raster and splats.graph is not None and not torch.is_grad_enabled()
+        if one and render_mode in ("RGB", "RGB+ED") and resolve_backend(backend, splats.means.device) == "cuda":
+            background = backgrounds if backgrounds is not None else splats.means.new_zeros(1, 3)
+            return self._frame_graph(
+                splats.graph,
+                splats[:5],
+                sh_degree,
+                view.viewmat,
+                view.K,
+                view.width,
+                view.height,
+                background,
+                render_mode == "RGB+ED",
+            )
         front = self.front(splats, view) if lean_raster and render_mode in ("RGB", "RGB+ED") else None
         return render_splats(splats, view, sh_degree, backgrounds, render_mode, backend, lean_raster, front)
 

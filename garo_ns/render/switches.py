@@ -223,6 +223,10 @@ class RenderSettings:
     lean_raster: Optional[bool] = None
     """When not training on CUDA, call gsplat's kernels directly instead of its general Python
     wrapper (garo_ns.render.backend.rasterize_lean): same kernels and pixels, less Python per frame."""
+    frame_graph: bool = False
+    """With `cuda_graph` and `lean_raster` on: the camera's whole share of a frame (projection, colours, tile lists,
+    compositing) as one graph replay, its tile lists at a fixed length and cut to the pairs whose pixels can show
+    (garo_ns.render.frame_graph); the same pixels but for the colours' float rounding. Not measured yet: off."""
     switch_bound_db: float = DEFAULT_BOUND_DB
     """Largest change against the plain render (dB, garo_ns.render.switches.view_change_db), on any
     training view measured at the end of training, with which an approximate switch left to None is

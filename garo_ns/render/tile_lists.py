@@ -1,0 +1,180 @@
+"""The rasterizer's (tile, splat) lists at a fixed length, so that a whole frame can be one CUDA graph.
+
+gsplat's `isect_tiles` counts a frame's pairs, reads the count back to size its buffers, then sorts: the frame waits
+for the device in its middle, and what follows cannot be captured. Here the lists have a capacity fixed with the
+graph: every pair is made, keyed (tile, then depth bits, as gsplat keys them) and stably sorted in tensors of that
+length, and the number of pairs needed comes back with the image, so that a frame that needed more is rendered
+again with room for them (`FrameGraph` in garo_ns.render.frame_graph).
+
+Two cuts on the way, neither of which changes a pixel: the rasterizer skips a splat wherever its alpha is under
+1/255, and a skip leaves the pixel as it was.
+- A splat's tile box is the box of its alpha-reach ellipse, in x and in y apart (garo_ns.ops.alpha_reach), inside
+  projection's 3-sigma square.
+- A pair is kept only where the ellipse reaches the rectangle of the tile's pixel centres (the smallest exponent
+  over that rectangle, exact for a convex quadratic form).
+What is left is gsplat's list in gsplat's order, less pairs the rasterizer would only have skipped.
+
+The rasterizer reads the last tile's list up to the end of the buffer. So the grid gets one more row of tiles below
+the image, and the unused tail of the buffer (and the pairs cut) goes to that row's last tile, pointing at one more
+splat appended to the frame's: a blocker, opaque everywhere, that closes the tile after two of them. The image
+returned leaves that row out.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional, Tuple
+
+import torch
+from torch import Tensor
+
+from garo_ns.ops.alpha_reach import ALPHA_MIN, reach_half_widths
+
+# The rasterizer computes each exponent in fp32 and its exp() approximately: a pair is cut only when its smallest
+# exponent passes the threshold by more than this (alpha 0.1% under 1/255).
+SIGMA_MARGIN = 1e-3
+
+
+@dataclass(frozen=True)
+class TileGrid:
+    """An image's tiles, plus the row below it that holds the unused pairs."""
+
+    width: int
+    height: int
+    tile_size: int = 16
+
+    @property
+    def tiles_w(self) -> int:
+        return math.ceil(self.width / self.tile_size)
+
+    @property
+    def tiles_h(self) -> int:
+        return math.ceil(self.height / self.tile_size)
+
+    @property
+    def padded_height(self) -> int:
+        """The height the rasterizer is given: the image's tile rows and the unused pairs' row."""
+        return (self.tiles_h + 1) * self.tile_size
+
+    @property
+    def n_tiles(self) -> int:
+        return self.tiles_w * (self.tiles_h + 1)
+
+
+def tile_boxes(
+    means2d: Tensor, radii: Tensor, grid: TileGrid, half_widths: Optional[Tensor] = None, empty: Optional[Tensor] = None
+) -> Tuple[Tensor, Tensor]:
+    """Each splat's tiles [lo, hi) in x and y ([N, 2] int64 each), as gsplat's `isect_tiles` bounds a square of
+    `radii` (floor and ceil of (centre -/+ radius) / tile, clamped to the image's tiles; none for a radius of 0).
+    `half_widths` [N, 2] (x, y), where finite, shrink the square in each axis; `empty` [N] bool empties boxes."""
+    r = radii.to(means2d.dtype)[:, None].expand_as(means2d)
+    empty = radii <= 0 if empty is None else empty | (radii <= 0)
+    if half_widths is not None:
+        r = torch.where(torch.isfinite(half_widths), torch.minimum(half_widths, r), r)
+    # Clamped axis by axis with Python numbers: a CUDA graph cannot hold a copy of host data.
+    lo = torch.floor((means2d - r) / grid.tile_size).clamp_min(0).long()
+    hi = torch.ceil((means2d + r) / grid.tile_size).clamp_min(0).long()
+    lo = torch.stack([lo[:, 0].clamp_max(grid.tiles_w), lo[:, 1].clamp_max(grid.tiles_h)], -1)
+    hi = torch.stack([hi[:, 0].clamp_max(grid.tiles_w), hi[:, 1].clamp_max(grid.tiles_h)], -1)
+    return lo, torch.where(empty[:, None], lo, hi)
+
+
+def smallest_sigma(means2d: Tensor, conics: Tensor, x0: Tensor, x1: Tensor, y0: Tensor, y1: Tensor) -> Tensor:
+    """The smallest exponent sigma = 0.5 (a dx^2 + c dy^2) + b dx dy (the rasterizer's, d = point - centre) over each
+    rectangle [x0, x1] x [y0, y1]: 0 with the centre inside, else the least of the four edges' minima (a convex
+    quadratic form's minimum on a segment is its vertex, clamped to the segment)."""
+    a, b, c = conics.unbind(-1)
+    dx0, dx1 = x0 - means2d[..., 0], x1 - means2d[..., 0]
+    dy0, dy1 = y0 - means2d[..., 1], y1 - means2d[..., 1]
+
+    def sigma(dx: Tensor, dy: Tensor) -> Tensor:
+        return 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+
+    edges = [sigma(dx, torch.clamp(-b * dx / c.clamp_min(1e-30), dy0, dy1)) for dx in (dx0, dx1)]
+    edges += [sigma(torch.clamp(-b * dy / a.clamp_min(1e-30), dx0, dx1), dy) for dy in (dy0, dy1)]
+    least = torch.minimum(torch.minimum(edges[0], edges[1]), torch.minimum(edges[2], edges[3]))
+    inside = (dx0 <= 0) & (dx1 >= 0) & (dy0 <= 0) & (dy1 >= 0)
+    return torch.where(inside, torch.zeros_like(least), least)
+
+
+def tile_lists(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    depths: Tensor,
+    radii: Tensor,
+    grid: TileGrid,
+    capacity: int,
+    cut: bool = True,
+) -> Tuple[Tensor, Tensor, Tensor]:
+    """One camera's sorted tile lists in `capacity` pairs, in fixed-shape tensors (a CUDA graph can hold them).
+
+    Args:
+        means2d [N, 2], conics [N, 3], depths [N], radii [N]: projection's outputs; opacities [N].
+        grid: the image's tiles. capacity: the lists' length.
+        cut: snug boxes and the exact tile test (see the module docstring); False: gsplat's pairs exactly.
+
+    Returns:
+        flatten_ids [capacity] int32: the splat of each sorted pair, N (the blocker) for unused ones;
+        offsets [1, tiles_h + 1, tiles_w] int32: where each tile's pairs start (gsplat's `isect_offset_encode`);
+        needed [] int64: the pairs the boxes hold; more than `capacity` means pairs were lost (render again).
+    """
+    n, device = radii.shape[0], radii.device
+    if n == 0:
+        blocked = torch.zeros(capacity, dtype=torch.int32, device=device)
+        return (
+            blocked,
+            torch.zeros((1, grid.tiles_h + 1, grid.tiles_w), dtype=torch.int32, device=device),
+            blocked[0].long(),
+        )
+    half, faint, convex = None, None, None
+    if cut:
+        # A NaN box is a splat too faint to reach 1/255 anywhere, or a conic not to be trusted: that one keeps its
+        # square and every pair (its exponent need not be convex).
+        faint = ~(opacities >= ALPHA_MIN)
+        a, b, c = conics.unbind(-1)
+        convex = (a > 0) & (c > 0) & (a * c - b * b > 0)
+        half = torch.stack(reach_half_widths(conics, opacities, ALPHA_MIN), -1)
+    lo, hi = tile_boxes(means2d, radii, grid, half, faint)
+    span = hi - lo
+    counts = span[:, 0] * span[:, 1]
+    ends = torch.cumsum(counts, 0)
+    needed = ends[-1]
+    pair = torch.arange(capacity, device=device)
+    splat = torch.searchsorted(ends, pair, right=True).clamp_max(n - 1)
+    local = pair - (ends[splat] - counts[splat])
+    width = span[splat, 0].clamp_min(1)
+    tx, ty = lo[splat, 0] + local % width, lo[splat, 1] + local // width
+    used = pair < needed
+    if cut:
+        s = grid.tile_size
+        x0, y0 = (tx * s).to(means2d.dtype) + 0.5, (ty * s).to(means2d.dtype) + 0.5
+        x1 = torch.clamp_max(x0 + (s - 1), grid.width - 0.5)
+        y1 = torch.clamp_max(y0 + (s - 1), grid.height - 0.5)
+        least = smallest_sigma(means2d[splat], conics[splat], x0, x1, y0, y1)
+        reaches = least <= torch.log(opacities[splat] / ALPHA_MIN) + SIGMA_MARGIN
+        used = used & (reaches | ~convex[splat])
+    tile = torch.where(used, ty * grid.tiles_w + tx, grid.n_tiles - 1)
+    depth_bits = depths.contiguous().view(torch.int32).long()  # gsplat's key: the fp32 depth's bits, as an int
+    keys = (tile << 32) | torch.where(used, depth_bits[splat], torch.zeros_like(tile))
+    keys, order = torch.sort(keys, stable=True)
+    flatten_ids = torch.where(used[order], splat[order], torch.full_like(splat, n)).int()
+    starts = torch.arange(grid.n_tiles, device=device)
+    offsets = torch.searchsorted(keys >> 32, starts).int().reshape(1, grid.tiles_h + 1, grid.tiles_w)
+    return flatten_ids, offsets, needed
+
+
+def with_blocker(
+    means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, grid: TileGrid
+) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The splats [N, ...] with the blocker appended (index N): centred in the last tile of the row below the image,
+    a flat exponent (conic 0) and opacity 1, so that its alpha is the rasterizer's cap everywhere, colour 0."""
+    centre = means2d.new_empty(1, 2)
+    centre[:, 0], centre[:, 1] = (grid.tiles_w - 0.5) * grid.tile_size, (grid.tiles_h + 0.5) * grid.tile_size
+    return (
+        torch.cat([means2d, centre]),
+        torch.cat([conics, conics.new_zeros(1, 3)]),
+        torch.cat([colors, colors.new_zeros(1, colors.shape[-1])]),
+        torch.cat([opacities, opacities.new_ones(1)]),
+    )
