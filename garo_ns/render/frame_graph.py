@@ -104,8 +104,8 @@ class FrameGraph:
         background: Tensor,
         with_depth: bool,
     ) -> Tuple[Tensor, Tensor, Dict[str, Any]]:
-        """render, alpha and the rasterizer's info (radii, means2d, depths), as `rasterize_lean` returns them; the
-        tensors are the graph's buffers, overwritten by the next call."""
+        """render, alpha and the rasterizer's info (radii, means2d, depths), as `rasterize_lean` returns them. The
+        image is a copy (a caller may keep it); the info's tensors are the graph's buffers, overwritten next call."""
         grid = TileGrid(width, height, TILE_SIZE)
         while True:
             if self.capacity == 0:
@@ -119,7 +119,7 @@ class FrameGraph:
             self.regrown += 1
         render, alpha, radii, means2d, depths, _ = out
         info = {"radii": radii, "means2d": means2d, "depths": depths, "width": width, "height": height, "n_cameras": 1}
-        return render, alpha, info
+        return render.clone(), alpha.clone(), info
 
     def release(self) -> None:
         """Drop the graph and its buffers."""
