@@ -133,3 +133,29 @@ def test_one_graph_gives_the_lean_pixels_on_cuda(with_depth):
         torch.testing.assert_close(alpha, ref_alpha, rtol=0, atol=1e-6)
         torch.testing.assert_close(got, ref, rtol=0, atol=2e-5)
     assert graph._graph.captures <= 2  # the first capture, and at most one regrowth
+
+
+def test_a_frame_graph_that_cannot_be_captured_leaves_the_lean_path_rendering(monkeypatch, capsys):
+    from garo_ns.render import frame
+    from garo_ns.render.view import RenderView
+
+    def refuse(*args):
+        raise RuntimeError("operation not permitted when stream is capturing\nmore")
+
+    path = frame.FramePath()
+    path.one_graph = True
+    path._frame_graph = refuse
+    path._frame_graph.release = lambda: None
+    monkeypatch.setattr(frame, "resolve_backend", lambda backend, device: "cuda")
+    monkeypatch.setattr(frame, "render_splats", lambda *args: "lean")
+    monkeypatch.setattr(frame.FramePath, "front", lambda self, splats, view: None)
+    means, quats, scales, opacities, colors, viewmat, K = _scene(10)
+    splats = frame.Splats(means, quats, scales, opacities, colors, graph=1)
+    view = RenderView(viewmat, K, W, H, 0.0)
+    with torch.no_grad():
+        assert path.rasterize(splats, view, 3, None, "RGB", "auto", True) == "lean"
+    assert not path.one_graph
+    assert (
+        capsys.readouterr().out
+        == "frame_graph: off for this model, its capture failed (operation not permitted when stream is capturing)\n"
+    )

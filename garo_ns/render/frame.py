@@ -379,17 +379,13 @@ class FramePath:
         one = self.one_graph and lean_raster and splats.graph is not None and not torch.is_grad_enabled()
         if one and render_mode in ("RGB", "RGB+ED") and resolve_backend(backend, splats.means.device) == "cuda":
             background = backgrounds if backgrounds is not None else splats.means.new_zeros(1, 3)
-            return self._frame_graph(
-                splats.graph,
-                splats[:5],
-                sh_degree,
-                view.viewmat,
-                view.K,
-                view.width,
-                view.height,
-                background,
-                render_mode == "RGB+ED",
-            )
+            args = (splats.graph, splats[:5], sh_degree, view.viewmat, view.K, view.width, view.height, background)
+            try:
+                return self._frame_graph(*args, render_mode == "RGB+ED")
+            except RuntimeError as error:  # a capture this device or build refuses: the lean path renders instead
+                self._frame_graph.release()
+                self.one_graph = False
+                print(f"frame_graph: off for this model, its capture failed ({str(error).splitlines()[0]})")
         front = self.front(splats, view) if lean_raster and render_mode in ("RGB", "RGB+ED") else None
         return render_splats(splats, view, sh_degree, backgrounds, render_mode, backend, lean_raster, front)
 
