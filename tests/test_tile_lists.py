@@ -13,6 +13,7 @@ import math
 import pytest
 import torch
 
+from garo_ns.render import tile_lists as tile_lists_module
 from garo_ns.render.reference import intersect_tiles, project, rasterize
 from garo_ns.render.tile_lists import TileGrid, smallest_sigma, tile_lists, with_blocker
 
@@ -75,7 +76,10 @@ def composite(means2d, conics, colors, opacities, flatten_ids, offsets, grid: Ti
     return image[: rows or grid.height, : grid.width]
 
 
-def test_uncut_lists_are_gsplats_pairs_in_gsplats_order():
+@pytest.mark.parametrize("wide_keys", [False, True])
+def test_uncut_lists_are_gsplats_pairs_in_gsplats_order(monkeypatch, wide_keys):
+    if wide_keys:  # as for a frame whose tiles x splats pass 32 bits
+        monkeypatch.setattr(tile_lists_module, "INT32_KEYS", 0)
     radii, means2d, depths, conics, opacities, _ = _projected()
     grid = TileGrid(W, H)
     _, ref_tiles, ref_ids = intersect_tiles(means2d[None], radii[None], depths[None], 16, grid.tiles_w, grid.tiles_h)

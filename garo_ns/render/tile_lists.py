@@ -34,6 +34,7 @@ from garo_ns.ops.alpha_reach import ALPHA_MIN, reach_half_widths
 # The rasterizer computes each exponent in fp32 and its exp() approximately: a pair is cut only when its smallest
 # exponent passes the threshold by more than this (alpha 0.1% under 1/255).
 SIGMA_MARGIN = 1e-3
+INT32_KEYS = 2**31 - 1  # the largest key sorted as int32
 
 
 @dataclass(frozen=True)
@@ -163,7 +164,7 @@ def tile_lists(
     rank = torch.empty(n, dtype=torch.long, device=device)
     rank[torch.sort(depth_bits, stable=True).indices] = torch.arange(n, device=device)
     keys = tile * (n + 1) + torch.where(used, rank[splat], torch.full_like(rank[splat], n))
-    if grid.n_tiles * (n + 1) < 2**31:
+    if grid.n_tiles * (n + 1) <= INT32_KEYS:
         keys = keys.int()
     keys, order = torch.sort(keys, stable=True)
     flatten_ids = torch.where(used[order], splat[order], torch.full_like(splat, n)).int()
