@@ -183,3 +183,21 @@ def test_the_smallest_exponent_over_a_rectangle_is_the_brute_force_one(seed):
         ),
         0.0,
     )
+
+
+@pytest.mark.parametrize("cut", [False, True])
+def test_the_pair_kernel_makes_the_torch_pairs(monkeypatch, cut):
+    """The Triton kernel a GPU frame uses (through Triton's interpreter here) against the torch path, pair for pair,
+    and the lists it gives against the torch path's."""
+    pytest.importorskip("triton", reason="Triton is not installed: the torch path makes the pairs")
+    radii, means2d, depths, conics, opacities, _ = _projected(seed=3)
+    grid = TileGrid(W, H)
+    capacity = 5000
+    monkeypatch.setattr(tile_lists_module, "pairs_kernel_available", lambda device: False)
+    want = tile_lists(means2d, conics, opacities, depths, radii, grid, capacity, cut=cut)
+    monkeypatch.setenv("TRITON_INTERPRET", "1")
+    monkeypatch.setattr(tile_lists_module, "pairs_kernel_available", lambda device: True)
+    got = tile_lists(means2d, conics, opacities, depths, radii, grid, capacity, cut=cut)
+    assert int(got[2]) == int(want[2]) < capacity
+    assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
+    assert int((want[0] < len(radii)).sum()) > 100

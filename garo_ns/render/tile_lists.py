@@ -23,8 +23,9 @@ returned leaves that row out.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
-from typing import Optional, Tuple
+from typing import Any, Dict, Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -129,7 +130,8 @@ def tile_lists(
             torch.zeros((1, grid.tiles_h + 1, grid.tiles_w), dtype=torch.int32, device=device),
             blocked[0].long(),
         )
-    half, faint, convex = None, None, None
+    half, faint = None, None
+    reach = torch.full_like(opacities, math.inf)  # the exponent a kept pair's rectangle must reach (inf: any)
     if cut:
         # A NaN box is a splat too faint to reach 1/255 anywhere, or a conic not to be trusted: that one keeps its
         # square and every pair (its exponent need not be convex).
@@ -137,40 +139,52 @@ def tile_lists(
         a, b, c = conics.unbind(-1)
         convex = (a > 0) & (c > 0) & (a * c - b * b > 0)
         half = torch.stack(reach_half_widths(conics, opacities, ALPHA_MIN), -1)
+        reach = torch.where(convex, torch.log(opacities / ALPHA_MIN) + SIGMA_MARGIN, reach)
     lo, hi = tile_boxes(means2d, radii, grid, half, faint)
     span = hi - lo
     counts = span[:, 0] * span[:, 1]
     ends = torch.cumsum(counts, 0)
-    needed = ends[-1]
-    pair = torch.arange(capacity, device=device)
+    # gsplat keys a pair by (tile, the fp32 depth's bits) and sorts stably, so equal depths keep splat order. The
+    # splats' ranks in that order (one sort of N) give the same order in keys tile * (N + 1) + rank: unique, and in
+    # 32 bits for most frames, which a radix sort reads in half the passes of 64.
+    rank = torch.empty(n, dtype=torch.long, device=device)
+    rank[torch.sort(depths.contiguous().view(torch.int32), stable=True).indices] = torch.arange(n, device=device)
+    per_splat = (ends, counts, lo, span, means2d, conics, reach, rank)
+    if pairs_kernel_available(device):
+        keys, values = _pairs_kernel(per_splat, grid, capacity, cut)
+    else:
+        keys, values = pair_keys(per_splat, grid, capacity, cut)
+    if grid.n_tiles * (n + 1) <= INT32_KEYS:
+        keys = keys.int()
+    keys, order = torch.sort(keys, stable=True)
+    starts = torch.arange(grid.n_tiles, device=device, dtype=keys.dtype) * (n + 1)
+    offsets = torch.searchsorted(keys, starts).int().reshape(1, grid.tiles_h + 1, grid.tiles_w)
+    return values[order].int(), offsets, ends[-1]
+
+
+PerSplat = Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]
+
+
+def pair_keys(per_splat: PerSplat, grid: TileGrid, capacity: int, cut: bool) -> Tuple[Tensor, Tensor]:
+    """Each of `capacity` pairs' key (int64) and splat (N for an unused pair), from the splats' (box ends, counts,
+    box lows, spans, means2d, conics, exponent reach, depth rank): the torch path of `tile_lists`."""
+    ends, counts, lo, span, means2d, conics, reach, rank = per_splat
+    n = ends.shape[0]
+    pair = torch.arange(capacity, device=ends.device)
     splat = torch.searchsorted(ends, pair, right=True).clamp_max(n - 1)
     local = pair - (ends[splat] - counts[splat])
     width = span[splat, 0].clamp_min(1)
     tx, ty = lo[splat, 0] + local % width, lo[splat, 1] + local // width
-    used = pair < needed
+    used = pair < ends[-1]
     if cut:
         s = grid.tile_size
         x0, y0 = (tx * s).to(means2d.dtype) + 0.5, (ty * s).to(means2d.dtype) + 0.5
         x1 = torch.clamp_max(x0 + (s - 1), grid.width - 0.5)
         y1 = torch.clamp_max(y0 + (s - 1), grid.height - 0.5)
-        least = smallest_sigma(means2d[splat], conics[splat], x0, x1, y0, y1)
-        reaches = least <= torch.log(opacities[splat] / ALPHA_MIN) + SIGMA_MARGIN
-        used = used & (reaches | ~convex[splat])
+        used = used & (smallest_sigma(means2d[splat], conics[splat], x0, x1, y0, y1) <= reach[splat])
     tile = torch.where(used, ty * grid.tiles_w + tx, grid.n_tiles - 1)
-    # gsplat keys a pair by (tile, the fp32 depth's bits) and sorts stably, so equal depths keep splat order. The
-    # splats' ranks in that order (one sort of N) give the same order in keys tile * (N + 1) + rank: unique, and in
-    # 32 bits for most frames, which a radix sort reads in half the passes of 64.
-    depth_bits = depths.contiguous().view(torch.int32)
-    rank = torch.empty(n, dtype=torch.long, device=device)
-    rank[torch.sort(depth_bits, stable=True).indices] = torch.arange(n, device=device)
-    keys = tile * (n + 1) + torch.where(used, rank[splat], torch.full_like(rank[splat], n))
-    if grid.n_tiles * (n + 1) <= INT32_KEYS:
-        keys = keys.int()
-    keys, order = torch.sort(keys, stable=True)
-    flatten_ids = torch.where(used[order], splat[order], torch.full_like(splat, n)).int()
-    starts = torch.arange(grid.n_tiles, device=device, dtype=keys.dtype) * (n + 1)
-    offsets = torch.searchsorted(keys, starts).int().reshape(1, grid.tiles_h + 1, grid.tiles_w)
-    return flatten_ids, offsets, needed
+    keys = tile * (n + 1) + torch.where(used, rank[splat], torch.full_like(splat, n))
+    return keys, torch.where(used, splat, torch.full_like(splat, n))
 
 
 def with_blocker(
@@ -186,3 +200,128 @@ def with_blocker(
         torch.cat([colors, colors.new_zeros(1, colors.shape[-1])]),
         torch.cat([opacities, opacities.new_ones(1)]),
     )
+
+
+BLOCK = 1024  # pairs per program of the Triton kernel
+_kernels: Dict[bool, Any] = {}
+
+
+def pairs_kernel_available(device: torch.device) -> bool:
+    """Whether `tile_lists` makes its pairs in one Triton kernel (`pair_keys` in one pass over the pairs): on a CUDA
+    device, or on any with Triton's interpreter (TRITON_INTERPRET=1, the CPU tests), when Triton imports."""
+    if torch.device(device).type != "cuda" and os.environ.get("TRITON_INTERPRET") != "1":
+        return False
+    try:
+        import triton  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _pairs_kernel(per_splat: PerSplat, grid: TileGrid, capacity: int, cut: bool) -> Tuple[Tensor, Tensor]:
+    """`pair_keys` in one Triton kernel: each pair finds its splat by a binary search of the box ends."""
+    ends, counts, lo, span, means2d, conics, reach, rank = per_splat
+    n, device = ends.shape[0], ends.device
+    keys = torch.empty(capacity, dtype=torch.long, device=device)
+    values = torch.empty(capacity, dtype=torch.long, device=device)
+    f32 = [x.float().contiguous() for x in (means2d[:, 0], means2d[:, 1], *conics.unbind(-1), reach)]
+    i64 = [x.long().contiguous() for x in (ends, counts, lo[:, 0], lo[:, 1], span[:, 0], rank)]
+    _kernel()[(-(-capacity // BLOCK),)](
+        *i64,
+        *f32,
+        keys,
+        values,
+        n,
+        capacity,
+        max(1, n.bit_length() + 1),
+        grid.tiles_w,
+        grid.n_tiles,
+        float(grid.width),
+        float(grid.height),
+        TILE=grid.tile_size,
+        CUT=cut,
+        BLOCK=BLOCK,
+    )
+    return keys, values
+
+
+def _kernel() -> Any:
+    """The Triton kernel, made on first use (Triton reads TRITON_INTERPRET when a kernel is made: one per mode)."""
+    mode = os.environ.get("TRITON_INTERPRET") == "1"
+    if mode in _kernels:
+        return _kernels[mode]
+    import triton
+    import triton.language as tl
+
+    @triton.jit
+    def pairs(
+        ends_ptr,
+        counts_ptr,
+        lox_ptr,
+        loy_ptr,
+        spanx_ptr,
+        rank_ptr,
+        mx_ptr,
+        my_ptr,
+        ca_ptr,
+        cb_ptr,
+        cc_ptr,
+        reach_ptr,
+        keys_ptr,
+        values_ptr,
+        n,
+        capacity,
+        steps,
+        tiles_w,
+        n_tiles,
+        width,
+        height,
+        TILE: tl.constexpr,
+        CUT: tl.constexpr,
+        BLOCK: tl.constexpr,
+    ):
+        p = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
+        inside = p < capacity
+        # The splat: the first whose box ends (a running sum of box sizes) pass p (searchsorted, right).
+        lo = p * 0
+        hi = p * 0 + n
+        for _ in range(steps):
+            mid = (lo + hi) // 2
+            right = (tl.load(ends_ptr + mid, mask=mid < n, other=0) <= p) & (lo < hi)
+            lo = tl.where(right, mid + 1, lo)
+            hi = tl.where(right, hi, mid)
+        g = tl.minimum(lo, n - 1)
+        local = p - (tl.load(ends_ptr + g) - tl.load(counts_ptr + g))
+        w = tl.maximum(tl.load(spanx_ptr + g), 1)
+        tx = tl.load(lox_ptr + g) + local % w
+        ty = tl.load(loy_ptr + g) + local // w
+        used = inside & (p < tl.load(ends_ptr + n - 1))
+        if CUT:  # smallest_sigma over the tile's rectangle of pixel centres, edge by edge
+            x0 = (tx * TILE).to(tl.float32) + 0.5
+            y0 = (ty * TILE).to(tl.float32) + 0.5
+            x1 = tl.minimum(x0 + (TILE - 1), width - 0.5)
+            y1 = tl.minimum(y0 + (TILE - 1), height - 0.5)
+            a = tl.load(ca_ptr + g)
+            b = tl.load(cb_ptr + g)
+            c = tl.load(cc_ptr + g)
+            mx = tl.load(mx_ptr + g)
+            my = tl.load(my_ptr + g)
+            dx0, dx1, dy0, dy1 = x0 - mx, x1 - mx, y0 - my, y1 - my
+            dy = tl.minimum(tl.maximum(-b * dx0 / tl.maximum(c, 1e-30), dy0), dy1)
+            s0 = 0.5 * (a * dx0 * dx0 + c * dy * dy) + b * dx0 * dy
+            dy = tl.minimum(tl.maximum(-b * dx1 / tl.maximum(c, 1e-30), dy0), dy1)
+            s1 = 0.5 * (a * dx1 * dx1 + c * dy * dy) + b * dx1 * dy
+            dx = tl.minimum(tl.maximum(-b * dy0 / tl.maximum(a, 1e-30), dx0), dx1)
+            s2 = 0.5 * (a * dx * dx + c * dy0 * dy0) + b * dx * dy0
+            dx = tl.minimum(tl.maximum(-b * dy1 / tl.maximum(a, 1e-30), dx0), dx1)
+            s3 = 0.5 * (a * dx * dx + c * dy1 * dy1) + b * dx * dy1
+            least = tl.minimum(tl.minimum(s0, s1), tl.minimum(s2, s3))
+            least = tl.where((dx0 <= 0) & (dx1 >= 0) & (dy0 <= 0) & (dy1 >= 0), 0.0, least)
+            used = used & (least <= tl.load(reach_ptr + g))
+        tile = tl.where(used, ty * tiles_w + tx, n_tiles - 1)
+        key = tile * (n + 1) + tl.where(used, tl.load(rank_ptr + g), n)
+        tl.store(keys_ptr + p, key, mask=inside)
+        tl.store(values_ptr + p, tl.where(used, g, n), mask=inside)
+
+    _kernels[mode] = pairs
+    return pairs
