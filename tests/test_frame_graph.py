@@ -159,3 +159,21 @@ def test_a_frame_graph_that_cannot_be_captured_leaves_the_lean_path_rendering(mo
         capsys.readouterr().out
         == "frame_graph: off for this model, its capture failed (operation not permitted when stream is capturing)\n"
     )
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_the_colour_kernel_is_the_torch_colours(monkeypatch, degree):
+    """The SH colours a GPU frame graph composites (one Triton kernel, through Triton's interpreter here) against
+    the torch path: SH + 0.5 clamped at 0, every degree, two cameras, zero-length directions kept finite."""
+    pytest.importorskip("triton", reason="Triton is not installed: torch computes the colours")
+    from garo_ns.render.sh import rendered_colors
+
+    g = torch.Generator().manual_seed(degree)
+    coeffs = torch.randn(300, 16, 3, generator=g)
+    dirs = torch.randn(2, 300, 3, generator=g) * 3
+    dirs[0, :5] = 0.0
+    want = rendered_colors(degree, dirs, coeffs)
+    monkeypatch.setenv("TRITON_INTERPRET", "1")
+    got = rendered_colors(degree, dirs, coeffs)
+    assert got.shape == want.shape == (2, 300, 3) and (want == 0).any() and (want > 0.5).any()
+    torch.testing.assert_close(got, want, rtol=0, atol=2e-6)

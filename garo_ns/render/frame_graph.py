@@ -3,11 +3,12 @@
 The lean path (garo_ns.render.backend.rasterize_lean) replays the projection as a graph, then launches the colours
 (gsplat's SH kernel runs on the legacy stream, which no graph can hold), the tile intersection (which reads its pair
 count back to the host in the middle of the frame) and the compositing, each from Python. Here all of it is one
-replay: colours in torch, the tile lists at a fixed capacity (garo_ns.render.tile_lists, which also cuts the pairs
-that only hold skipped pixels) and gsplat's compositing kernel. The pairs needed come back with the image; a frame
-that needed more than the capacity is captured again with room for them and rendered again, so no frame loses a pair.
+replay: the colours in one Triton kernel (garo_ns.render.sh.rendered_colors), the tile lists at a fixed capacity
+(garo_ns.render.tile_lists, which also cuts the pairs that only hold skipped pixels) and gsplat's compositing kernel.
+The pairs needed come back with the image; a frame that needed more than the capacity is captured again with room
+for them and rendered again, so no frame loses a pair.
 
-Same pixels as the lean path, but for the colours' float rounding (torch's SH sums against gsplat's kernel).
+Same pixels as the lean path, but for the colours' float rounding (our SH sums against gsplat's kernel).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from torch import Tensor
 
 from garo_ns.render.graphs import InputGraph
 from garo_ns.render.kernels import TILE_SIZE, gsplat_kernels, lean_front
-from garo_ns.render.sh import eval_sh
+from garo_ns.render.sh import rendered_colors
 from garo_ns.render.tile_lists import TileGrid, tile_lists, with_blocker
 
 HEADROOM = 1.25  # capacity over the pairs the first frame needed: a moving camera's next frames need about as many
@@ -30,12 +31,6 @@ GRANULE = 1 << 16  # capacities are whole multiples: a capture is kept while the
 def capacity_for(needed: int) -> int:
     """The lists' length for a frame that needs `needed` pairs: with headroom, rounded up to a granule."""
     return max(GRANULE, math.ceil(needed * HEADROOM / GRANULE) * GRANULE)
-
-
-def sh_colors(sh_degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
-    """Colours [C, N, 3] of SH `coeffs` [N, K, 3] along view directions [C, N, 3], as gsplat's `compute_sh_fwd` plus
-    the rasterizer's offset: SH + 0.5, clamped at 0."""
-    return (eval_sh(sh_degree, dirs, coeffs.expand(dirs.shape[0], *coeffs.shape)) + 0.5).clamp_min(0.0)
 
 
 def frame_fn(
@@ -56,7 +51,7 @@ def frame_fn(
         radii, means2d, depths, conics, dirs, _, _ = lean_front(
             means, quats, scales, viewmat, K, grid.width, grid.height, sh_degree is not None
         )
-        rgb = colors[None] if sh_degree is None else sh_colors(sh_degree, dirs, colors)
+        rgb = colors[None] if sh_degree is None else rendered_colors(sh_degree, dirs, colors)
         bg = background
         if with_depth:
             rgb = torch.cat([rgb, depths[..., None]], dim=-1)

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+from typing import Any, Dict
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -89,3 +92,83 @@ def eval_sh(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
         raise ValueError(f"coeffs has {coeffs.shape[-2]} bases, degree {degree} needs {k}")
     bases = sh_bases(degree, F.normalize(dirs, dim=-1))
     return (bases[..., None] * coeffs[..., :k, :]).sum(dim=-2)
+
+
+def rendered_colors(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
+    """The colours a rasterizer composites: SH `coeffs` [N, K, 3] seen along `dirs` [C, N, 3], plus 0.5, clamped at
+    0 (gsplat's `compute_sh_fwd` and offset) -> [C, N, 3]. One Triton kernel on a CUDA device (a CUDA graph can hold
+    it, where gsplat's kernel launches on the legacy stream), or with Triton's interpreter; torch elsewhere."""
+    if not _kernel_available(dirs.device):
+        return (eval_sh(degree, dirs, coeffs.expand(dirs.shape[0], *coeffs.shape)) + 0.5).clamp_min(0.0)
+    if coeffs.shape[-2] < num_sh_bases(degree):
+        raise ValueError(f"coeffs has {coeffs.shape[-2]} bases, degree {degree} needs {num_sh_bases(degree)}")
+    c, n = dirs.shape[:2]
+    out = torch.empty(c, n, 3, dtype=torch.float32, device=dirs.device)
+    _kernel()[(c, -(-n // _BLOCK))](
+        dirs.float().contiguous(), coeffs.float().contiguous(), out, n, coeffs.shape[-2], DEGREE=degree, BLOCK=_BLOCK
+    )
+    return out
+
+
+_BLOCK = 256
+_kernels: Dict[bool, Any] = {}
+
+
+def _kernel_available(device: torch.device) -> bool:
+    if torch.device(device).type != "cuda" and os.environ.get("TRITON_INTERPRET") != "1":
+        return False
+    try:
+        import triton  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _kernel() -> Any:
+    """The Triton kernel, made on first use (Triton reads TRITON_INTERPRET when a kernel is made: one per mode)."""
+    mode = os.environ.get("TRITON_INTERPRET") == "1"
+    if mode in _kernels:
+        return _kernels[mode]
+    import triton
+    import triton.language as tl
+
+    @triton.jit
+    def colors(dirs_ptr, coeffs_ptr, out_ptr, n, k, DEGREE: tl.constexpr, BLOCK: tl.constexpr):
+        cam = tl.program_id(0).to(tl.int64)
+        g = tl.program_id(1).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
+        m = g < n
+        d = dirs_ptr + (cam * n + g) * 3
+        x, y, z = tl.load(d, mask=m, other=1.0), tl.load(d + 1, mask=m, other=0.0), tl.load(d + 2, mask=m, other=0.0)
+        inv = 1.0 / tl.maximum(tl.sqrt(x * x + y * y + z * z), 1e-12)
+        x, y, z = x * inv, y * inv, z * inv
+        base = coeffs_ptr + g * k * 3
+        for ch in tl.static_range(3):
+            acc = 0.28209479177387814 * tl.load(base + ch, mask=m, other=0.0)
+            if DEGREE >= 1:
+                acc += -0.4886025119029199 * y * tl.load(base + 3 + ch, mask=m, other=0.0)
+                acc += 0.4886025119029199 * z * tl.load(base + 6 + ch, mask=m, other=0.0)
+                acc += -0.4886025119029199 * x * tl.load(base + 9 + ch, mask=m, other=0.0)
+            if DEGREE >= 2:
+                xx, yy, zz = x * x, y * y, z * z
+                acc += 1.0925484305920792 * x * y * tl.load(base + 12 + ch, mask=m, other=0.0)
+                acc += -1.0925484305920792 * y * z * tl.load(base + 15 + ch, mask=m, other=0.0)
+                acc += 0.31539156525252005 * (2.0 * zz - xx - yy) * tl.load(base + 18 + ch, mask=m, other=0.0)
+                acc += -1.0925484305920792 * x * z * tl.load(base + 21 + ch, mask=m, other=0.0)
+                acc += 0.5462742152960396 * (xx - yy) * tl.load(base + 24 + ch, mask=m, other=0.0)
+            if DEGREE >= 3:
+                acc += -0.5900435899266435 * y * (3.0 * xx - yy) * tl.load(base + 27 + ch, mask=m, other=0.0)
+                acc += 2.890611442640554 * x * y * z * tl.load(base + 30 + ch, mask=m, other=0.0)
+                acc += -0.4570457994644658 * y * (4.0 * zz - xx - yy) * tl.load(base + 33 + ch, mask=m, other=0.0)
+                acc += (
+                    0.3731763325901154
+                    * z
+                    * (2.0 * zz - 3.0 * xx - 3.0 * yy)
+                    * tl.load(base + 36 + ch, mask=m, other=0.0)
+                )
+                acc += -0.4570457994644658 * x * (4.0 * zz - xx - yy) * tl.load(base + 39 + ch, mask=m, other=0.0)
+                acc += 1.445305721320277 * z * (xx - yy) * tl.load(base + 42 + ch, mask=m, other=0.0)
+                acc += -0.5900435899266435 * x * (xx - 3.0 * yy) * tl.load(base + 45 + ch, mask=m, other=0.0)
+            tl.store(out_ptr + (cam * n + g) * 3 + ch, tl.maximum(acc + 0.5, 0.0), mask=m)
+
+    _kernels[mode] = colors
+    return colors
