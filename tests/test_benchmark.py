@@ -78,6 +78,7 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
         "cuda_graph": True,
         "lean_raster": True,
         "time_table": False,
+        "frame_graph": False,
         "static_threshold": default,
         "storage_fp16": True,
     }
@@ -86,6 +87,7 @@ def test_benchmark_smoke_writes_json_table_and_plot(tmp_path):
         "cuda_graph": False,
         "lean_raster": False,
         "time_table": False,
+        "frame_graph": False,
         "static_threshold": default,
         "storage_fp16": False,
     }
@@ -131,6 +133,13 @@ def test_auto_row_leaves_every_switch_to_the_model():
     assert all(render[k] is None for k in ("static_skip", "cuda_graph", "lean_raster", "time_table"))
     assert "render_precision" not in render
     assert render["storage"] == "fp32"
+
+
+def test_the_frame_graph_row_adds_one_switch_to_the_models_choice():
+    assert split_variant("garo-compact")[1]["frame_graph"] is False
+    base, render = split_variant("garo-compact+auto+framegraph")
+    assert base == "garo-compact" and render["frame_graph"] is True
+    assert render == {**split_variant("garo-compact+auto")[1], "frame_graph": True}
 
 
 def test_a_render_row_selects_its_switches_and_is_compared_view_by_view():

@@ -17,7 +17,8 @@ A name may carry render-time switches after `+`: `+static` (static Gaussians ski
 (the time table forced on, garo_ns.render.time_table), `+fp16` (parameters rounded to the compact
 half-precision file of garo_ns.state.storage; its size is the model size), `+auto` (every switch left to the
 finished model, as ns-viewer, ns-render and garo-eval render without flags; the row records what it chose in
-`render_switches_used`), e.g. `garo-deform+static+graph+lean`; such variants reuse the training of the name
+`render_switches_used`), `+framegraph` (with graph and lean: the camera's share of a frame as one graph,
+garo_ns.render.frame_graph), e.g. `garo-deform+static+graph+lean`; such variants reuse the training of the name
 before the first `+` and differ only at render time. Every such row records `psnr_vs_plain`: its PSNR minus
 the plain row's (the name before the first `+`), view by view (an approximate switch's bound: within 0.02 dB
 on every view). Deleted paths (`+bf16`, `+fused`, `+static4x`, `+tf32`, `+half`) and what they measured:
@@ -52,9 +53,18 @@ RENDER_SWITCHES: Dict[str, Dict[str, Any]] = {
     "auto": {"static_skip": None, "cuda_graph": None, "lean_raster": None, "time_table": None},
     # The time table forced on (garo_ns.render.time_table), whatever the model measured.
     "table": {"time_table": True},
+    # The camera's share of a frame as one graph (garo_ns.render.frame_graph; with graph and lean, or auto).
+    "framegraph": {"frame_graph": True},
 }
 # The plain render: every switch off, the parameters as trained.
-PLAIN_RENDER = {"static_skip": False, "cuda_graph": False, "lean_raster": False, "time_table": False, "storage": "fp32"}
+PLAIN_RENDER = {
+    "static_skip": False,
+    "cuda_graph": False,
+    "lean_raster": False,
+    "time_table": False,
+    "frame_graph": False,
+    "storage": "fp32",
+}
 # Render-time rows added by --speed for every trained variant: each switch alone, then together.
 SPEED_ROWS = ("+static", "+graph", "+lean", "+static+graph", "+static+graph+lean", "+static+graph+lean+fp16")
 
@@ -346,6 +356,7 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
             state["classified_at"] = trained_threshold
         for key, value in settings.items():
             setattr(model.config, key, value)
+        model.frame.configure(model.config)  # the frame path reads some settings (frame_graph) when told to
         result = evaluate(pipeline, args.scene, args.split, views)
         timing = measure_fps(model, cameras, warmup=args.warmup_views, repeats=args.timing_repeats)
         out = {
