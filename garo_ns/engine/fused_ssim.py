@@ -28,31 +28,21 @@ interpreter) `SSIM` blurs with its convolutions.
 from __future__ import annotations
 
 import functools
-import importlib.util
-import os
 from typing import Any, Optional, Tuple
 
 import torch
 from torch import Tensor
+
+from garo_ns.ops.triton_mode import has_triton, interpreting
 
 # A tile of 8 x 64 pixels, 4 warps: rows of 64 contiguous values for the loads along the width.
 BLOCK_H = 8
 BLOCK_W = 64
 
 
-def interpreting() -> bool:
-    """Whether Triton's interpreter is on (TRITON_INTERPRET=1): the kernels then run on CPU tensors."""
-    return os.environ.get("TRITON_INTERPRET", "0") == "1"
-
-
-@functools.lru_cache(maxsize=None)
-def _has_triton() -> bool:
-    return importlib.util.find_spec("triton") is not None
-
-
 def available(x: Tensor) -> bool:
     """Whether the kernels can run on `x`'s device: CUDA with Triton, or the CPU under Triton's interpreter."""
-    if not _has_triton():
+    if not has_triton():
         return False
     return (not x.is_cuda) if interpreting() else x.is_cuda
 

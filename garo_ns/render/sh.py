@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
-import os
-from typing import Any, Dict
+import functools
+from typing import Any
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+
+from garo_ns.ops.triton_mode import interpreting, runs_on
 
 _C0 = 0.28209479177387814
 _C1 = 0.4886025119029199
@@ -98,37 +100,25 @@ def rendered_colors(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
     """The colours a rasterizer composites: SH `coeffs` [N, K, 3] seen along `dirs` [C, N, 3], plus 0.5, clamped at
     0 (gsplat's `compute_sh_fwd` and offset) -> [C, N, 3]. One Triton kernel on a CUDA device (a CUDA graph can hold
     it, where gsplat's kernel launches on the legacy stream), or with Triton's interpreter; torch elsewhere."""
-    if not _kernel_available(dirs.device):
+    if not runs_on(dirs.device):
         return (eval_sh(degree, dirs, coeffs.expand(dirs.shape[0], *coeffs.shape)) + 0.5).clamp_min(0.0)
     if coeffs.shape[-2] < num_sh_bases(degree):
         raise ValueError(f"coeffs has {coeffs.shape[-2]} bases, degree {degree} needs {num_sh_bases(degree)}")
     c, n = dirs.shape[:2]
     out = torch.empty(c, n, 3, dtype=torch.float32, device=dirs.device)
-    _kernel()[(c, -(-n // _BLOCK))](
+    _kernel(interpreting())[(c, -(-n // _BLOCK))](
         dirs.float().contiguous(), coeffs.float().contiguous(), out, n, coeffs.shape[-2], DEGREE=degree, BLOCK=_BLOCK
     )
     return out
 
 
 _BLOCK = 256
-_kernels: Dict[bool, Any] = {}
 
 
-def _kernel_available(device: torch.device) -> bool:
-    if torch.device(device).type != "cuda" and os.environ.get("TRITON_INTERPRET") != "1":
-        return False
-    try:
-        import triton  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
-def _kernel() -> Any:
-    """The Triton kernel, made on first use (Triton reads TRITON_INTERPRET when a kernel is made: one per mode)."""
-    mode = os.environ.get("TRITON_INTERPRET") == "1"
-    if mode in _kernels:
-        return _kernels[mode]
+@functools.lru_cache(maxsize=None)
+def _kernel(interpret: bool) -> Any:
+    """The Triton kernel, made once per interpreter setting (garo_ns.ops.triton_mode)."""
+    del interpret  # the cache key
     import triton
     import triton.language as tl
 
@@ -170,5 +160,4 @@ def _kernel() -> Any:
                 acc += -0.5900435899266435 * x * (xx - 3.0 * yy) * tl.load(base + 45 + ch, mask=m, other=0.0)
             tl.store(out_ptr + (cam * n + g) * 3 + ch, tl.maximum(acc + 0.5, 0.0), mask=m)
 
-    _kernels[mode] = colors
     return colors

@@ -11,17 +11,17 @@ tests/test_table_lookup.py checks on a CPU with Triton's interpreter.
 
 from __future__ import annotations
 
-import os
-from typing import Any, Dict, Tuple
+import functools
+from typing import Any, Tuple
 
 import torch
 from torch import Tensor
 
 from garo_ns.deformation import SCALE_FLOOR
+from garo_ns.ops.triton_mode import interpreting, runs_on
 from garo_ns.render.time_table import CHANNELS, PAD, TimeTable
 
 BLOCK = 1024  # table entries (Gaussian x channel) per program
-_kernels: Dict[bool, Any] = {}
 
 
 def fused_available(table: TimeTable, rows: Tensor) -> bool:
@@ -30,13 +30,7 @@ def fused_available(table: TimeTable, rows: Tensor) -> bool:
     its moving ones, which the torch path does)."""
     if table.moving.numel() != rows.shape[0] or not table.graphable:
         return False
-    if rows.device.type != "cuda" and not _interpret():
-        return False
-    try:
-        import triton  # noqa: F401
-    except ImportError:
-        return False
-    return True
+    return runs_on(rows.device)
 
 
 def table_splats(table: TimeTable, rows: Tensor, time: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
@@ -49,7 +43,7 @@ def table_splats(table: TimeTable, rows: Tensor, time: Tensor) -> Tuple[Tensor, 
     quats = torch.empty(n, 4, device=rows.device)
     scales = torch.empty(n, 3, device=rows.device)
     scale = table.codec.scale
-    _kernel()[(-(-n * CHANNELS // BLOCK),)](
+    _kernel(interpreting())[(-(-n * CHANNELS // BLOCK),)](
         time.reshape(1).float(),
         key_anchor,
         anchor_at,
@@ -76,15 +70,10 @@ def table_splats(table: TimeTable, rows: Tensor, time: Tensor) -> Tuple[Tensor, 
     return means, quats, scales
 
 
-def _interpret() -> bool:
-    return os.environ.get("TRITON_INTERPRET") == "1"
-
-
-def _kernel() -> Any:
-    """The Triton kernel, made on first use (Triton reads TRITON_INTERPRET when a kernel is made: one per mode)."""
-    mode = _interpret()
-    if mode in _kernels:
-        return _kernels[mode]
+@functools.lru_cache(maxsize=None)
+def _kernel(interpret: bool) -> Any:
+    """The Triton kernel, made once per interpreter setting (garo_ns.ops.triton_mode)."""
+    del interpret  # the cache key
     import triton
     import triton.language as tl
 
@@ -147,5 +136,4 @@ def _kernel() -> Any:
             s = tl.maximum(tl.abs(out), floor)
         tl.store(scales_ptr + g * 3 + (c - 7), s, mask=inside & (c >= 7))
 
-    _kernels[mode] = lookup
     return lookup

@@ -22,15 +22,16 @@ returned leaves that row out.
 
 from __future__ import annotations
 
+import functools
 import math
-import os
 from dataclasses import dataclass
-from typing import Any, Dict, Optional, Tuple
+from typing import Any, Optional, Tuple
 
 import torch
 from torch import Tensor
 
 from garo_ns.ops.alpha_reach import ALPHA_MIN, reach_half_widths
+from garo_ns.ops.triton_mode import interpreting, runs_on
 
 # The rasterizer computes each exponent in fp32 and its exp() approximately: a pair is cut only when its smallest
 # exponent passes the threshold by more than this (alpha 0.1% under 1/255).
@@ -203,19 +204,12 @@ def with_blocker(
 
 
 BLOCK = 1024  # pairs per program of the Triton kernel
-_kernels: Dict[bool, Any] = {}
 
 
 def pairs_kernel_available(device: torch.device) -> bool:
     """Whether `tile_lists` makes its pairs in one Triton kernel (`pair_keys` in one pass over the pairs): on a CUDA
-    device, or on any with Triton's interpreter (TRITON_INTERPRET=1, the CPU tests), when Triton imports."""
-    if torch.device(device).type != "cuda" and os.environ.get("TRITON_INTERPRET") != "1":
-        return False
-    try:
-        import triton  # noqa: F401
-    except ImportError:
-        return False
-    return True
+    device, or on any under Triton's interpreter (the CPU tests)."""
+    return runs_on(device)
 
 
 def _pairs_kernel(per_splat: PerSplat, grid: TileGrid, capacity: int, cut: bool) -> Tuple[Tensor, Tensor]:
@@ -226,7 +220,7 @@ def _pairs_kernel(per_splat: PerSplat, grid: TileGrid, capacity: int, cut: bool)
     values = torch.empty(capacity, dtype=torch.long, device=device)
     f32 = [x.float().contiguous() for x in (means2d[:, 0], means2d[:, 1], *conics.unbind(-1), reach)]
     i64 = [x.long().contiguous() for x in (ends, counts, lo[:, 0], lo[:, 1], span[:, 0], rank)]
-    _kernel()[(-(-capacity // BLOCK),)](
+    _kernel(interpreting())[(-(-capacity // BLOCK),)](
         *i64,
         *f32,
         keys,
@@ -245,11 +239,10 @@ def _pairs_kernel(per_splat: PerSplat, grid: TileGrid, capacity: int, cut: bool)
     return keys, values
 
 
-def _kernel() -> Any:
-    """The Triton kernel, made on first use (Triton reads TRITON_INTERPRET when a kernel is made: one per mode)."""
-    mode = os.environ.get("TRITON_INTERPRET") == "1"
-    if mode in _kernels:
-        return _kernels[mode]
+@functools.lru_cache(maxsize=None)
+def _kernel(interpret: bool) -> Any:
+    """The Triton kernel, made once per interpreter setting (garo_ns.ops.triton_mode)."""
+    del interpret  # the cache key
     import triton
     import triton.language as tl
 
@@ -323,5 +316,4 @@ def _kernel() -> Any:
         tl.store(keys_ptr + p, key, mask=inside)
         tl.store(values_ptr + p, tl.where(used, g, n), mask=inside)
 
-    _kernels[mode] = pairs
     return pairs
