@@ -2,9 +2,9 @@
 
 gsplat's `isect_tiles` counts a frame's pairs, reads the count back to size its buffers, then sorts: the frame waits
 for the device in its middle, and what follows cannot be captured. Here the lists have a capacity fixed with the
-graph: every pair is made, keyed (tile, then depth, in gsplat's order) and sorted in tensors of that length, and
-the number of pairs needed comes back with the image, so that a frame that needed more is rendered again with room
-for them (`FrameGraph` in garo_ns.render.frame_graph).
+graph: every pair is made and keyed (tile, then depth, in gsplat's order; one Triton kernel on a GPU, `pair_keys` in
+torch elsewhere) and sorted in tensors of that length, and the number of pairs needed comes back with the image, so
+that a frame that needed more is rendered again with room for them (`FrameGraph` in garo_ns.render.frame_graph).
 
 Two cuts on the way, neither of which changes a pixel: the rasterizer skips a splat wherever its alpha is under
 1/255, and a skip leaves the pixel as it was.
