@@ -2,7 +2,7 @@
 
 On the CPU, gsplat's two kernels are stood in for by the reference projection and by `composite` (tests/
 test_tile_lists.py, which walks lists as gsplat's compositing kernel does), and the graph by an eager call: the frame
-function's colours, depth channel, blocker, crop and the capacity's regrowth are checked against the reference
+function's colours, depth channel, lists and the capacity's regrowth are checked against the reference
 rasterizer. On a GPU, the real graph against the lean path's pixels.
 """
 
@@ -44,12 +44,9 @@ class _ReferenceKernels:
 
     @staticmethod
     def rasterize_to_pixels_fwd(means2d, conics, colors, opacities, bg, masks, width, height, tile, offsets, ids):
-        grid = TileGrid(width, height - tile, tile)  # the frame adds the blocker's row
-        full = TileGrid(width, height, tile)
-        image = composite(means2d[0], conics[0], colors[0], opacities[0], ids, offsets, grid, rows=full.height)
-        alpha = composite(
-            means2d[0], conics[0], torch.ones_like(colors[0][:, :1]), opacities[0], ids, offsets, grid, rows=full.height
-        )
+        image = composite(means2d[0], conics[0], colors[0], opacities[0], ids, offsets, width, height, tile)
+        ones = torch.ones_like(colors[0][:, :1])
+        alpha = composite(means2d[0], conics[0], ones, opacities[0], ids, offsets, width, height, tile)
         return (image + (1 - alpha) * bg[0]).float()[None], alpha.float()[None], None
 
     CameraModelType = SimpleNamespace(PINHOLE=0)

@@ -20,7 +20,7 @@ from torch import Tensor
 
 from garo_ns.deformation import DeformationField, ScaleOffset, log_scale_offset
 from garo_ns.render.backend import Backend, rasterize, resolve_backend
-from garo_ns.render.frame_graph import FrameGraph
+from garo_ns.render.frame_graph import FrameGraph, capture_errors
 from garo_ns.render.graphs import InputGraph, TimeGraph, graphs_available, parameter_list, versions
 from garo_ns.render.kernels import Front, lean_front
 from garo_ns.render.table_lookup import fused_available, table_splats
@@ -382,7 +382,7 @@ class FramePath:
             args = (splats.graph, splats[:5], sh_degree, view.viewmat, view.K, view.width, view.height, background)
             try:
                 return self._frame_graph(*args, render_mode == "RGB+ED")
-            except RuntimeError as error:  # a capture this device or build refuses: the lean path renders instead
+            except capture_errors() as error:  # a capture this device or build refuses: the lean path renders instead
                 self._frame_graph.release()
                 self.one_graph = False
                 print(f"frame_graph: off for this model, its capture failed ({str(error).splitlines()[0]})")

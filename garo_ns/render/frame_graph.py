@@ -22,15 +22,28 @@ from torch import Tensor
 from garo_ns.render.graphs import InputGraph
 from garo_ns.render.kernels import TILE_SIZE, gsplat_kernels, lean_front
 from garo_ns.render.sh import rendered_colors
-from garo_ns.render.tile_lists import TileGrid, tile_lists, with_blocker
+from garo_ns.render.tile_lists import TileGrid, tile_lists
 
 HEADROOM = 1.25  # capacity over the pairs the first frame needed: a moving camera's next frames need about as many
 GRANULE = 1 << 16  # capacities are whole multiples: a capture is kept while the need stays under it
 
 
 def capacity_for(needed: int) -> int:
-    """The lists' length for a frame that needs `needed` pairs: with headroom, rounded up to a granule."""
-    return max(GRANULE, math.ceil(needed * HEADROOM / GRANULE) * GRANULE)
+    """The lists' length for a frame that needs `needed` pairs: with headroom, rounded up to a granule. A RuntimeError
+    past int32 (the rasterizer's tile offsets): such a frame takes the lean path."""
+    capacity = max(GRANULE, math.ceil(needed * HEADROOM / GRANULE) * GRANULE)
+    if capacity >= 2**31:
+        raise RuntimeError(f"a frame of {needed} tile pairs: more than the rasterizer's int32 offsets hold")
+    return capacity
+
+
+def capture_errors() -> Tuple[type, ...]:
+    """What a refused capture raises: CUDA's RuntimeError, or Triton's compile and resource errors."""
+    try:
+        from triton.runtime.errors import TritonError
+    except ImportError:
+        return (RuntimeError,)
+    return (RuntimeError, TritonError)
 
 
 def frame_fn(
@@ -57,21 +70,19 @@ def frame_fn(
             rgb = torch.cat([rgb, depths[..., None]], dim=-1)
             bg = torch.cat([background, background.new_zeros(1, 1)], dim=-1)
         ids, offsets, needed = tile_lists(means2d[0], conics[0], opacities, depths[0], radii[0], grid, capacity)
-        m, c, col, o = with_blocker(means2d[0], conics[0], rgb[0], opacities, grid)
         render, alpha, _ = gsplat_kernels().rasterize_to_pixels_fwd(
-            m[None].contiguous(),
-            c[None].contiguous(),
-            col[None].contiguous(),
-            o[None].contiguous(),
+            means2d.contiguous(),
+            conics.contiguous(),
+            rgb.contiguous(),
+            opacities[None].contiguous(),
             bg.contiguous(),
             None,
             grid.width,
-            grid.padded_height,
+            grid.height,  # the offsets' extra tile row lies below it: its pixels are outside, its tile closed at once
             TILE_SIZE,
             offsets,
             ids,
         )
-        render, alpha = render[:, : grid.height], alpha[:, : grid.height]
         if with_depth:  # expected depth, as gsplat's RGB+ED
             render = torch.cat([render[..., :-1], render[..., -1:] / alpha.clamp_min(1e-10)], dim=-1)
         return render, alpha, radii, means2d, depths, needed

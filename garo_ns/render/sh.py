@@ -106,7 +106,7 @@ def rendered_colors(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
         raise ValueError(f"coeffs has {coeffs.shape[-2]} bases, degree {degree} needs {num_sh_bases(degree)}")
     c, n = dirs.shape[:2]
     out = torch.empty(c, n, 3, dtype=torch.float32, device=dirs.device)
-    _kernel(interpreting())[(c, -(-n // _BLOCK))](
+    _kernel(interpreting())[(-(-n // _BLOCK), c)](  # the splats on axis x (y stops at 65,535 blocks)
         dirs.float().contiguous(), coeffs.float().contiguous(), out, n, coeffs.shape[-2], DEGREE=degree, BLOCK=_BLOCK
     )
     return out
@@ -124,8 +124,8 @@ def _kernel(interpret: bool) -> Any:
 
     @triton.jit
     def colors(dirs_ptr, coeffs_ptr, out_ptr, n, k, DEGREE: tl.constexpr, BLOCK: tl.constexpr):
-        cam = tl.program_id(0).to(tl.int64)
-        g = tl.program_id(1).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
+        cam = tl.program_id(1).to(tl.int64)
+        g = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
         m = g < n
         d = dirs_ptr + (cam * n + g) * 3
         x, y, z = tl.load(d, mask=m, other=1.0), tl.load(d + 1, mask=m, other=0.0), tl.load(d + 2, mask=m, other=0.0)

@@ -14,10 +14,9 @@ Two cuts on the way, neither of which changes a pixel: the rasterizer skips a sp
   over that rectangle, exact for a convex quadratic form).
 What is left is gsplat's list in gsplat's order, less pairs the rasterizer would only have skipped.
 
-The rasterizer reads the last tile's list up to the end of the buffer. So the grid gets one more row of tiles below
-the image, and the unused tail of the buffer (and the pairs cut) goes to that row's last tile, pointing at one more
-splat appended to the frame's: a blocker, opaque everywhere, that closes the tile after two of them. The image
-returned leaves that row out.
+The rasterizer reads the last tile's list up to the end of the buffer. So the tile offsets get one more row of tiles
+below the image, and the unused tail of the buffer (and the pairs cut) goes to that row's last tile: every pixel of
+it lies outside the image, so the compositing kernel closes the tile before it reads a single pair.
 """
 
 from __future__ import annotations
@@ -33,15 +32,17 @@ from torch import Tensor
 from garo_ns.ops.alpha_reach import ALPHA_MIN, reach_half_widths
 from garo_ns.ops.triton_mode import interpreting, runs_on
 
-# The rasterizer computes each exponent in fp32 and its exp() approximately: a pair is cut only when its smallest
-# exponent passes the threshold by more than this (alpha 0.1% under 1/255).
+# The rasterizer computes each exponent in fp32 (fused, fast-math) and its exp() approximately, and so do we: a pair
+# is cut only when its smallest exponent passes the threshold by more than this (alpha 0.1% under 1/255), plus a share
+# of the exponent's terms' size over the rectangle, where a large thin splat's terms cancel to a small exponent.
 SIGMA_MARGIN = 1e-3
+SIGMA_MARGIN_REL = 1e-5
 INT32_KEYS = 2**31 - 1  # the largest key sorted as int32
 
 
 @dataclass(frozen=True)
 class TileGrid:
-    """An image's tiles, plus the row below it that holds the unused pairs."""
+    """An image's tiles, plus a row below it (outside the image) that holds the unused pairs."""
 
     width: int
     height: int
@@ -54,11 +55,6 @@ class TileGrid:
     @property
     def tiles_h(self) -> int:
         return math.ceil(self.height / self.tile_size)
-
-    @property
-    def padded_height(self) -> int:
-        """The height the rasterizer is given: the image's tile rows and the unused pairs' row."""
-        return (self.tiles_h + 1) * self.tile_size
 
     @property
     def n_tiles(self) -> int:
@@ -101,6 +97,15 @@ def smallest_sigma(means2d: Tensor, conics: Tensor, x0: Tensor, x1: Tensor, y0: 
     return torch.where(inside, torch.zeros_like(least), least)
 
 
+def sigma_size(conics: Tensor, x0: Tensor, x1: Tensor, y0: Tensor, y1: Tensor, means2d: Tensor) -> Tensor:
+    """A bound on the size of the exponent's terms over the rectangle (their absolute values at its farthest
+    corner): the scale of the rounding in an exponent computed there."""
+    a, b, c = conics.unbind(-1)
+    dx = torch.maximum((x0 - means2d[..., 0]).abs(), (x1 - means2d[..., 0]).abs())
+    dy = torch.maximum((y0 - means2d[..., 1]).abs(), (y1 - means2d[..., 1]).abs())
+    return 0.5 * (a.abs() * dx * dx + c.abs() * dy * dy) + b.abs() * dx * dy
+
+
 def tile_lists(
     means2d: Tensor,
     conics: Tensor,
@@ -119,7 +124,7 @@ def tile_lists(
         cut: snug boxes and the exact tile test (see the module docstring); False: gsplat's pairs exactly.
 
     Returns:
-        flatten_ids [capacity] int32: the splat of each sorted pair, N (the blocker) for unused ones;
+        flatten_ids [capacity] int32: the splat of each sorted pair, 0 for unused ones (never read);
         offsets [1, tiles_h + 1, tiles_w] int32: where each tile's pairs start (gsplat's `isect_offset_encode`);
         needed [] int64: the pairs the boxes hold; more than `capacity` means pairs were lost (render again).
     """
@@ -182,25 +187,12 @@ def pair_keys(per_splat: PerSplat, grid: TileGrid, capacity: int, cut: bool) -> 
         x0, y0 = (tx * s).to(means2d.dtype) + 0.5, (ty * s).to(means2d.dtype) + 0.5
         x1 = torch.clamp_max(x0 + (s - 1), grid.width - 0.5)
         y1 = torch.clamp_max(y0 + (s - 1), grid.height - 0.5)
-        used = used & (smallest_sigma(means2d[splat], conics[splat], x0, x1, y0, y1) <= reach[splat])
+        m, q = means2d[splat], conics[splat]
+        margin = SIGMA_MARGIN_REL * sigma_size(q, x0, x1, y0, y1, m)
+        used = used & (smallest_sigma(m, q, x0, x1, y0, y1) <= reach[splat] + margin)
     tile = torch.where(used, ty * grid.tiles_w + tx, grid.n_tiles - 1)
     keys = tile * (n + 1) + torch.where(used, rank[splat], torch.full_like(splat, n))
-    return keys, torch.where(used, splat, torch.full_like(splat, n))
-
-
-def with_blocker(
-    means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, grid: TileGrid
-) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
-    """The splats [N, ...] with the blocker appended (index N): centred in the last tile of the row below the image,
-    a flat exponent (conic 0) and opacity 1, so that its alpha is the rasterizer's cap everywhere, colour 0."""
-    centre = means2d.new_empty(1, 2)
-    centre[:, 0], centre[:, 1] = (grid.tiles_w - 0.5) * grid.tile_size, (grid.tiles_h + 0.5) * grid.tile_size
-    return (
-        torch.cat([means2d, centre]),
-        torch.cat([conics, conics.new_zeros(1, 3)]),
-        torch.cat([colors, colors.new_zeros(1, colors.shape[-1])]),
-        torch.cat([opacities, opacities.new_ones(1)]),
-    )
+    return keys, torch.where(used, splat, torch.zeros_like(splat))
 
 
 BLOCK = 1024  # pairs per program of the Triton kernel
@@ -232,6 +224,7 @@ def _pairs_kernel(per_splat: PerSplat, grid: TileGrid, capacity: int, cut: bool)
         grid.n_tiles,
         float(grid.width),
         float(grid.height),
+        REL=SIGMA_MARGIN_REL,
         TILE=grid.tile_size,
         CUT=cut,
         BLOCK=BLOCK,
@@ -269,6 +262,7 @@ def _kernel(interpret: bool) -> Any:
         n_tiles,
         width,
         height,
+        REL: tl.constexpr,
         TILE: tl.constexpr,
         CUT: tl.constexpr,
         BLOCK: tl.constexpr,
@@ -310,10 +304,13 @@ def _kernel(interpret: bool) -> Any:
             s3 = 0.5 * (a * dx * dx + c * dy1 * dy1) + b * dx * dy1
             least = tl.minimum(tl.minimum(s0, s1), tl.minimum(s2, s3))
             least = tl.where((dx0 <= 0) & (dx1 >= 0) & (dy0 <= 0) & (dy1 >= 0), 0.0, least)
-            used = used & (least <= tl.load(reach_ptr + g))
+            fx = tl.maximum(tl.abs(dx0), tl.abs(dx1))
+            fy = tl.maximum(tl.abs(dy0), tl.abs(dy1))
+            size = 0.5 * (tl.abs(a) * fx * fx + tl.abs(c) * fy * fy) + tl.abs(b) * fx * fy
+            used = used & (least <= tl.load(reach_ptr + g) + REL * size)
         tile = tl.where(used, ty * tiles_w + tx, n_tiles - 1)
         key = tile * (n + 1) + tl.where(used, tl.load(rank_ptr + g), n)
         tl.store(keys_ptr + p, key, mask=inside)
-        tl.store(values_ptr + p, tl.where(used, g, n), mask=inside)
+        tl.store(values_ptr + p, tl.where(used, g, 0), mask=inside)
 
     return pairs
