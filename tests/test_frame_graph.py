@@ -108,6 +108,8 @@ def test_a_frame_that_needs_more_pairs_is_rendered_again_with_room(reference_ker
     graph("splats", (means, quats, scales, opacities, colors), 3, viewmat, K, W, H, background, False)
     assert graph.regrown == 1 and graph._graph.captures == 2 and graph.capacity == capacity  # kept while it fits
     assert frame_graph.capacity_for(0) == 64 and frame_graph.capacity_for(100) == 128
+    with pytest.raises(RuntimeError, match="int32"):  # past the rasterizer's offsets: the lean path renders it
+        frame_graph.capacity_for(2**31 - 2**20)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="gsplat's kernels and CUDA graphs need a CUDA device")
