@@ -89,7 +89,7 @@ def world_to_camera(c2w: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     return rotmat2qvec(rotation), -rotation @ c2w[:3, 3]
 
 
-def write_seed_points(capture: Path, path: Path) -> None:
+def write_seed_points(capture: Path, ours: Any, path: Path) -> None:
     """points3D.bin (no tracks: the official reader reads positions and colours) of the points our recipe starts a
     Nerfies capture from: its points.npy as our reader takes it, or `initial_gaussians`' random ones (same seed and
     cube), near grey as ours start."""
@@ -97,12 +97,12 @@ def write_seed_points(capture: Path, path: Path) -> None:
     from nerfstudio.data.utils.colmap_parsing_utils import Point3D, write_points3D_binary
 
     from garo_ns.config import METHODS
-    from garo_ns.data.nerfds import load_capture, read_points
+    from garo_ns.data.nerfds import read_points
     from garo_ns.engine.initialisation import initial_gaussians
     from garo_ns.render.sh import dc_to_rgb
 
     config, none = METHODS[METHOD].config.pipeline, np.zeros(0, dtype=np.int64)
-    points = read_points(capture, load_capture(capture, config.datamanager.dataparser))
+    points = read_points(capture, ours)
     seed = None if points is None else (torch.from_numpy(points), torch.zeros((0, 3), dtype=torch.uint8))
     start = initial_gaussians(seed, config.model.random_init, config.model.num_random, config.model.random_scale, 0)
     rgb = (dc_to_rgb(start["features_dc"]).clamp(0, 1) * 255).round().byte().numpy()
@@ -205,7 +205,7 @@ def prepare(capture: Path, out: Path) -> Dict[str, Any]:
     (out / "sparse" / "0" / "cameras.txt").write_text(cameras_text(w, h, fx, fy, cx, cy))
     (out / "sparse" / "0" / "images.txt").write_text(images_text(plan, poses))
     if agreement is None:
-        write_seed_points(capture, out / "sparse" / "0" / "points3D.bin")
+        write_seed_points(capture, ours, out / "sparse" / "0" / "points3D.bin")
     else:
         shutil.copyfile(model / "points3D.bin", out / "sparse" / "0" / "points3D.bin")
     test = [f["name"] for f in plan if f["split"] == "test"]

@@ -261,7 +261,9 @@ class GaroModel(SplatfactoModel):
         if self.training:
             return render_splats(splats, view, degree, backgrounds, render_mode, backend, self.config.train_lean_raster)
         lean = bool(self.render_settings().lean_raster)
-        return self.frame.rasterize(splats, view, degree, backgrounds, render_mode, backend, lean)
+        return self.frame.rasterize(
+            splats, view, degree, backgrounds, render_mode, backend, lean, self.config.frame_graph
+        )
 
     def get_outputs(self, camera: Cameras) -> Dict[str, Union[Tensor, List]]:
         if not isinstance(camera, Cameras):

@@ -142,7 +142,6 @@ def test_a_frame_graph_that_cannot_be_captured_leaves_the_lean_path_rendering(mo
         raise RuntimeError("operation not permitted when stream is capturing\nmore")
 
     path = frame.FramePath()
-    path.one_graph = True
     path._frame_graph = refuse
     path._frame_graph.release = lambda: None
     monkeypatch.setattr(frame, "resolve_backend", lambda backend, device: "cuda")
@@ -152,8 +151,8 @@ def test_a_frame_graph_that_cannot_be_captured_leaves_the_lean_path_rendering(mo
     splats = frame.Splats(means, quats, scales, opacities, colors, graph=1)
     view = RenderView(viewmat, K, W, H, 0.0)
     with torch.no_grad():
-        assert path.rasterize(splats, view, 3, None, "RGB", "auto", True) == "lean"
-    assert not path.one_graph
+        assert path.rasterize(splats, view, 3, None, "RGB", "auto", True, frame_graph=True) == "lean"
+    assert path._frame_graph_failed
     assert (
         capsys.readouterr().out
         == "frame_graph: off for this model, its capture failed (operation not permitted when stream is capturing)\n"

@@ -196,10 +196,10 @@ def test_the_pair_kernel_makes_the_torch_pairs(monkeypatch, cut):
     radii, means2d, depths, conics, opacities, _ = _projected(seed=3)
     grid = TileGrid(W, H)
     capacity = 5000
-    monkeypatch.setattr(tile_lists_module, "pairs_kernel_available", lambda device: False)
+    monkeypatch.setattr(tile_lists_module, "runs_on", lambda device: False)
     want = tile_lists(means2d, conics, opacities, depths, radii, grid, capacity, cut=cut)
     monkeypatch.setenv("TRITON_INTERPRET", "1")
-    monkeypatch.setattr(tile_lists_module, "pairs_kernel_available", lambda device: True)
+    monkeypatch.setattr(tile_lists_module, "runs_on", lambda device: True)
     got = tile_lists(means2d, conics, opacities, depths, radii, grid, capacity, cut=cut)
     assert int(got[2]) == int(want[2]) < capacity
     assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])

@@ -356,7 +356,6 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
             state["classified_at"] = trained_threshold
         for key, value in settings.items():
             setattr(model.config, key, value)
-        model.frame.configure(model.config)  # the frame path reads some settings (frame_graph) when told to
         result = evaluate(pipeline, args.scene, args.split, views)
         timing = measure_fps(model, cameras, warmup=args.warmup_views, repeats=args.timing_repeats)
         out = {

@@ -27,13 +27,12 @@ interpreter) `SSIM` blurs with its convolutions.
 
 from __future__ import annotations
 
-import functools
 from typing import Any, Optional, Tuple
 
 import torch
 from torch import Tensor
 
-from garo_ns.ops.triton_mode import has_triton, interpreting
+from garo_ns.ops.triton_mode import has_triton, interpreting, per_mode
 
 # A tile of 8 x 64 pixels, 4 warps: rows of 64 contiguous values for the loads along the width.
 BLOCK_H = 8
@@ -47,13 +46,12 @@ def available(x: Tensor) -> bool:
     return (not x.is_cuda) if interpreting() else x.is_cuda
 
 
-@functools.lru_cache(maxsize=None)
-def _kernels(interpret: bool) -> Tuple[Any, Any, Any, Any]:
+@per_mode
+def _kernels() -> Tuple[Any, Any, Any, Any]:
     """The four jitted kernels (built once per interpreter setting: Triton reads it when a kernel is decorated).
 
     They call Triton's builtins only (tl.full, not tl.zeros; no tl.sum): its interpreter cannot run the library's
     jitted helpers once Triton was imported without it."""
-    del interpret  # the cache key
     import triton
     import triton.language as tl
 
@@ -235,7 +233,7 @@ def _grid(rows: int, cols: int, planes: int) -> Tuple[int, int, int]:
 class _FusedSSIM(torch.autograd.Function):
     @staticmethod
     def forward(ctx: Any, x: Tensor, y: Tensor, window: Tensor, c1: float, c2: float) -> Tensor:
-        blur_height, blur_width_ssim, _, _ = _kernels(interpreting())
+        blur_height, blur_width_ssim, _, _ = _kernels()
         bsz, channels, height, width = x.shape
         kh, kw = _taps(window.numel(), height), _taps(window.numel(), width)
         out_h, out_w = height - kh + 1, width - kw + 1
@@ -261,7 +259,7 @@ class _FusedSSIM(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx: Any, grad: Tensor) -> Tuple[Optional[Tensor], ...]:
-        _, _, unblur_width, unblur_height_grad = _kernels(interpreting())
+        _, _, unblur_width, unblur_height_grad = _kernels()
         x, y, win, dmx, dmy, de, dexy = ctx.saved_tensors
         want_gx, want_gy = bool(ctx.needs_input_grad[0]), bool(ctx.needs_input_grad[1])
         if not (want_gx or want_gy):

@@ -151,8 +151,8 @@ class FramePath:
         # The model's time_table_window_mb: a larger table is held a window of time at a time (`window`).
         self.table_window_mb: Optional[float] = None
         self._whole: Optional[TableSpec] = None  # the table `_table` holds, or holds a window of
-        self.one_graph = False  # the model's frame_graph: the camera's share of a frame as one replay
         self._frame_graph = FrameGraph()
+        self._frame_graph_failed = False  # its capture was refused once: the lean path renders from then on
         self._fit: Optional[Tuple[Any, int]] = None  # the intervals a window holds, for (spec, Gaussians, budget)
 
     def configure(self, config: Any) -> None:
@@ -163,7 +163,6 @@ class FramePath:
         self.table_tf32 = config.time_table_tf32
         self.table_budget_mb = config.time_table_budget_mb
         self.table_window_mb = getattr(config, "time_table_window_mb", None)
-        self.one_graph = getattr(config, "frame_graph", False)
 
     def splats(
         self,
@@ -372,11 +371,14 @@ class FramePath:
         render_mode: str,
         backend: Backend,
         lean_raster: bool,
+        frame_graph: bool = False,
     ) -> Tuple[Tensor, Tensor, Dict[str, Any]]:
         """Rasterize outside training. With `lean_raster`, gsplat's kernels are called directly; and
         when `splats` are a CUDA graph's buffers, the camera's projection of them replays as a
-        second graph, fed the camera's matrices (`front`)."""
-        one = self.one_graph and lean_raster and splats.graph is not None and not torch.is_grad_enabled()
+        second graph, fed the camera's matrices (`front`); with `frame_graph` too, the camera's whole share of the
+        frame is one graph (garo_ns.render.frame_graph)."""
+        one = frame_graph and not self._frame_graph_failed and lean_raster and splats.graph is not None
+        one = one and not torch.is_grad_enabled()
         if one and render_mode in ("RGB", "RGB+ED") and resolve_backend(backend, splats.means.device) == "cuda":
             background = backgrounds if backgrounds is not None else splats.means.new_zeros(1, 3)
             args = (splats.graph, splats[:5], sh_degree, view.viewmat, view.K, view.width, view.height, background)
@@ -384,7 +386,7 @@ class FramePath:
                 return self._frame_graph(*args, render_mode == "RGB+ED")
             except capture_errors() as error:  # a capture this device or build refuses: the lean path renders instead
                 self._frame_graph.release()
-                self.one_graph = False
+                self._frame_graph_failed = True
                 print(f"frame_graph: off for this model, its capture failed ({str(error).splitlines()[0]})")
         front = self.front(splats, view) if lean_raster and render_mode in ("RGB", "RGB+ED") else None
         return render_splats(splats, view, sh_degree, backgrounds, render_mode, backend, lean_raster, front)

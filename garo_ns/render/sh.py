@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import functools
 from typing import Any
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from garo_ns.ops.triton_mode import interpreting, runs_on
+from garo_ns.ops.triton_mode import per_mode, runs_on
 
 _C0 = 0.28209479177387814
 _C1 = 0.4886025119029199
@@ -106,7 +105,7 @@ def rendered_colors(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
         raise ValueError(f"coeffs has {coeffs.shape[-2]} bases, degree {degree} needs {num_sh_bases(degree)}")
     c, n = dirs.shape[:2]
     out = torch.empty(c, n, 3, dtype=torch.float32, device=dirs.device)
-    _kernel(interpreting())[(-(-n // _BLOCK), c)](  # the splats on axis x (y stops at 65,535 blocks)
+    _kernel()[(-(-n // _BLOCK), c)](  # the splats on axis x (y stops at 65,535 blocks)
         dirs.float().contiguous(), coeffs.float().contiguous(), out, n, coeffs.shape[-2], DEGREE=degree, BLOCK=_BLOCK
     )
     return out
@@ -115,10 +114,9 @@ def rendered_colors(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
 _BLOCK = 256
 
 
-@functools.lru_cache(maxsize=None)
-def _kernel(interpret: bool) -> Any:
+@per_mode
+def _kernel() -> Any:
     """The Triton kernel, made once per interpreter setting (garo_ns.ops.triton_mode)."""
-    del interpret  # the cache key
     import triton
     import triton.language as tl
 

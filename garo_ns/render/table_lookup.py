@@ -11,14 +11,13 @@ tests/test_table_lookup.py checks on a CPU with Triton's interpreter.
 
 from __future__ import annotations
 
-import functools
 from typing import Any, Tuple
 
 import torch
 from torch import Tensor
 
 from garo_ns.deformation import SCALE_FLOOR
-from garo_ns.ops.triton_mode import interpreting, runs_on
+from garo_ns.ops.triton_mode import per_mode, runs_on
 from garo_ns.render.time_table import CHANNELS, PAD, TimeTable
 
 BLOCK = 1024  # table entries (Gaussian x channel) per program
@@ -43,7 +42,7 @@ def table_splats(table: TimeTable, rows: Tensor, time: Tensor) -> Tuple[Tensor, 
     quats = torch.empty(n, 4, device=rows.device)
     scales = torch.empty(n, 3, device=rows.device)
     scale = table.codec.scale
-    _kernel(interpreting())[(-(-n * CHANNELS // BLOCK),)](
+    _kernel()[(-(-n * CHANNELS // BLOCK),)](
         time.reshape(1).float(),
         key_anchor,
         anchor_at,
@@ -70,10 +69,9 @@ def table_splats(table: TimeTable, rows: Tensor, time: Tensor) -> Tuple[Tensor, 
     return means, quats, scales
 
 
-@functools.lru_cache(maxsize=None)
-def _kernel(interpret: bool) -> Any:
+@per_mode
+def _kernel() -> Any:
     """The Triton kernel, made once per interpreter setting (garo_ns.ops.triton_mode)."""
-    del interpret  # the cache key
     import triton
     import triton.language as tl
 

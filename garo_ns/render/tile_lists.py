@@ -21,7 +21,6 @@ it lies outside the image, so the compositing kernel closes the tile before it r
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 from typing import Any, Optional, Tuple
@@ -30,7 +29,7 @@ import torch
 from torch import Tensor
 
 from garo_ns.ops.alpha_reach import ALPHA_MIN, reach_half_widths
-from garo_ns.ops.triton_mode import interpreting, runs_on
+from garo_ns.ops.triton_mode import per_mode, runs_on
 
 # The rasterizer computes each exponent in fp32 (fused, fast-math) and its exp() approximately, and so do we: a pair
 # is cut only when its smallest exponent passes the threshold by more than this (alpha 0.1% under 1/255), plus a share
@@ -97,7 +96,7 @@ def smallest_sigma(means2d: Tensor, conics: Tensor, x0: Tensor, x1: Tensor, y0: 
     return torch.where(inside, torch.zeros_like(least), least)
 
 
-def sigma_size(conics: Tensor, x0: Tensor, x1: Tensor, y0: Tensor, y1: Tensor, means2d: Tensor) -> Tensor:
+def sigma_size(means2d: Tensor, conics: Tensor, x0: Tensor, x1: Tensor, y0: Tensor, y1: Tensor) -> Tensor:
     """A bound on the size of the exponent's terms over the rectangle (their absolute values at its farthest
     corner): the scale of the rounding in an exponent computed there."""
     a, b, c = conics.unbind(-1)
@@ -156,7 +155,7 @@ def tile_lists(
     rank = torch.empty(n, dtype=torch.long, device=device)
     rank[torch.sort(depths.contiguous().view(torch.int32), stable=True).indices] = torch.arange(n, device=device)
     per_splat = (ends, counts, lo, span, means2d, conics, reach, rank)
-    if pairs_kernel_available(device):
+    if runs_on(device):  # one Triton kernel: a CUDA device, or the interpreter (the CPU tests)
         keys, values = _pairs_kernel(per_splat, grid, capacity, cut)
     else:
         keys, values = pair_keys(per_splat, grid, capacity, cut)
@@ -188,7 +187,7 @@ def pair_keys(per_splat: PerSplat, grid: TileGrid, capacity: int, cut: bool) -> 
         x1 = torch.clamp_max(x0 + (s - 1), grid.width - 0.5)
         y1 = torch.clamp_max(y0 + (s - 1), grid.height - 0.5)
         m, q = means2d[splat], conics[splat]
-        margin = SIGMA_MARGIN_REL * sigma_size(q, x0, x1, y0, y1, m)
+        margin = SIGMA_MARGIN_REL * sigma_size(m, q, x0, x1, y0, y1)
         used = used & (smallest_sigma(m, q, x0, x1, y0, y1) <= reach[splat] + margin)
     tile = torch.where(used, ty * grid.tiles_w + tx, grid.n_tiles - 1)
     keys = tile * (n + 1) + torch.where(used, rank[splat], torch.full_like(splat, n))
@@ -196,12 +195,6 @@ def pair_keys(per_splat: PerSplat, grid: TileGrid, capacity: int, cut: bool) -> 
 
 
 BLOCK = 1024  # pairs per program of the Triton kernel
-
-
-def pairs_kernel_available(device: torch.device) -> bool:
-    """Whether `tile_lists` makes its pairs in one Triton kernel (`pair_keys` in one pass over the pairs): on a CUDA
-    device, or on any under Triton's interpreter (the CPU tests)."""
-    return runs_on(device)
 
 
 def _pairs_kernel(per_splat: PerSplat, grid: TileGrid, capacity: int, cut: bool) -> Tuple[Tensor, Tensor]:
@@ -212,7 +205,7 @@ def _pairs_kernel(per_splat: PerSplat, grid: TileGrid, capacity: int, cut: bool)
     values = torch.empty(capacity, dtype=torch.long, device=device)
     f32 = [x.float().contiguous() for x in (means2d[:, 0], means2d[:, 1], *conics.unbind(-1), reach)]
     i64 = [x.long().contiguous() for x in (ends, counts, lo[:, 0], lo[:, 1], span[:, 0], rank)]
-    _kernel(interpreting())[(-(-capacity // BLOCK),)](
+    _kernel()[(-(-capacity // BLOCK),)](
         *i64,
         *f32,
         keys,
@@ -232,10 +225,9 @@ def _pairs_kernel(per_splat: PerSplat, grid: TileGrid, capacity: int, cut: bool)
     return keys, values
 
 
-@functools.lru_cache(maxsize=None)
-def _kernel(interpret: bool) -> Any:
+@per_mode
+def _kernel() -> Any:
     """The Triton kernel, made once per interpreter setting (garo_ns.ops.triton_mode)."""
-    del interpret  # the cache key
     import triton
     import triton.language as tl
 
