@@ -118,8 +118,9 @@ def test_a_frame_that_needs_more_pairs_is_rendered_again_with_room(reference_ker
 def test_one_graph_gives_the_lean_pixels_on_cuda(with_depth):
     from garo_ns.render.backend import rasterize_lean
 
-    means, quats, scales, opacities, colors, viewmat, K = (t.cuda() for t in _scene(20_000, seed=2))
-    means = means * torch.tensor([1.0, 1.0, 4.0], device="cuda")  # a deeper cloud: many splats a tile
+    means, quats, scales, opacities, colors, viewmat, _ = (t.cuda() for t in _scene(20_000, seed=2))
+    # The small scene's camera centred on a 320x240 image: about 60% covered, many splats a tile.
+    K = torch.tensor([[[260.0, 0.0, 160.0], [0.0, 260.0, 120.0], [0.0, 0.0, 1.0]]], device="cuda")
     background = torch.tensor([[0.1, 0.2, 0.3]], device="cuda")
     graph = frame_graph.FrameGraph()
     for shift in (0.0, 0.05, -0.08):
