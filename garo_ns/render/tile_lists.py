@@ -212,7 +212,6 @@ def _pairs_kernel(per_splat: PerSplat, grid: TileGrid, capacity: int, cut: bool)
         values,
         n,
         capacity,
-        max(1, n.bit_length() + 1),
         grid.tiles_w,
         grid.n_tiles,
         float(grid.width),
@@ -221,6 +220,9 @@ def _pairs_kernel(per_splat: PerSplat, grid: TileGrid, capacity: int, cut: bool)
         TILE=grid.tile_size,
         CUT=cut,
         BLOCK=BLOCK,
+        # The binary search's steps as a constant: one kernel per bit length of N, which a model keeps; a loop
+        # bound passed at run time is a one-element array to Triton's interpreter, which newer NumPy refuses.
+        STEPS=max(1, n.bit_length() + 1),
     )
     return keys, values
 
@@ -249,7 +251,6 @@ def _kernel() -> Any:
         values_ptr,
         n,
         capacity,
-        steps,
         tiles_w,
         n_tiles,
         width,
@@ -258,13 +259,14 @@ def _kernel() -> Any:
         TILE: tl.constexpr,
         CUT: tl.constexpr,
         BLOCK: tl.constexpr,
+        STEPS: tl.constexpr,
     ):
         p = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
         inside = p < capacity
         # The splat: the first whose box ends (a running sum of box sizes) pass p (searchsorted, right).
         lo = p * 0
         hi = p * 0 + n
-        for _ in range(steps):
+        for _ in range(STEPS):
             mid = (lo + hi) // 2
             right = (tl.load(ends_ptr + mid, mask=mid < n, other=0) <= p) & (lo < hi)
             lo = tl.where(right, mid + 1, lo)
