@@ -24,11 +24,11 @@ def trained(tmp_path_factory):
     return {"trainer": train(config), "config": config}
 
 
-def _load(trained):
+def _load(trained, settings=None):
     from garo_ns.compaction.guard import TrainingViewGuard
     from garo_ns.tools.eval import load_run
 
-    _, pipeline, _, _ = load_run(trained["config"].get_base_dir() / "config.yml")
+    _, pipeline, _, _ = load_run(trained["config"].get_base_dir() / "config.yml", settings=settings)
     return pipeline.model, TrainingViewGuard.from_datamanager(pipeline.datamanager, 32)
 
 
@@ -185,7 +185,7 @@ def test_a_table_that_cannot_be_built_is_reported_off_and_never_measured_as_pass
 
     monkeypatch.setattr(TimeTable, "build", out_of_memory)
     monkeypatch.setattr(TimeTable, "preview", out_of_memory)
-    model, guard = _load(trained)  # the record says the table; its build at load fails
+    model, guard = _load(trained, {"time_table_cache": False})  # the record says the table; its build at load fails
     said = capsys.readouterr().out
     assert "could not be built (RuntimeError: CUDA out of memory" in said and "through the network" in said
     model.config.switch_bound_db = 1e9  # whatever was measured: the table would be on, were it built
@@ -309,3 +309,93 @@ def test_a_model_under_a_window_budget_holds_a_window_of_its_table_and_renders_t
     settings = {"time_table": True, "time_table_window_mb": model.config.time_table_window_mb}
     loaded = load_run(config, settings=settings)[1].model
     assert loaded.frame.table.spec.intervals == window and loaded.frame.table.spec.t_lo == spec.t_lo
+
+
+@pytest.mark.slow
+def test_a_loaded_model_writes_its_table_beside_the_run_and_reads_it_at_the_next_load(trained, monkeypatch, capsys):
+    import shutil
+
+    from garo_ns.render.time_table import TimeTable
+
+    folder = trained["config"].get_base_dir() / "time_tables"
+    shutil.rmtree(folder, ignore_errors=True)  # written by this module's earlier loads
+    settings = {"time_table": True}
+    first, _ = _load(trained, settings)
+    (written,) = folder.iterdir()
+    assert first.frame.table_info["file"] == {"path": str(written), "read": False, "written": True}
+    assert f"written to {written}" in capsys.readouterr().out
+    times = (0.05, 0.4, 0.95)
+    with torch.no_grad():
+        want = [first.gaussians_at(t).means.clone() for t in times]
+
+    def no_build(*args, **kwargs):
+        raise AssertionError("the table was built, not read")
+
+    monkeypatch.setattr(TimeTable, "build", no_build)
+    second, _ = _load(trained, settings)
+    assert second.frame.table_info["file"]["read"] and f"read from {written}" in capsys.readouterr().out
+    with torch.no_grad():
+        for t, means in zip(times, want):
+            assert torch.equal(second.gaussians_at(t).means, means)
+    assert list(folder.iterdir()) == [written]
+    # Other values (rounded to the compact file's fp16) hash to another file: built, not read.
+    monkeypatch.undo()
+    from garo_ns.state import storage
+
+    storage.round_to_storage(second)
+    second.switches.parameters_changed()
+    second.switches.table_override = second.switches.table_spec() or TableSpec(**first.frame.table.spec.to_dict())
+    with torch.no_grad():
+        second.gaussians_at(0.3)
+    assert not second.frame.table_info["file"]["read"] and len(list(folder.iterdir())) == 2
+    # Off: nothing read or written.
+    shutil.rmtree(folder)
+    third, _ = _load(trained, {**settings, "time_table_cache": False})
+    assert "file" not in third.frame.table_info and not folder.exists()
+
+
+@pytest.mark.slow
+def test_a_finished_run_writes_its_table_and_a_window_is_cut_from_that_file(trained, monkeypatch, capsys):
+    import shutil
+
+    from garo_ns.render import table_cache
+    from garo_ns.render.time_table import TimeTable, build_bytes
+
+    folder = trained["config"].get_base_dir() / "time_tables"
+    shutil.rmtree(folder, ignore_errors=True)
+    model = trained["trainer"].pipeline.model
+    assert model.final_checkpoint.is_file()  # the checkpoint the run ended with: the table is named after it
+    bound = model.config.switch_bound_db
+    model.config.switch_bound_db = 1e9  # the render choice took the table, whatever it measured
+    try:
+        spec = model.switches.table_spec()
+        with torch.no_grad():
+            model.frame.time_table(model.deformation, model.canonical(), spec)  # as the measurement leaves it built
+        said = table_cache.keep_trained_table(model, model.final_checkpoint)
+        model.config.switch_bound_db = 0.0  # not taken: nothing to write
+        assert table_cache.keep_trained_table(model, model.final_checkpoint) is None
+    finally:
+        model.config.switch_bound_db = bound
+    (written,) = folder.iterdir()
+    assert said == f"Time table written to {written} for the finished model's loads"
+
+    def no_build(*args, **kwargs):
+        raise AssertionError("the table was built, not read")
+
+    monkeypatch.setattr(TimeTable, "build", no_build)
+    whole, _ = _load(trained, {"time_table": True})  # the first load reads what training wrote
+    assert whole.frame.table_info["file"]["read"]
+    times = (0.02, 0.3, 0.61, 0.97)
+    with torch.no_grad():
+        want = {t: whole.gaussians_at(t).means.clone() for t in times}
+    # A window of a third of the table: cut from the file, each window the whole table's frames.
+    mb = build_bytes(spec.intervals // 3, whole.num_points, spec.precision) / 2**20
+    windowed, _ = _load(trained, {"time_table": True, "time_table_window_mb": mb})
+    with torch.no_grad():
+        for t in times:
+            got = windowed.gaussians_at(t).means
+            info = windowed.frame.table_info
+            assert info["file"]["read"] and info["window"]["of_intervals"] == spec.intervals
+            assert windowed.frame.table.spec.t_lo <= t <= windowed.frame.table.spec.t_hi
+            assert torch.allclose(got, want[t], rtol=0, atol=1e-6 * float(want[t].abs().max()))
+    assert list(folder.iterdir()) == [written]  # a window writes nothing

@@ -9,6 +9,7 @@ last step and logging interval, the grouped (and graphed) Adam, one device camer
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any, List, Optional
 
 import torch
@@ -21,6 +22,7 @@ from garo_ns.compaction.schedule import last_training_step
 from garo_ns.deformation import collapse_warning, health_check, health_due
 from garo_ns.engine.adam import AdamGraph, install_grouped_step
 from garo_ns.engine.training_data import reuse_step_cameras
+from garo_ns.render import table_cache
 from garo_ns.render.static import classification_due, classify, sample_times
 
 
@@ -32,6 +34,10 @@ def training_callbacks(model: Any, attributes: TrainingCallbackAttributes) -> Li
     trainer = attributes.trainer
     if trainer is not None:  # the checkpoint is loaded by now: a resumed run starts after its step
         model.last_step = last_training_step(getattr(trainer, "_start_step", 0), trainer.config.max_num_iterations)
+        # The checkpoint the run ends with: its time table is written beside it (garo_ns.render.table_cache).
+        folder = getattr(trainer, "checkpoint_dir", None)
+        name = f"step-{model.last_step:09d}.ckpt"  # nerfstudio's name for a step's checkpoint
+        model.final_checkpoint = None if folder is None else Path(folder) / name
         logging = getattr(trainer.config, "logging", None)  # a trainer of nerfstudio's has one; stand-ins may not
         model.metrics_every = max(int(getattr(logging, "steps_per_log", 1)), 1)
     if attributes.optimizers is not None:
@@ -62,6 +68,10 @@ def after_strategy(model: Any, step: int) -> None:
     check_health(model, step)
     if step == model.last_step and model.switch_guard is not None and model.deformation_active():
         CONSOLE.print(model.switches.measure_on_training_views(model, model.switch_guard, step))
+        checkpoint = getattr(model, "final_checkpoint", None)
+        said = table_cache.keep_trained_table(model, checkpoint) if checkpoint is not None else None
+        if said:
+            CONSOLE.print(said)
 
 
 def check_health(model: Any, step: int) -> None:

@@ -11,6 +11,7 @@ caches: everything it renders from is passed in, so it knows nothing of the mode
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from time import perf_counter
 from typing import Any, Callable, Dict, NamedTuple, Optional, Tuple, Union
 
@@ -19,6 +20,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from garo_ns.deformation import DeformationField, ScaleOffset, log_scale_offset
+from garo_ns.render import table_cache
 from garo_ns.render.backend import Backend, rasterize, resolve_backend
 from garo_ns.render.frame_graph import FrameGraph, capture_errors
 from garo_ns.render.graphs import InputGraph, TimeGraph, graphs_available, parameter_list, versions
@@ -154,6 +156,8 @@ class FramePath:
         self._frame_graph = FrameGraph()
         self._frame_graph_failed = False  # its capture was refused once: the lean path renders from then on
         self._fit: Optional[Tuple[Any, int]] = None  # the intervals a window holds, for (spec, Gaussians, budget)
+        # Where a loaded model keeps the whole table of a spec on disk (garo_ns.render.table_cache), or None.
+        self.table_file: Callable[[TableSpec], Optional[Path]] = lambda spec: None
 
     def configure(self, config: Any) -> None:
         """Take the model config's settings that the frame path reads (`deform_scale_offset`, `time_table_tf32`,
@@ -292,20 +296,34 @@ class FramePath:
             start = perf_counter()
             try:
                 xyz = canonical.means.detach()
-                with tf32_products(self.table_tf32):
-                    if self.preview:
-                        built: Optional[TimeTable] = TimeTable.preview(spec, field, xyz, scale_offset=self.scale_offset)
-                    else:
-                        built = TimeTable.build(
-                            spec,
-                            field,
-                            xyz,
-                            midpoint_samples=samples,
-                            scale_offset=self.scale_offset,
-                            scratch_bytes=self.scratch_bytes(spec, xyz),
-                        )
-                built.tf32 = self.table_tf32  # type: ignore[union-attr]
-                self.table_info = {**built.info, "build_s": perf_counter() - start}  # type: ignore[union-attr]
+                # A loaded model's table, or its window: read from the whole table's file where one was written
+                # (garo_ns.render.table_cache).
+                path = None if self.preview or self.halfway else self.table_file(whole)
+                window = None if spec == whole else spec
+                built, note = table_cache.read(path, xyz.device, window) if path is not None else (None, None)
+                read, written = built is not None, False
+                if built is None:
+                    with tf32_products(self.table_tf32):
+                        if self.preview:
+                            built = TimeTable.preview(spec, field, xyz, scale_offset=self.scale_offset)
+                        else:
+                            built = TimeTable.build(
+                                spec,
+                                field,
+                                xyz,
+                                midpoint_samples=samples,
+                                scale_offset=self.scale_offset,
+                                scratch_bytes=self.scratch_bytes(spec, xyz),
+                            )
+                    built.tf32 = self.table_tf32
+                    if path is not None and note is None and window is None:  # an unreadable file stays as it is
+                        note = table_cache.write(built, path)
+                        written = note is None
+                self.table_info = {**built.info, "build_s": perf_counter() - start}
+                if path is not None:
+                    self.table_info["file"] = {"path": str(path), "read": read, "written": written}
+                    if note is not None:
+                        self.table_info["file"]["note"] = note
                 if spec != whole:  # a window: which stretch of which table
                     self.table_info["window"] = {"t_lo": spec.t_lo, "t_hi": spec.t_hi, "of_intervals": whole.intervals}
                 # A preview renders halfway frames only (the reference path): no frame rows for it.

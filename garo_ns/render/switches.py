@@ -207,6 +207,11 @@ class RenderSettings:
     of keys: their change stopped falling with more keys, at 0.028 to 0.078 dB on standup's three models and 0.027 on
     jumpingjacks' compacted one (`intervals_previewed_db` in benchmarks/results/table1_*_H200.json at 1e910ef), so
     they are off by default. No effect on a CPU."""
+    time_table_cache: bool = True
+    """A loaded model writes its whole time table to `<run>/time_tables/` at its first load and reads it at later
+    loads instead of building it (garo_ns.render.table_cache): a file the size of the table (jumpingjacks'
+    `garo-deform` at 40k: 2.6 GB) for a load without the build. Named by a hash of the model's values and the table,
+    so other values build (and write) their own; nothing is overwritten. False: nothing read or written."""
     time_table_tolerance: float = 0.03
     """Largest interpolation error at keyframe midpoints (positions in scene extents; rotation offsets absolute;
     scales as log-scale offsets under `deform-scale-offset log`, in scene extents under `linear`) for a Gaussian to
@@ -502,6 +507,9 @@ class SwitchDecision:
             window = ""
             if "window" in t:
                 window = f"a window of {t['spec']['intervals']} of {t['window']['of_intervals']} intervals, "
+            kept = t.get("file") or {}  # the table's file beside the run (garo_ns.render.table_cache)
+            if kept.get("read") or kept.get("written"):
+                window += f"{'read from' if kept['read'] else 'written to'} {kept['path']}, "
             on.insert(
                 0,
                 f"time_table ({t['keys']} keys, {t['spec']['order']}, {t['mb']:.0f} MB, {window}"

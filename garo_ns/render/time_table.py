@@ -43,7 +43,7 @@ from __future__ import annotations
 import bisect
 import math
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Sequence, Tuple
 
 import torch
@@ -300,6 +300,7 @@ class TimeTable:
         network: Tensor,
         info: Dict[str, Any],
         codec: Codec,
+        anchor_keys: Optional[Sequence[int]] = None,
     ) -> None:
         self.spec = spec
         self.codec = codec
@@ -309,7 +310,9 @@ class TimeTable:
         self.moving = moving  # [M] indices into the Gaussians
         self.network = network  # [R] indices of the Gaussians rendered through the MLP
         self.info = info
-        self._anchor_keys = spec.anchor_keys()
+        # Which keys the anchors are: the spec's, or for a window cut from a whole table the whole table's, counted
+        # from the window's first key (`window_of`: the first may lie before it, the last after it).
+        self._anchor_keys = list(anchor_keys) if anchor_keys is not None else spec.anchor_keys()
         self.scale_offset: ScaleOffset = "log"  # how the stored scale offsets compose (`build`)
         # Built with TF32 products (garo_ns.render.frame sets it): the probe that judges the table samples the field
         # the same way, so the measured change includes TF32's rounding of the keys.
@@ -452,6 +455,58 @@ class TimeTable:
         if preview:
             return 1 + 5 * midpoints  # the middle; per midpoint its truth and the four keys around it
         return 1 + len(spec.anchor_keys()) + spec.intervals + 2 * PAD + midpoints
+
+    TENSORS = ("base", "anchors", "residual", "moving", "network")
+
+    def state(self) -> Dict[str, Any]:
+        """The table as plain data (its tensors on the CPU), for `from_state` (garo_ns.render.table_cache)."""
+        tensors = {k: getattr(self, k).cpu() for k in self.TENSORS}
+        scale = None if self.codec.scale is None else self.codec.scale.cpu()
+        meta = {"scale_offset": self.scale_offset, "tf32": self.tf32, "precision": self.codec.precision}
+        meta["anchor_keys"] = list(self._anchor_keys)
+        return {"spec": self.spec.to_dict(), "info": self.info, "scale": scale, **meta, **tensors}
+
+    @classmethod
+    def from_state(cls, state: Dict[str, Any], device: Any) -> "TimeTable":
+        """The table `state` holds, on `device`: the same keys, scales and choices as the table it was taken from."""
+        codec = Codec(state["precision"])
+        codec.scale = None if state["scale"] is None else state["scale"].to(device)
+        tensors = [state[k].to(device) for k in cls.TENSORS]
+        table = cls(TableSpec(**state["spec"]), *tensors, dict(state["info"]), codec, state["anchor_keys"])
+        table.scale_offset, table.tf32 = state["scale_offset"], bool(state["tf32"])
+        return table
+
+    @classmethod
+    def window_of(cls, state: Dict[str, Any], window: TableSpec, device: Any) -> "TimeTable":
+        """The stretch `window` (`window_spec` of the whole table's spec) of the whole table `state` holds, on
+        `device`: its keys, their scales and the anchors around them, so every frame inside is the whole table's
+        frame. Only the window's keys are read from `state`'s tensors (a file mapped into memory reads no more)."""
+        whole = TableSpec(**state["spec"])
+        start = round((window.t_lo - whole.t_lo) / whole.spacing)
+        n = window.intervals + 2 * PAD
+        if not (0 <= start and start + window.intervals <= whole.intervals):
+            raise ValueError(f"a window from {window.t_lo} over {window.intervals} intervals lies outside {whole}")
+        keys = state["anchor_keys"]
+        lo = bisect.bisect_right(keys, start) - 1  # the anchors at or around the window's keys
+        hi = bisect.bisect_left(keys, start + n - 1)
+        codec = Codec(state["precision"])
+        codec.scale = None if state["scale"] is None else state["scale"].to(device)
+        spec = replace(window, order=whole.order)
+        info = {**state["info"], "spec": spec.to_dict(), "keys": n, "anchors": hi - lo + 1}
+        table = cls(
+            spec,
+            state["base"].to(device),
+            state["anchors"][lo : hi + 1].to(device),
+            state["residual"][start : start + n].to(device),
+            state["moving"].to(device),
+            state["network"].to(device),
+            info,
+            codec,
+            [k - start for k in keys[lo : hi + 1]],
+        )
+        table.scale_offset, table.tf32 = state["scale_offset"], bool(state["tf32"])
+        table.info["mb"] = table.nbytes() / 2**20
+        return table
 
     @property
     def is_preview(self) -> bool:

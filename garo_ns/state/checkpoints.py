@@ -371,6 +371,7 @@ def _patch_eval_loader() -> bool:
             if path is not None:
                 model_config = getattr(getattr(config, "pipeline", None), "model", None)
                 check_checkpoint_file(path, model_config)
+                keep_tables_beside(getattr(pipeline, "model", None), path)
             try:
                 return original(config, pipeline)
             except GaroInputError as err:  # the model's state does not fit (check_fit)
@@ -381,6 +382,16 @@ def _patch_eval_loader() -> bool:
 
     module.eval_load_checkpoint = functools.update_wrapper(eval_load_checkpoint, original)
     return True
+
+
+def keep_tables_beside(model: Any, checkpoint: Path) -> None:
+    """A model loaded to render from `checkpoint` keeps its time tables on disk beside its run
+    (garo_ns.render.table_cache): set before the load, whose end builds (or now reads) the table."""
+    from garo_ns.render import table_cache
+
+    if hasattr(model, "frame") and hasattr(model, "switches"):
+        model.checkpoint_file = Path(checkpoint)
+        model.frame.table_file = functools.partial(table_cache.model_table_file, model)
 
 
 def install() -> bool:

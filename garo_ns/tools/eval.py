@@ -60,7 +60,8 @@ def load_run(
     say).
 
     Raises GaroInputError for a missing config, a run of another method, or an unreadable
-    (e.g. truncated) checkpoint. Nothing on disk is modified.
+    (e.g. truncated) checkpoint. Nothing on disk is modified, but for the model's time table, which a first load
+    writes beside the run (`<run>/time_tables/`, garo_ns.render.table_cache) and later loads read.
     """
     import yaml
     from nerfstudio.utils.eval_utils import eval_setup
