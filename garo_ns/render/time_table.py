@@ -468,13 +468,9 @@ class TimeTable:
 
     @classmethod
     def from_state(cls, state: Dict[str, Any], device: Any) -> "TimeTable":
-        """The table `state` holds, on `device`: the same keys, scales and choices as the table it was taken from."""
-        codec = Codec(state["precision"])
-        codec.scale = None if state["scale"] is None else state["scale"].to(device)
-        tensors = [state[k].to(device) for k in cls.TENSORS]
-        table = cls(TableSpec(**state["spec"]), *tensors, dict(state["info"]), codec, state["anchor_keys"])
-        table.scale_offset, table.tf32 = state["scale_offset"], bool(state["tf32"])
-        return table
+        """The table `state` holds, on `device`: the same keys, scales and choices as the table it was taken from (its
+        whole range as one window)."""
+        return cls.window_of(state, TableSpec(**state["spec"]), device)
 
     @classmethod
     def window_of(cls, state: Dict[str, Any], window: TableSpec, device: Any) -> "TimeTable":
