@@ -190,6 +190,7 @@ def real_trainer_config(method_name: str, garo_mode: str) -> TrainerConfig:
     model.random_init = False  # points.npy when present; random otherwise
     model.random_scale = 2.0
     model.max_gaussians = REAL_MAX_GAUSSIANS
+    model.expandable_segments = True  # within a 24 GB GPU at that budget (garo_ns.engine.allocator)
     return config
 
 

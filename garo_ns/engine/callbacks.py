@@ -21,6 +21,7 @@ from torch import Tensor
 from garo_ns.compaction.schedule import last_training_step
 from garo_ns.deformation import collapse_warning, health_check, health_due
 from garo_ns.engine.adam import AdamGraph, install_grouped_step
+from garo_ns.engine.allocator import extend_segments_in_place
 from garo_ns.engine.training_data import reuse_step_cameras
 from garo_ns.render import table_cache
 from garo_ns.render.static import classification_due, classify, sample_times
@@ -30,6 +31,8 @@ def training_callbacks(model: Any, attributes: TrainingCallbackAttributes) -> Li
     """`model`'s callbacks for nerfstudio's loop (before each step, after each step, after training), with what
     the steps share set up first."""
     model.training_run = True
+    if model.config.expandable_segments:  # before densification grows anything (garo_ns.engine.allocator)
+        extend_segments_in_place(model.device)
     model.adopt_training_data(attributes.pipeline)
     trainer = attributes.trainer
     if trainer is not None:  # the checkpoint is loaded by now: a resumed run starts after its step

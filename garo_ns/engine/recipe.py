@@ -89,6 +89,12 @@ class D3dgsRecipe(SplatfactoModelConfig):
     time instead of 0.84 (benchmarks/results/train_profile_short_*_H100.json); the backward was unchanged."""
     scene_extent: Optional[float] = None
     """Scene extent for densification thresholds; None takes the dataparser's camera extent."""
+    expandable_segments: bool = False
+    """Training on CUDA: the caching allocator grows its memory segments in place (PyTorch's
+    `expandable_segments`; garo_ns.engine.allocator) unless PYTORCH_CUDA_ALLOC_CONF is set. Densification's growing
+    tensors otherwise leave blocks that no longer fit: a phone video's baseline held 29.9 GB for 6.6 GB of tensors
+    and stopped at step 5.1k under a 24 GB cap, where with it the run passed step 10.6k using 8.6 GB
+    (benchmarks/results/real_memory_teddy_H200.json). On in the `-real` recipes; not measured on D-NeRF's."""
     max_gaussians: Optional[int] = None
     """The most Gaussians densification may grow to (None: no limit): where a refinement would pass it, only the
     candidates of the highest view-space gradients grow. It bounds training memory; GARO and the other pruning still
