@@ -9,6 +9,7 @@ its run (garo_ns.bench.transfer); OUT.json: one row per load. Run on the GPU mac
 """
 
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -56,4 +57,7 @@ for name, settings in (("first load", {}), ("second load", {}), ("window 1024 MB
     )
     print(json.dumps(rows[-1]), flush=True)
     del model, pipeline
-out.write_text(json.dumps({"gpu": torch.cuda.get_device_name(0), "rows": rows}, indent=2))
+# What the rows are of, so that a reader (benchmarks/table_cost.py) needs no file name to tell.
+head = {"scene": scene.name, "variant": record["variant"], "git_commit": os.environ.get("GARO_GIT_COMMIT")}
+head["cuda_mps"] = os.environ.get("GARO_MPS_ON") == "1"
+out.write_text(json.dumps({**head, "gpu": torch.cuda.get_device_name(0), "rows": rows}, indent=2))
