@@ -292,6 +292,8 @@ def train_variant(args: BenchArgs, name: str, deadline: Optional[float]) -> Dict
         "train_seconds": seconds,
         "train_steps_per_second": iterations / seconds,
         "train_peak_memory_mb": torch.cuda.max_memory_allocated() / 2**20 if args.device == "cuda" else None,
+        # What the caching allocator held at most: what a smaller GPU must have, beyond the tensors themselves.
+        "train_peak_reserved_mb": torch.cuda.max_memory_reserved() / 2**20 if args.device == "cuda" else None,
         "config": str(config.get_base_dir() / "config.yml"),
         # A collapsed deformation field renders the scene as static: such an arm is no comparison.
         "deformation_collapsed": any(h["collapsed"] for h in health),
@@ -370,6 +372,7 @@ def evaluate_variant(args: BenchArgs, record: Dict[str, Any], names: List[str]) 
             "switch_record": {k: v for k, v in (model.switches.record or {}).items() if k != "views"},
             "peak_memory_mb": {
                 "training": record["train_peak_memory_mb"],
+                "training_reserved": record.get("train_peak_reserved_mb"),  # absent from older exports' records
                 "rendering": timing["render_peak_memory_mb"],
             },
             "model_size_mb": state["compact_mb"] if half else model_size_mb(model),
