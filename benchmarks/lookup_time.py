@@ -1,19 +1,11 @@
-"""Where the time table's lookup stage goes: the host's work per frame against the device's.
+"""Where the time table's lookup stage goes, for a tabled model (a benchmark export laid out under WORK_DIR):
 
     python benchmarks/lookup_time.py EXPORT SCENE WORK_DIR OUT.json
 
-`garo_ns.bench.frame_profile` times the stage as a synchronised call of `model.gaussians_at` (0.23 to 0.26 ms at 34k
-to 82k Gaussians on an H200). This splits that figure for a tabled model (a benchmark export, laid out under
-WORK_DIR as its run by garo_ns.bench.transfer), each in milliseconds per frame, at the test views' times:
-
-* `stage_ms`: as frame_profile times it (synchronise, `gaussians_at`, synchronise);
-* `sync_ms`: the two synchronisations alone (an empty stage);
-* `host_ms`: `gaussians_at` called back to back at changing times without synchronising: the host's share, as long
-  as the device keeps up;
-* `device_ms`: the lookup kernel (`table_splats`) captured 100 times in one CUDA graph and replayed: the device's
-  share, with no launch cost;
-* `host_parts_ms`: some of the host's steps alone (the canonical tensors, the switches, the table's spec, the
-  parameters' versions, the table's check, the time's copy to the device).
+In ms per frame at the test views' times: `stage_ms` as garo_ns.bench.frame_profile times it (synchronise,
+`gaussians_at`, synchronise), `sync_ms` the two synchronisations alone, `host_ms` `gaussians_at` called back to back
+without synchronising (the host's share), `device_ms` the lookup kernel replayed 100 times from one CUDA graph (the
+device's share, no launches), `host_parts_ms` some of the host's steps alone.
 """
 
 import json
