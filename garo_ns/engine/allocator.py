@@ -15,7 +15,7 @@ from typing import Union
 
 import torch
 
-# PyTorch reads its allocator settings from these (the second is the older name); a user's choice stays theirs.
+# PyTorch reads its allocator settings from these (the second is the newer name); a user's choice stays theirs.
 SETTING_VARIABLES = ("PYTORCH_CUDA_ALLOC_CONF", "PYTORCH_ALLOC_CONF")
 
 
