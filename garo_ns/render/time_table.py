@@ -8,7 +8,11 @@ instead of an 8-layer MLP.
 * **Keyframes** are evenly spaced over the training times' range with `keys_per_frame` intervals per gap
   between training frames, and shifted by half a spacing: evenly spaced training times (D-NeRF's) then lie
   exactly halfway between two keyframes, where linear interpolation errs most, and no keyframe coincides
-  with a training (and so with a D-NeRF test) time. Two extra keys pad each end for the cubic order.
+  with a training (and so with a D-NeRF test) time. Two extra keys pad each end for the cubic order. They hold
+  the field's value at the range's end reflected, 2 f(end) - f(mirror time), not the field beyond the range:
+  either order weighs the keys around an end symmetrically, so the range's first and last times (each halfway
+  between the last key inside and the first beyond) come out as the field's own value there, where keys sampled
+  beyond had pulled them toward motion at times the field never trained on (`key_offsets`).
 * **Storage**: per Gaussian the offsets at the middle of the range (fp32, `base`); for the Gaussians whose
   offsets change at all (`moving`; the rest keep the base) every `anchor_every`-th key's residual from the base
   in fp32 (`anchors`), and each key's fine residual from the line between the anchors around it: int16 with a
@@ -73,6 +77,10 @@ class TableSpec:
     extent: float = 1.0
     anchor_every: int = 16
     """Keys per fp32 anchor (the first and the last key are anchors too)."""
+    range_lo: Optional[float] = None
+    range_hi: Optional[float] = None
+    """The range whose ends the keys beyond it are reflected through (None: t_lo, t_hi). A window (`window_spec`)
+    keeps its whole table's, so that its keys are the whole table's."""
 
     @property
     def spacing(self) -> float:
@@ -92,6 +100,11 @@ class TableSpec:
 
     def to_dict(self) -> Dict[str, Any]:
         return asdict(self)
+
+    def ends(self) -> Tuple[float, float]:
+        """The range of times whose ends the keys beyond it reflect through (`range_lo`, `range_hi`)."""
+        lo = self.t_lo if self.range_lo is None else self.range_lo
+        return lo, self.t_hi if self.range_hi is None else self.range_hi
 
     def anchor_keys(self) -> List[int]:
         """Indices of the anchor keys: every `anchor_every`-th and the last."""
@@ -211,6 +224,94 @@ def iter_field_offsets(
                 d = torch.cat(field(xyz.repeat(len(group), 1), t.repeat_interleave(n)[:, None]), dim=-1).float()
             for j, block in enumerate(d.view(len(group), n, CHANNELS)):
                 yield k0 + j, block
+
+
+def reflection(spec: TableSpec, t: float) -> Tuple[List[Tuple[float, float]], float, float]:
+    """A key at time `t` as the field's values: (ends, sign, s), the key being sum(w * f(end) for w, end in ends)
+    + sign * f(s), s inside the spec's range (`TableSpec.ends`). Inside, the field at t; beyond an end, the field
+    there reflected, 2 f(end) - f(2 end - t) (again through the other end while that lies beyond it too). A range
+    of one time gives every key the field's value at it."""
+    lo, hi = spec.ends()
+    if hi <= lo:
+        return [], 1.0, lo
+    ends: List[Tuple[float, float]] = []
+    sign = 1.0
+    while not lo <= t <= hi:
+        end = lo if t < lo else hi
+        ends.append((2.0 * sign, end))
+        sign, t = -sign, 2.0 * end - t
+    return ends, sign, t
+
+
+def key_offsets(
+    field: Any, xyz: Tensor, spec: TableSpec, keys: Optional[Sequence[int]] = None
+) -> Iterator[Tuple[int, Tensor]]:
+    """(k, key k's offsets [N, 10]) for each of `keys` (default: all of the spec's), in no fixed order: the field's
+    at the key's time inside the range, reflected through the range's end beyond it (`reflection`). The keys inside
+    come as `iter_field_offsets` gives them, a few times at a time; those beyond are made from the ends' values
+    (held, two rows) and the key their time reflects to, as that key comes by."""
+    n_keys = spec.intervals + 2 * PAD
+    keys = list(range(n_keys)) if keys is None else [int(k) for k in keys]
+    stored = spec.key_times().tolist()  # what a key's time is when it is sampled (fp32)
+    exact = [spec.t_lo + (k - PAD + 0.5) * spec.spacing for k in range(n_keys)]
+
+    def on_grid(s: float) -> float:
+        # A reflected time lands on a key of the grid: sample it as that key's own time, the same input.
+        j = round((s - spec.t_lo) / spec.spacing + PAD - 0.5)
+        return stored[j] if 0 <= j < n_keys and abs(exact[j] - s) <= 1e-6 * spec.spacing else s
+
+    plans = {}
+    for k in keys:
+        ends, sign, s = reflection(spec, exact[k])
+        plans[k] = (ends, sign, on_grid(s))
+    inside = [k for k in keys if not plans[k][0]]
+    streamed = {plans[k][2] for k in inside}
+    held_times = sorted({e for k in keys for _, e in plans[k][0]})
+    held_times += sorted({plans[k][2] for k in keys if plans[k][0] and plans[k][2] not in streamed})
+    held = dict(zip(held_times, field_offsets(field, xyz, held_times))) if held_times else {}
+
+    def beyond(k: int, d: Tensor) -> Tensor:
+        ends, sign, _ = plans[k]
+        out = d * sign
+        for w, e in ends:
+            out.add_(held[e], alpha=w)
+        return out
+
+    waiting: Dict[float, List[int]] = {}
+    for k in keys:
+        if plans[k][0]:
+            if plans[k][2] in held:
+                yield k, beyond(k, held[plans[k][2]])
+            else:
+                waiting.setdefault(plans[k][2], []).append(k)
+    for j, d in iter_field_offsets(field, xyz, [plans[k][2] for k in inside]):
+        k = inside[j]
+        for b in waiting.pop(plans[k][2], []):
+            yield b, beyond(b, d)
+        yield k, d
+
+
+def reflected_offsets(field: Any, xyz: Tensor, spec: TableSpec, times: Sequence[float]) -> Tensor:
+    """The offsets [T, N, 10] a key at each of `times` would hold (`reflection`): the field's inside the spec's
+    range, reflected through its end beyond it; each distinct time the field is sampled at, once."""
+    plans = [reflection(spec, float(t)) for t in times]
+    need = sorted({e for ends, _, _ in plans for _, e in ends} | {s for _, _, s in plans})
+    at = dict(zip(need, field_offsets(field, xyz, need)))
+    out = torch.empty(len(times), xyz.shape[0], CHANNELS, device=xyz.device)
+    for j, (ends, sign, s) in enumerate(plans):
+        out[j] = at[s] * sign
+        for w, e in ends:
+            out[j].add_(at[e], alpha=w)
+    return out
+
+
+def key_stack(field: Any, xyz: Tensor, spec: TableSpec, keys: Sequence[int]) -> Tensor:
+    """The offsets [len(keys), N, 10] of `keys` (`key_offsets`), in their order."""
+    out = torch.empty(len(keys), xyz.shape[0], CHANNELS, device=xyz.device)
+    where = {int(k): j for j, k in enumerate(keys)}
+    for k, d in key_offsets(field, xyz, spec, keys):
+        out[where[k]] = d
+    return out
 
 
 def choose_order(spec: TableSpec, err: Dict[str, Tensor]) -> Tuple[TableSpec, Tensor, Dict[str, int]]:
@@ -347,7 +448,7 @@ class TimeTable:
         per_unit = channel_units(spec, scale_offset, xyz.device)  # refuses an unknown composition before any pass
         base = field_offsets(field, xyz, [0.5 * (spec.t_lo + spec.t_hi)])[0]
         anchor_keys = spec.anchor_keys()
-        anchors = field_offsets(field, xyz, [times[k] for k in anchor_keys]) - base
+        anchors = key_stack(field, xyz, spec, anchor_keys) - base
         line = anchor_lines(anchors, anchor_keys)
 
         plain = Codec(spec.precision)  # fp32 and fp16 keys need no scale: they are encoded as they come
@@ -361,7 +462,7 @@ class TimeTable:
                 fine = None
         spread = torch.zeros(n, CHANNELS, device=xyz.device)  # largest fine residual
         motion = torch.zeros_like(spread)  # largest offset from the base
-        for k, d in iter_field_offsets(field, xyz, times):
+        for k, d in key_offsets(field, xyz, spec):
             r = d - base
             f = r - line(k)
             spread = torch.maximum(spread, f.abs())
@@ -376,7 +477,7 @@ class TimeTable:
                 residual[k] = codec.encode(fine[k])
             del fine
         elif plain.levels is not None:
-            for k, d in iter_field_offsets(field, xyz, times):
+            for k, d in key_offsets(field, xyz, spec):
                 residual[k] = codec.encode(d - base - line(k))
         whole = cls(spec, base, anchors, residual, torch.arange(xyz.shape[0], device=xyz.device), None, {}, codec)
         err = midpoint_errors(spec, field, xyz, base, whole.interpolate_moving, midpoint_samples, scale_offset)
@@ -425,7 +526,6 @@ class TimeTable:
         what the keys' spacing leaves). A few hundred of the field's passes where `build` makes one per key (a
         dense table takes thousands): the render switches preview a ladder of tables with it and build only a
         table whose preview comes within their margin (garo_ns.render.switches). It serves halfway frames only."""
-        times = spec.key_times().tolist()
         check_scale_offset(scale_offset)
         base = field_offsets(field, xyz, [0.5 * (spec.t_lo + spec.t_hi)])[0]
         around: Dict[str, Any] = {"segment": None, "keys": None}
@@ -433,7 +533,7 @@ class TimeTable:
         def interp(order: Order, i: int, f: float) -> Tensor:
             # The four keys around segment i (what either order reads), sampled once for both orders.
             if around["segment"] != i:
-                around["keys"] = field_offsets(field, xyz, times[i - 1 : i + 3]) - base
+                around["keys"] = key_stack(field, xyz, spec, range(i - 1, i + 3)) - base
                 around["segment"] = i
             return interpolate(around["keys"], order, 1, f)
 
@@ -441,7 +541,8 @@ class TimeTable:
         spec, network, off = choose_order(spec, err)
         n = xyz.shape[0]
         empty = torch.empty(0, n, CHANNELS, device=xyz.device)
-        info = {"spec": spec.to_dict(), "keys": len(times), "gaussians": int(n), "network": int(network.numel())}
+        keys = spec.intervals + 2 * PAD
+        info = {"spec": spec.to_dict(), "keys": keys, "gaussians": int(n), "network": int(network.numel())}
         info.update(preview=True, network_by_order=off, scale_offset=scale_offset)
         table = cls(spec, base, empty, empty, torch.arange(n, device=xyz.device), network, info, Codec("fp32"))
         table.scale_offset = scale_offset
@@ -450,10 +551,12 @@ class TimeTable:
     @staticmethod
     def field_passes(spec: TableSpec, midpoint_samples: int = 64, preview: bool = False) -> int:
         """How many times the field is sampled at (each over every Gaussian) to `build` a table of `spec` (with room
-        for its residuals: one pass over the keys), or to `preview` it."""
+        for its residuals: one pass over the keys), or at most to `preview` it."""
         midpoints = min(midpoint_samples, spec.intervals + 1)
         if preview:
             return 1 + 5 * midpoints  # the middle; per midpoint its truth and the four keys around it
+        # Keys beyond the range are made from the ends' values and the keys they reflect to (`key_offsets`): the
+        # anchors' pass samples two more times than its keys, the keys' pass two fewer.
         return 1 + len(spec.anchor_keys()) + spec.intervals + 2 * PAD + midpoints
 
     TENSORS = ("base", "anchors", "residual", "moving", "network")
@@ -634,13 +737,14 @@ class TimeTable:
         lay exactly halfway between two keyframes: the field sampled at time +- 0.5, 1.5 spacings, the outer
         two kept whole as anchors, the inner two stored as this table stores fine residuals (same precision and
         scales), interpolated at the midpoint. What the render switches are measured with: the worst place for
-        every measured view."""
+        every measured view inside the range; at its ends, where the table's keys beyond are reflected, the samples
+        beyond are reflected as those keys are (`reflected_offsets`), so the probe gives what the table renders."""
         h = self.spec.spacing
         times = [time - 1.5 * h, time - 0.5 * h, time + 0.5 * h, time + 1.5 * h]
         out = self.base.clone()
         if self.moving.numel():
             with tf32_products(self.tf32):
-                r = (field_offsets(field, xyz, times) - self.base)[:, self.moving]
+                r = (reflected_offsets(field, xyz, self.spec, times) - self.base)[:, self.moving]
             probe = TimeTable(
                 TableSpec(**{**self.spec.to_dict(), "intervals": 4 - 2 * PAD, "anchor_every": 3}),
                 self.base,
@@ -739,7 +843,10 @@ def window_spec(spec: TableSpec, time: float, intervals: int) -> TableSpec:
     start = min(max(round((u - 0.5 * intervals) / step) * step, 0), spec.intervals - intervals)
     end, h = start + intervals, spec.spacing
     t_lo, t_hi = spec.t_lo + start * h, spec.t_hi if end == spec.intervals else spec.t_lo + end * h
-    return TableSpec(**{**spec.to_dict(), "t_lo": t_lo, "t_hi": t_hi, "intervals": intervals})
+    lo, hi = spec.ends()  # the keys beyond the whole range reflect through its ends, not the window's
+    return TableSpec(
+        **{**spec.to_dict(), "t_lo": t_lo, "t_hi": t_hi, "intervals": intervals, "range_lo": lo, "range_hi": hi}
+    )
 
 
 def spec_for(
