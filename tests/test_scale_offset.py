@@ -116,7 +116,7 @@ def test_the_time_table_interpolates_the_linear_compositions_own_offsets_and_jud
     interpolated as log-scale offsets they bend where an offset cancels a small Gaussian's scale (log |s + d|
     falls to the floor and back), and 72 to 90% of 40k models' Gaussians stayed on the network."""
     field, canonical = _breathing()
-    spec = TableSpec(0.0, 1.0, 30, precision=precision, tolerance=1e-4, extent=2.0)
+    spec = TableSpec(0.0, 1.0, 60, precision=precision, tolerance=1e-4, extent=2.0)
     table = TimeTable.build(spec, field, canonical.means, scale_offset="linear")
     assert table.network.numel() == 0  # every Gaussian tabled
     keys = table.spec.key_times()

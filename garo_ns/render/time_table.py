@@ -324,6 +324,16 @@ def choose_order(spec: TableSpec, err: Dict[str, Tensor]) -> Tuple[TableSpec, Te
     return TableSpec(**{**spec.to_dict(), "order": order}), network, off
 
 
+def midpoint_segments(spec: TableSpec, samples: int) -> List[int]:
+    """The segments (0 .. intervals, from segment PAD - 1 on) whose midpoints `midpoint_errors` checks: up to
+    `samples`, evenly spread, from the segment next to each end where the keys beyond reflect through it."""
+    n_seg = spec.intervals + 1  # segments PAD-1 .. intervals+PAD-1 hold the range
+    lo, hi = spec.ends()
+    first = 1 if lo == spec.t_lo and n_seg >= 3 else 0
+    last = n_seg - 2 if hi == spec.t_hi and n_seg >= 3 else n_seg - 1
+    return torch.linspace(first, last, min(samples, last - first + 1)).round().long().unique().tolist()
+
+
 def midpoint_errors(
     spec: TableSpec,
     field: Any,
@@ -337,9 +347,11 @@ def midpoint_errors(
     `interp(order, i, f)`, the stored residuals of every Gaussian interpolated) against the field at up to
     `samples` segment midpoints spread over the range, the worst place for an interpolant between two keys:
     the larger of the position error divided by the scene extent, the rotation error and the scale error (of
-    the log-scales under `log`; under `linear`, of the scales, divided by the extent as a position's is)."""
-    n_seg = spec.intervals + 1  # segments PAD-1 .. intervals+PAD-1 hold the range
-    picks = torch.linspace(0, n_seg - 1, min(samples, n_seg)).round().long().unique().tolist()
+    the log-scales under `log`; under `linear`, of the scales, divided by the extent as a position's is). The
+    midpoint of a segment at an end of the range is that end, exact where the keys beyond reflect through it
+    (`key_offsets`); the spread starts at the segment next to it instead, where a cubic reads one reflected key
+    (its weakest place: an error of h^2/64 |f''|)."""
+    picks = midpoint_segments(spec, samples)
     key_t = spec.key_times()
     err = {o: torch.zeros(xyz.shape[0], device=xyz.device) for o in ORDERS}
     halfway = [float(key_t[PAD - 1 + p]) + 0.5 * spec.spacing for p in picks]
@@ -552,7 +564,7 @@ class TimeTable:
     def field_passes(spec: TableSpec, midpoint_samples: int = 64, preview: bool = False) -> int:
         """How many times the field is sampled at (each over every Gaussian) to `build` a table of `spec` (with room
         for its residuals: one pass over the keys), or at most to `preview` it."""
-        midpoints = min(midpoint_samples, spec.intervals + 1)
+        midpoints = len(midpoint_segments(spec, midpoint_samples))
         if preview:
             return 1 + 5 * midpoints  # the middle; per midpoint its truth and the four keys around it
         # Keys beyond the range are made from the ends' values and the keys they reflect to (`key_offsets`): the
