@@ -181,7 +181,8 @@ class GaroModel(SplatfactoModel):
 
     def canonical(self) -> Canonical:
         """The parameters as stored (canonical geometry, log-scales, opacity logits, SH)."""
-        return Canonical(self.means, self.quats, self.scales, self.opacities, self.features_dc, self.features_rest)
+        p = self.gauss_params._parameters  # the dict itself: through the properties, a third of a frame's host time
+        return Canonical(p["means"], p["quats"], p["scales"], p["opacities"], p["features_dc"], p["features_rest"])
 
     def gaussians_at(self, time: float, exact: bool = False, settings: Optional[FrameSettings] = None) -> Splats:
         """The Gaussians at `time`, as the rasterizer takes them: the one way to get them (training,
@@ -198,9 +199,10 @@ class GaroModel(SplatfactoModel):
                 return self.train_splats(canonical, time, cfg.deform_scale_offset)
             return activate(canonical, compose(self.deformation, canonical, time, cfg.deform_scale_offset))
         state = self.strategy_state
-        settings = self.render_settings() if settings is None else settings
-        static, offset, table = state["static"], state["static_offset"], self.switches.table_spec()
-        return self.frame.splats(self.deformation, canonical, static, offset, time, settings, table)
+        with self.switches.one_frame([*canonical, *parameter_list(self.deformation)]) as params:
+            settings = self.render_settings() if settings is None else settings
+            static, offset, table = state["static"], state["static_offset"], self.switches.table_spec()
+        return self.frame.splats(self.deformation, canonical, static, offset, time, settings, table, params)
 
     def render_settings(self) -> FrameSettings:
         """The render switches outside training: the config's, those left to None decided by

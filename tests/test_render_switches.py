@@ -443,3 +443,23 @@ def test_the_fingerprint_is_hashed_again_only_when_a_parameter_changes(monkeypat
     with torch.no_grad():
         params[1].add_(1.0)
     assert decision.fingerprint() != first and len(hashes) == 2
+
+
+def test_one_frame_takes_the_parameters_versions_once_and_still_sees_a_change_between_frames():
+    """Inside `one_frame` the decision reads the versions the frame took instead of listing the parameters again
+    (three times a frame before); a parameter changed between two frames is still seen by the next one."""
+    params = [torch.nn.Parameter(torch.ones(10)), torch.nn.Parameter(torch.zeros(3))]
+    listed = []
+    decision = SwitchDecision(lambda: 99, lambda: listed.append(1) or params)
+    config, cpu = RenderSettings(), torch.device("cpu")
+    decision.record = {**_record(99), "params": decision.fingerprint()}
+    listed.clear()
+    with decision.one_frame(params):
+        assert decision.settings(config, False, cpu).time_table and decision.table_spec() is not None
+        assert decision.table_spec() is decision.table_spec()  # the record's spec made once
+    assert listed == []  # the frame's versions served: the parameters were not listed again
+    with torch.no_grad():
+        params[0].mul_(2.0)
+    with decision.one_frame(params):
+        assert decision.table_spec() is None and not decision.settings(config, False, cpu).time_table
+    assert decision.distrust() is not None and "parameters changed" in decision.distrust()

@@ -177,17 +177,19 @@ class FramePath:
         time: float,
         settings: FrameSettings,
         table: Optional[TableSpec] = None,
+        params: Optional[Tuple[Any, ...]] = None,
     ) -> Splats:
         """The Gaussians at `time` with the render switches. `static`/`static_offset`: the static
         classification (None: none yet, every Gaussian goes through the MLP). `table`: the time table to use
-        when `settings.time_table` is on (None, or a table that cannot be built: the network renders)."""
+        when `settings.time_table` is on (None, or a table that cannot be built: the network renders). `params`:
+        as `time_table` takes it."""
         if static is not None and (static_offset is None or static.shape[0] != canonical.means.shape[0]):
             static = None
         # Outside the training times' range a table has no keys that bracket the time: such a frame (a viewer's
         # time slider past the last training frame, a held-out last frame) goes through the network, exact.
         inside = table is not None and table.t_lo <= float(time) <= table.t_hi
         if settings.time_table and inside and not torch.is_grad_enabled():
-            tabled = self.time_table(field, canonical, table, float(time))
+            tabled = self.time_table(field, canonical, table, float(time), params)
             if tabled is not None:
                 table_key = self._table[0]  # type: ignore[index]  # the spec, the parameters' versions, the scales
                 cache_key = ("table", float(time), self.halfway, table_key)
@@ -274,13 +276,19 @@ class FramePath:
         return window_spec(spec, t, fit), samples
 
     def time_table(
-        self, field: DeformationField, canonical: Canonical, spec: TableSpec, time: Optional[float] = None
+        self,
+        field: DeformationField,
+        canonical: Canonical,
+        spec: TableSpec,
+        time: Optional[float] = None,
+        params: Optional[Tuple[Any, ...]] = None,
     ) -> Optional[TimeTable]:
         """The table of `spec` for these parameters (or its window around `time`: `window`), built on first use (and
         again when they change, or the time leaves the window); None when it cannot be built (out of memory, ...):
         the reason is in `table_info` and the network renders. While `preview` is set, the table's
-        `TimeTable.preview` instead (halfway frames only)."""
-        params = versions([*canonical, *parameter_list(field)])
+        `TimeTable.preview` instead (halfway frames only). `params`: the versions of `canonical` and the field's
+        parameters, where the caller has taken them (`SwitchDecision.one_frame`)."""
+        params = versions([*canonical, *parameter_list(field)]) if params is None else params
         whole = spec
         built_spec, samples = self.window(whole, time, canonical.means.shape[0])
         if built_spec is None:

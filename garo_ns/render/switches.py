@@ -17,8 +17,9 @@ from __future__ import annotations
 
 import hashlib
 import math
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, fields, replace
-from typing import Any, Callable, Dict, List, Literal, Mapping, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, Iterator, List, Literal, Mapping, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
@@ -338,6 +339,8 @@ class SwitchDecision:
         # one whose tensors now hold other values (fp16 storage, a compact file, an edit) is not trusted.
         self._params = params
         self._fingerprint_of: Optional[Tuple[Any, str]] = None  # (their versions, the fingerprint)
+        self._frame_versions: Optional[Tuple[Any, ...]] = None  # their versions, taken once for a frame (`one_frame`)
+        self._spec_of: Optional[Tuple[Any, TableSpec]] = None  # (the record's spec, as a TableSpec)
         # What the frame path built for a spec (its keys, order, Gaussians on the network), or None: the load line
         # names the table in use, which a load on another device may build otherwise than the record says.
         self.table_built: Callable[[TableSpec], Optional[Dict[str, Any]]] = lambda spec: None
@@ -359,13 +362,26 @@ class SwitchDecision:
         self._cache = None
         self._fingerprint_of = None
 
+    @contextmanager
+    def one_frame(self, tensors: Sequence[Tensor]) -> Iterator[Tuple[Any, ...]]:
+        """Inside, the measured tensors' versions are these `tensors`' (the same list `params` gives), taken once: a
+        frame asks for its switches and its table several times, and listing the parameters and their versions
+        each time was most of a tabled frame's host time. Yields the versions, for the frame's own caches."""
+        self._frame_versions = versions(tensors)
+        try:
+            yield self._frame_versions
+        finally:
+            self._frame_versions = None
+
     def fingerprint(self) -> Optional[str]:
         """A hash of the measured tensors' values (None without them); computed again only when one changed."""
         if self._params is None:
             return None
-        tensors = list(self._params())
-        key = versions(tensors)  # of the parameters themselves: a detached view would be a new tensor every call
+        tensors = None if self._frame_versions is not None else list(self._params())
+        # Of the parameters themselves: a detached view would be a new tensor every call.
+        key = self._frame_versions if tensors is None else versions(tensors)
         if self._fingerprint_of is None or self._fingerprint_of[0] != key:
+            tensors = list(self._params()) if tensors is None else tensors
             digest = hashlib.sha1()
             for t in tensors:
                 digest.update(t.detach().float().contiguous().cpu().numpy().tobytes())
@@ -397,7 +413,11 @@ class SwitchDecision:
             return self._measuring or self.table_override
         record = self.trusted_record()
         spec = ((record or {}).get(TABLE) or {}).get("spec")
-        return TableSpec(**spec) if spec else None
+        if not spec:
+            return None
+        if self._spec_of is None or self._spec_of[0] is not spec:  # made once per record, not every frame
+            self._spec_of = (spec, TableSpec(**spec))
+        return self._spec_of[1]
 
     def _table_refusal(self, config: RenderSettings, device: Optional[torch.device] = None) -> Optional[str]:
         """Why a recorded table is not used on load although it met the bound, or None."""
@@ -437,6 +457,7 @@ class SwitchDecision:
             config.time_table_budget_mb,
             getattr(config, "deform_scale_offset", "log"),  # `_table_refusal` reads it
             self._step() if self._step else None,
+            self.distrust(),  # the record's trust: parameters changed since (seen by their versions) turn it off
             self.failed_table(),
         )
         if self._cache is not None and self._cache[0] == key and self._cache[1] is self.record:
