@@ -9,6 +9,7 @@ device's share, no launches), `host_parts_ms` some of the host's steps alone.
 """
 
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -48,6 +49,7 @@ def main() -> None:
         table = model.frame.table
         rows = model.frame._table_rows
         result = {"scene": scene.name, "variant": record["variant"], "device": str(device)}
+        result["git_commit"] = os.environ.get("GARO_GIT_COMMIT")  # device_run.sh sets it
         result["gpu"] = torch.cuda.get_device_name(0) if device.type == "cuda" else None
         result["tabled"] = table is not None and rows is not None
         result["gaussians"] = int(model.canonical().means.shape[0])
