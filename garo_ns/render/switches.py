@@ -350,9 +350,10 @@ class SwitchDecision:
         # Why a table could not be built (the model's frame path knows), or None: such a table is not in use.
         self.table_failure: Callable[[TableSpec], Optional[str]] = lambda spec: None
 
-    def failed_table(self) -> Optional[str]:
-        """Why the table to render with could not be built, or None (built, not yet tried, or no table)."""
-        spec = self.table_spec()
+    def failed_table(self, spec: Optional[TableSpec] = None) -> Optional[str]:
+        """Why the table to render with (`spec`, default `table_spec()`) could not be built, or None (built, not yet
+        tried, or no table)."""
+        spec = self.table_spec() if spec is None else spec
         return self.table_failure(spec) if spec is not None else None
 
     def parameters_changed(self) -> None:
@@ -409,9 +410,12 @@ class SwitchDecision:
     def table_spec(self) -> Optional[TableSpec]:
         """The time table to render with when `time_table` is on: the one being measured, else the trusted
         record's."""
+        return self._record_spec(self.trusted_record())
+
+    def _record_spec(self, record: Optional[Dict[str, Any]]) -> Optional[TableSpec]:
+        """The table `table_spec` gives where `record` is the trusted record (or None)."""
         if self._measuring is not None or self.table_override is not None:
             return self._measuring or self.table_override
-        record = self.trusted_record()
         spec = ((record or {}).get(TABLE) or {}).get("spec")
         if not spec:
             return None
@@ -448,6 +452,8 @@ class SwitchDecision:
     def settings(self, config: RenderSettings, training_run: bool, device: torch.device) -> FrameSettings:
         """The switches to render with (see `resolve`)."""
         requested, bound = config.requested_switches(), config.switch_bound_db
+        record = self.trusted_record()  # once: parameters changed since (seen by their versions) turn it off
+        failure = self.failed_table(self._record_spec(record))
         key = (
             tuple(requested.values()),
             training_run,
@@ -457,17 +463,16 @@ class SwitchDecision:
             config.time_table_budget_mb,
             getattr(config, "deform_scale_offset", "log"),  # `_table_refusal` reads it
             self._step() if self._step else None,
-            self.distrust(),  # the record's trust: parameters changed since (seen by their versions) turn it off
-            self.failed_table(),
+            record is not None,
+            failure,
         )
         if self._cache is not None and self._cache[0] == key and self._cache[1] is self.record:
             return self._cache[2]
-        record = self.trusted_record()
         measure = replay(record["tried"]) if record else None
         settings = resolve(requested, training_run, config.renders_on_cuda(device), measure, bound_db=bound)[0]
         if settings.time_table and requested.get(TABLE) is None and self._table_refusal(config, device):
             settings = replace(settings, time_table=False)
-        if settings.time_table and self.failed_table():  # asked for or chosen, but the network renders
+        if settings.time_table and failure:  # asked for or chosen, but the network renders
             settings = replace(settings, time_table=False)
         self._cache = (key, self.record, settings)
         return settings

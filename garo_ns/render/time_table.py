@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import bisect
 import math
+import struct
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, replace
 from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Sequence, Tuple
@@ -226,11 +227,20 @@ def iter_field_offsets(
                 yield k0 + j, block
 
 
-def reflection(spec: TableSpec, t: float) -> Tuple[List[Tuple[float, float]], float, float]:
+Reflection = Tuple[List[Tuple[float, float]], float, float]
+
+
+def key_time(spec: TableSpec, k: int) -> float:
+    """Key k's time in float64 (`TableSpec.key_times` rounds the same sum to fp32)."""
+    return spec.t_lo + (k - PAD + 0.5) * spec.spacing
+
+
+def reflection(spec: TableSpec, t: float) -> Reflection:
     """A key at time `t` as the field's values: (ends, sign, s), the key being sum(w * f(end) for w, end in ends)
     + sign * f(s), s inside the spec's range (`TableSpec.ends`). Inside, the field at t; beyond an end, the field
-    there reflected, 2 f(end) - f(2 end - t) (again through the other end while that lies beyond it too). A range
-    of one time gives every key the field's value at it."""
+    there reflected, 2 f(end) - f(2 end - t) (again through the other end while that lies beyond it too). An s on
+    a key of the spec's grid is that key's own time as `key_times` gives it, so that a key and the key reflected to
+    it sample the field at the same input. A range of one time gives every key the field's value at it."""
     lo, hi = spec.ends()
     if hi <= lo:
         return [], 1.0, lo
@@ -240,7 +250,19 @@ def reflection(spec: TableSpec, t: float) -> Tuple[List[Tuple[float, float]], fl
         end = lo if t < lo else hi
         ends.append((2.0 * sign, end))
         sign, t = -sign, 2.0 * end - t
+    on_key = key_time(spec, round((t - spec.t_lo) / spec.spacing + PAD - 0.5))
+    if abs(on_key - t) <= 1e-6 * spec.spacing:
+        t = struct.unpack("f", struct.pack("f", on_key))[0]  # rounded to fp32 as `key_times` rounds it
     return ends, sign, t
+
+
+def reflected(plan: Reflection, value: Tensor, at: Callable[[float], Tensor]) -> Tensor:
+    """A `reflection`'s key from `value` (the field at its s) and `at(end)` (the field at each end it names)."""
+    ends, sign, _ = plan
+    out = value * sign
+    for w, e in ends:
+        out.add_(at(e), alpha=w)
+    return out
 
 
 def key_offsets(
@@ -250,67 +272,36 @@ def key_offsets(
     at the key's time inside the range, reflected through the range's end beyond it (`reflection`). The keys inside
     come as `iter_field_offsets` gives them, a few times at a time; those beyond are made from the ends' values
     (held, two rows) and the key their time reflects to, as that key comes by."""
-    n_keys = spec.intervals + 2 * PAD
-    keys = list(range(n_keys)) if keys is None else [int(k) for k in keys]
-    stored = spec.key_times().tolist()  # what a key's time is when it is sampled (fp32)
-    exact = [spec.t_lo + (k - PAD + 0.5) * spec.spacing for k in range(n_keys)]
-
-    def on_grid(s: float) -> float:
-        # A reflected time lands on a key of the grid: sample it as that key's own time, the same input.
-        j = round((s - spec.t_lo) / spec.spacing + PAD - 0.5)
-        return stored[j] if 0 <= j < n_keys and abs(exact[j] - s) <= 1e-6 * spec.spacing else s
-
-    plans = {}
-    for k in keys:
-        ends, sign, s = reflection(spec, exact[k])
-        plans[k] = (ends, sign, on_grid(s))
+    keys = list(range(spec.intervals + 2 * PAD)) if keys is None else [int(k) for k in keys]
+    plans = {k: reflection(spec, key_time(spec, k)) for k in keys}
     inside = [k for k in keys if not plans[k][0]]
     streamed = {plans[k][2] for k in inside}
     held_times = sorted({e for k in keys for _, e in plans[k][0]})
     held_times += sorted({plans[k][2] for k in keys if plans[k][0] and plans[k][2] not in streamed})
     held = dict(zip(held_times, field_offsets(field, xyz, held_times))) if held_times else {}
-
-    def beyond(k: int, d: Tensor) -> Tensor:
-        ends, sign, _ = plans[k]
-        out = d * sign
-        for w, e in ends:
-            out.add_(held[e], alpha=w)
-        return out
-
     waiting: Dict[float, List[int]] = {}
     for k in keys:
         if plans[k][0]:
             if plans[k][2] in held:
-                yield k, beyond(k, held[plans[k][2]])
+                yield k, reflected(plans[k], held[plans[k][2]], held.__getitem__)
             else:
                 waiting.setdefault(plans[k][2], []).append(k)
     for j, d in iter_field_offsets(field, xyz, [plans[k][2] for k in inside]):
         k = inside[j]
         for b in waiting.pop(plans[k][2], []):
-            yield b, beyond(b, d)
+            yield b, reflected(plans[b], d, held.__getitem__)
         yield k, d
 
 
 def reflected_offsets(field: Any, xyz: Tensor, spec: TableSpec, times: Sequence[float]) -> Tensor:
-    """The offsets [T, N, 10] a key at each of `times` would hold (`reflection`): the field's inside the spec's
-    range, reflected through its end beyond it; each distinct time the field is sampled at, once."""
+    """The offsets [T, N, 10] a key at each of `times` would hold (`reflection`), all at once: the field's inside
+    the spec's range, reflected through its end beyond it; each distinct time the field is sampled at, once."""
     plans = [reflection(spec, float(t)) for t in times]
     need = sorted({e for ends, _, _ in plans for _, e in ends} | {s for _, _, s in plans})
     at = dict(zip(need, field_offsets(field, xyz, need)))
     out = torch.empty(len(times), xyz.shape[0], CHANNELS, device=xyz.device)
-    for j, (ends, sign, s) in enumerate(plans):
-        out[j] = at[s] * sign
-        for w, e in ends:
-            out[j].add_(at[e], alpha=w)
-    return out
-
-
-def key_stack(field: Any, xyz: Tensor, spec: TableSpec, keys: Sequence[int]) -> Tensor:
-    """The offsets [len(keys), N, 10] of `keys` (`key_offsets`), in their order."""
-    out = torch.empty(len(keys), xyz.shape[0], CHANNELS, device=xyz.device)
-    where = {int(k): j for j, k in enumerate(keys)}
-    for k, d in key_offsets(field, xyz, spec, keys):
-        out[where[k]] = d
+    for j, plan in enumerate(plans):
+        out[j] = reflected(plan, at[plan[2]], at.__getitem__)
     return out
 
 
@@ -460,7 +451,7 @@ class TimeTable:
         per_unit = channel_units(spec, scale_offset, xyz.device)  # refuses an unknown composition before any pass
         base = field_offsets(field, xyz, [0.5 * (spec.t_lo + spec.t_hi)])[0]
         anchor_keys = spec.anchor_keys()
-        anchors = key_stack(field, xyz, spec, anchor_keys) - base
+        anchors = reflected_offsets(field, xyz, spec, [key_time(spec, k) for k in anchor_keys]) - base
         line = anchor_lines(anchors, anchor_keys)
 
         plain = Codec(spec.precision)  # fp32 and fp16 keys need no scale: they are encoded as they come
@@ -545,7 +536,9 @@ class TimeTable:
         def interp(order: Order, i: int, f: float) -> Tensor:
             # The four keys around segment i (what either order reads), sampled once for both orders.
             if around["segment"] != i:
-                around["keys"] = key_stack(field, xyz, spec, range(i - 1, i + 3)) - base
+                around["keys"] = (
+                    reflected_offsets(field, xyz, spec, [key_time(spec, k) for k in range(i - 1, i + 3)]) - base
+                )
                 around["segment"] = i
             return interpolate(around["keys"], order, 1, f)
 
